@@ -1,0 +1,208 @@
+"""One configuration schema for the in-process pipeline and the ROS 2 nodes.
+
+Every stage reads its own section. YAML files in ``config/`` override the
+defaults below (which follow the reference implementation, see
+``../shared/notes/reference-defaults.md``); ROS node parameters use the same
+dotted names (``tracking.keyframe_thresh``...).
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field, fields, is_dataclass
+from pathlib import Path
+from typing import Any, Dict, Optional
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A user-facing configuration mistake (unknown key, wrong type, bad file)."""
+
+
+@dataclass
+class CameraConfig:
+    # Tracking image size after resize/crop (0 = keep the input size).
+    width: int = 0
+    height: int = 0
+    crop: int = 0                # pixels cropped from every border before resize
+    undistort: bool = True       # undistort when the camera has distortion coefficients
+
+
+@dataclass
+class TrackingConfig:
+    device: str = "cpu"                  # "cpu", "cuda" or "auto"
+    ba_downsample: int = 8               # BA resolution = tracking image / this (paper: 1/8)
+    flow_method: str = "dis_medium"      # OpenCV DIS preset: dis_ultrafast | dis_fast | dis_medium
+    fb_consistency_px: float = 1.0       # forward-backward error scale for confidences (px at BA res)
+    motion_filter_thresh: float = 4.0    # frame skipped if mean flow (px, tracking res) below this
+    keyframe_thresh: float = 4.0         # tau: new keyframe if mean flow above this
+    warmup: int = 8                      # keyframes collected before initialisation
+    frontend_window: int = 25
+    frontend_radius: int = 1
+    frontend_max_factors: int = 75
+    max_edge_age: int = 50
+    ba_iters: int = 4
+    robust_huber_px: float = 2.0
+    # loop closure (paper 3.1 "Loop Closure")
+    loop_closure: bool = True
+    loop_window: int = 25
+    loop_flow_thresh: float = 25.0       # tau_loop (px)
+    loop_time_gap: int = 20              # tau_t (keyframes)
+    loop_nms: int = 12
+    # online global BA (paper 3.1 "Global BA")
+    global_ba: bool = True
+    global_ba_every: int = 20            # keyframes
+    final_ba_iters: tuple = (7, 12)
+    keyframe_buffer: int = 512
+    # DSPO (paper Eq. 2); only active when a mono depth model is configured
+    dspo: bool = True
+    dspo_alpha1: float = 0.01
+    dspo_alpha2: float = 0.1
+    dspo_mono_thresh: float = 0.1
+
+
+@dataclass
+class DepthConfig:
+    mono_model: str = ""                 # path to an .onnx (or torch) mono depth model; "" = none
+    mono_provider: str = "auto"          # onnxruntime provider: cpu | cuda | auto
+    mv_eta: float = 0.01                 # eta in Eq. 5 (fraction of mean depth)
+    mv_min_views: int = 2                # n_c
+    mv_max_depth_ratio: float = 3.0      # reject depth > ratio x median
+    fill_small_holes: int = 0            # max hole size (px) filled when no mono model
+
+
+@dataclass
+class MappingConfig:
+    device: str = "cpu"
+    iters_per_keyframe: int = 60
+    iters_first: int = 1050
+    window_size: int = 8
+    rgb_weight: float = 0.8              # lambda in Eq. 8
+    isotropy_weight: float = 10.0        # lambda_reg in Eq. 8
+    downsample: int = 32                 # theta
+    downsample_first: int = 16
+    init_opacity: float = 0.5
+    kf_covisibility: float = 0.90        # k_fcov
+    kf_translation: float = 0.08         # k_fm
+    kf_cutoff: float = 0.3               # k_fc
+    prune_every: int = 150
+    densify_every: int = 150
+    prune_opacity: float = 0.7
+    final_refine_iters: int = 2000       # beta
+    lr_means: float = 0.00016
+    lr_colors: float = 0.0025
+    lr_opacity: float = 0.05
+    lr_scales: float = 0.001
+    lr_rotations: float = 0.001
+    lr_exposure: float = 0.01
+    render_every: int = 1                # publish / save a render every N keyframes
+
+
+@dataclass
+class RosConfig:
+    map_frame: str = "map"
+    camera_frame: str = "camera"
+    image_topic: str = "image"
+    camera_info_topic: str = "camera_info"
+
+
+@dataclass
+class SlamConfig:
+    dataset: str = "default"
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    ros: RosConfig = field(default_factory=RosConfig)
+
+    # ------------------------------------------------------------------ I/O
+    def to_dict(self) -> Dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def flat(self) -> Dict[str, Any]:
+        """Dotted names -> values (the ROS parameter names)."""
+        out: Dict[str, Any] = {}
+
+        def walk(obj, prefix):
+            for f in fields(obj):
+                v = getattr(obj, f.name)
+                if is_dataclass(v):
+                    walk(v, prefix + f.name + ".")
+                else:
+                    out[prefix + f.name] = list(v) if isinstance(v, tuple) else v
+        walk(self, "")
+        return out
+
+    def set(self, dotted: str, value: Any) -> None:
+        """Set one value by dotted name, with type checking."""
+        parts = dotted.split(".")
+        obj = self
+        for p in parts[:-1]:
+            if not hasattr(obj, p) or not is_dataclass(getattr(obj, p)):
+                raise ConfigError(f"unknown config section '{p}' in '{dotted}'")
+            obj = getattr(obj, p)
+        _assign(obj, parts[-1], value, dotted)
+
+
+def _assign(obj, name: str, value: Any, dotted: str) -> None:
+    known = {f.name: f for f in fields(obj)}
+    if name not in known:
+        raise ConfigError(
+            f"unknown config key '{dotted}'; valid keys here: {', '.join(sorted(known))}")
+    current = getattr(obj, name)
+    if is_dataclass(current):
+        if not isinstance(value, dict):
+            raise ConfigError(f"'{dotted}' must be a mapping")
+        for k, v in value.items():
+            _assign(current, k, v, f"{dotted}.{k}")
+        return
+    try:
+        if isinstance(current, bool):
+            if not isinstance(value, bool):
+                raise TypeError
+        elif isinstance(current, int):
+            if isinstance(value, bool) or float(value) != int(value):
+                raise TypeError
+            value = int(value)
+        elif isinstance(current, float):
+            if isinstance(value, bool):
+                raise TypeError
+            value = float(value)
+        elif isinstance(current, str):
+            value = str(value)
+        elif isinstance(current, tuple):
+            value = tuple(value)
+    except (TypeError, ValueError):
+        raise ConfigError(
+            f"'{dotted}' expects {type(current).__name__}, got {value!r}") from None
+    setattr(obj, name, value)
+
+
+def load_config(path: Optional[str | Path] = None,
+                overrides: Optional[Dict[str, Any]] = None) -> SlamConfig:
+    """Defaults, then the YAML file (if any), then dotted overrides."""
+    cfg = SlamConfig()
+    if path is not None:
+        p = Path(path)
+        if not p.is_file():
+            raise ConfigError(f"config file not found: {p}")
+        try:
+            data = yaml.safe_load(p.read_text()) or {}
+        except yaml.YAMLError as e:
+            raise ConfigError(f"config file {p} is not valid YAML: {e}") from None
+        if not isinstance(data, dict):
+            raise ConfigError(f"config file {p} must hold a mapping at the top level")
+        for k, v in data.items():
+            if k == "dataset":
+                cfg.dataset = str(v)
+                continue
+            _assign(cfg, k, v, k)
+    for k, v in (overrides or {}).items():
+        cfg.set(k, v)
+    return cfg
+
+
+def config_dir() -> Path:
+    """The shipped config/ folder (repository checkout or installed share)."""
+    here = Path(__file__).resolve().parent.parent / "config"
+    return here
