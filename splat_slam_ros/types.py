@@ -12,9 +12,15 @@ Conventions (used everywhere in the project):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import List, Optional, Sequence
 
 import numpy as np
+import yaml
+
+
+class IntrinsicsError(ValueError):
+    """An intrinsics file is missing, unreadable or incomplete."""
 
 
 @dataclass
@@ -44,6 +50,45 @@ class Intrinsics:
     def as_vector(self) -> np.ndarray:
         return np.array([self.fx, self.fy, self.cx, self.cy], dtype=np.float64)
 
+    # ------------------------------------------------------------ YAML I/O
+    def to_yaml(self, path, **extra) -> None:
+        """Write ``fx fy cx cy width height distortion_model distortion`` (+ extra keys)."""
+        d = dict(fx=float(self.fx), fy=float(self.fy), cx=float(self.cx), cy=float(self.cy),
+                 width=int(self.width), height=int(self.height),
+                 distortion_model=self.distortion_model,
+                 distortion=[float(x) for x in self.distortion])
+        d.update(extra)
+        Path(path).write_text(yaml.safe_dump(d, sort_keys=False))
+
+    @staticmethod
+    def from_yaml(path) -> "Intrinsics":
+        """Read our intrinsics YAML, or a ROS camera_calibration YAML (camera_matrix: data:)."""
+        p = Path(path)
+        if not p.is_file():
+            raise IntrinsicsError(f"intrinsics file not found: {p}")
+        try:
+            d = yaml.safe_load(p.read_text())
+        except yaml.YAMLError as e:
+            raise IntrinsicsError(f"intrinsics file {p} is not valid YAML: {e}") from None
+        if not isinstance(d, dict):
+            raise IntrinsicsError(f"intrinsics file {p} must hold a mapping")
+        try:
+            if "camera_matrix" in d:   # ROS camera_calibration format
+                k = d["camera_matrix"]["data"]
+                dist = d.get("distortion_coefficients", {}).get("data", []) or []
+                return Intrinsics(float(k[0]), float(k[4]), float(k[2]), float(k[5]),
+                                  int(d["image_width"]), int(d["image_height"]),
+                                  d.get("distortion_model", "plumb_bob"),
+                                  [float(x) for x in dist])
+            return Intrinsics(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]),
+                              int(d["width"]), int(d["height"]),
+                              str(d.get("distortion_model", "plumb_bob")),
+                              [float(x) for x in (d.get("distortion") or [])])
+        except (KeyError, TypeError, IndexError, ValueError) as e:
+            raise IntrinsicsError(
+                f"intrinsics file {p} lacks a valid entry ({e}); expected keys fx, fy, cx, cy, "
+                "width, height [, distortion_model, distortion] or a ROS camera_info YAML") from None
+
     def scaled(self, sx: float, sy: Optional[float] = None) -> "Intrinsics":
         """Intrinsics of the image resized by (sx, sy) (pixel-centre convention)."""
         sy = sx if sy is None else sy
@@ -62,6 +107,24 @@ class Frame:
     intrinsics: Intrinsics
     gt_pose: Optional[np.ndarray] = None    # 4x4 camera-to-world, evaluation only
     gt_depth: Optional[np.ndarray] = None   # H x W float32 metres, evaluation only
+
+
+@dataclass
+class KeyframeData:
+    """A keyframe as the tracker hands it on (what ``splat_slam_msgs/Keyframe`` carries).
+
+    ``image``/``intrinsics`` are at the tracking resolution; ``disparity`` and
+    ``confidence`` at the BA resolution (tracking / ``tracking.ba_downsample``).
+    """
+    kf_id: int
+    frame_index: int
+    timestamp: float
+    pose: np.ndarray                          # 4x4 camera-to-world (map frame)
+    image: np.ndarray                         # H x W x 3 uint8 RGB
+    intrinsics: Intrinsics                    # of ``image``
+    disparity: np.ndarray                     # h x w float32, 1/m (scale of the map)
+    confidence: np.ndarray                    # h x w float32 in [0, 1]
+    mono_depth: Optional[np.ndarray] = None   # H x W float32 relative depth, optional
 
 
 @dataclass
