@@ -44,6 +44,15 @@ def _numeric_rows(path: Path, delimiter=None):
     return np.asarray(rows, dtype=np.float64)
 
 
+def _euroc_stamps(path: Path) -> np.ndarray:
+    """Nanosecond integer stamps -> seconds without float64 rounding of the 1e18 value."""
+    ns = [int(line.split(",")[0].strip()) for line in path.read_text().splitlines()
+          if line.strip() and not line.startswith("#")]
+    ns = np.asarray(ns, dtype=np.int64)
+    base = ns[0] - ns[0] % 1_000_000_000
+    return base * 1e-9 + (ns - base) * 1e-9
+
+
 def detect_format(path: str | Path) -> str:
     p = Path(path)
     if not p.is_file():
@@ -91,7 +100,7 @@ def read_trajectory(path: str | Path, fmt: str = "auto",
         a = _numeric_rows(p, delimiter=",")
         if a.shape[1] < 8:
             raise TrajectoryFormatError(f"{p}: EuRoC rows need >= 8 columns, found {a.shape[1]}")
-        ts = a[:, 0] * 1e-9
+        ts = _euroc_stamps(p)
         tq = np.concatenate([a[:, 1:4], a[:, 5:8], a[:, 4:5]], 1)  # qw qx qy qz -> qx qy qz qw
     else:
         raise TrajectoryFormatError(f"unknown trajectory format '{fmt}' (use one of {FORMATS})")
