@@ -1,0 +1,539 @@
+"""rosbag2 (MCAP storage, CDR) writing and reading with ``rosbags`` — no ROS install needed.
+
+Bag layout written by :func:`write_bag` (one message of each per frame, all with
+the frame's timestamp as header stamp *and* log time):
+
+=====================  ============================  =========================================
+topic                  type                          content
+=====================  ============================  =========================================
+/camera/camera_info    sensor_msgs/msg/CameraInfo    K, P, distortion model + coefficients
+/camera/image_raw      sensor_msgs/msg/Image         original encoding: rgb8 (colour) / mono8
+/camera/depth          sensor_msgs/msg/Image         32FC1 metres, 0 = unknown (REP-118);
+                                                     only when the dataset has depth (eval only)
+/ground_truth/pose     geometry_msgs/msg/PoseStamped camera-to-world, frame_id "world";
+                                                     only for frames with ground truth
+=====================  ============================  =========================================
+
+Image/camera_info/depth frame_id is ``camera`` (OpenCV axes). Dataset name, format,
+source and notes are stored in the bag's ``custom_data`` (keys ``splat_slam.*``) and
+in ``splat_slam_info.yaml`` beside ``metadata.yaml``.
+
+:class:`BagDataset` reads such a bag back as :class:`~splat_slam_ros.types.Frame`
+objects (``open_dataset(path, fmt="bag")``), with the rosbags reader or, for a bare
+``.mcap`` file (or ``backend="mcap"``), with ``mcap`` + ``mcap_ros2``.
+"""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import Dict, Iterator, List, Optional, Tuple
+
+import numpy as np
+import yaml
+from tqdm import tqdm
+
+from .datasets import (ASSOC_TOL, Dataset, DatasetError, _check_selection, _copy_intrinsics,
+                       _select, associate, ns_to_stamp, stamp_to_ns)
+from .geometry import pose_from_tq, pose_to_tq
+from .types import Frame, Intrinsics
+
+DEFAULT_TOPICS: Dict[str, Optional[str]] = {
+    "image": "/camera/image_raw",
+    "camera_info": "/camera/camera_info",
+    "depth": "/camera/depth",
+    "gt_pose": "/ground_truth/pose",
+}
+CAMERA_FRAME = "camera"
+WORLD_FRAME = "world"
+INFO_FILE = "splat_slam_info.yaml"
+MSG_PACKAGE = "splat_slam_msgs"
+MSG_DIR = Path(__file__).resolve().parents[1] / "msg_defs" / "msg"
+
+T_IMAGE = "sensor_msgs/msg/Image"
+T_INFO = "sensor_msgs/msg/CameraInfo"
+T_POSE = "geometry_msgs/msg/PoseStamped"
+
+
+# --------------------------------------------------------------------- typestore
+def register_project_types(typestore, msg_dir=None) -> List[str]:
+    """Register ``splat_slam_msgs/msg/*`` from ``msg_defs/msg/*.msg`` into a rosbags typestore.
+
+    Returns the registered type names; an absent folder registers nothing (no error).
+    """
+    from rosbags.typesys import get_types_from_msg
+    d = Path(msg_dir) if msg_dir is not None else MSG_DIR
+    if not d.is_dir():
+        return []
+    types = {}
+    for f in sorted(d.glob("*.msg")):
+        types.update(get_types_from_msg(f.read_text(), f"{MSG_PACKAGE}/msg/{f.stem}"))
+    if types:
+        typestore.register(types)
+    return sorted(types)
+
+
+def make_typestore(project_types: bool = True):
+    """ROS 2 Jazzy typestore (+ the project's own messages when msg_defs/ is present)."""
+    from rosbags.typesys import Stores, get_typestore
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    if project_types:
+        register_project_types(ts)
+    return ts
+
+
+# ------------------------------------------------------------ message builders
+def _header(ts, ns: int, frame_id: str):
+    Header = ts.types["std_msgs/msg/Header"]
+    Time = ts.types["builtin_interfaces/msg/Time"]
+    return Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame_id)
+
+
+def image_msg(ts, img: np.ndarray, ns: int, frame_id: str = CAMERA_FRAME):
+    """uint8 HxW (mono8) or HxWx3 (rgb8) -> sensor_msgs/Image."""
+    img = np.ascontiguousarray(img)
+    if img.dtype != np.uint8 or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
+        raise DatasetError(f"image_msg needs uint8 HxW or HxWx3, got {img.dtype} {img.shape}")
+    enc, ch = ("mono8", 1) if img.ndim == 2 else ("rgb8", 3)
+    h, w = img.shape[:2]
+    return ts.types[T_IMAGE](header=_header(ts, ns, frame_id), height=h, width=w, encoding=enc,
+                             is_bigendian=0, step=w * ch, data=img.reshape(-1))
+
+
+def depth_msg(ts, depth: np.ndarray, ns: int, frame_id: str = CAMERA_FRAME):
+    """float32 metres HxW -> sensor_msgs/Image 32FC1 (little endian)."""
+    d = np.ascontiguousarray(depth, dtype="<f4")
+    h, w = d.shape
+    return ts.types[T_IMAGE](header=_header(ts, ns, frame_id), height=h, width=w,
+                             encoding="32FC1", is_bigendian=0, step=w * 4,
+                             data=d.view(np.uint8).reshape(-1))
+
+
+def camera_info_msg(ts, K: Intrinsics, ns: int, frame_id: str = CAMERA_FRAME):
+    d = list(K.distortion)
+    if K.distortion_model == "plumb_bob" and 0 < len(d) < 5:
+        d = d + [0.0] * (5 - len(d))
+    Roi = ts.types["sensor_msgs/msg/RegionOfInterest"]
+    return ts.types[T_INFO](
+        header=_header(ts, ns, frame_id), height=int(K.height), width=int(K.width),
+        distortion_model=K.distortion_model, d=np.asarray(d, dtype=np.float64),
+        k=np.array([K.fx, 0, K.cx, 0, K.fy, K.cy, 0, 0, 1], dtype=np.float64),
+        r=np.eye(3).reshape(-1),
+        p=np.array([K.fx, 0, K.cx, 0, 0, K.fy, K.cy, 0, 0, 0, 1, 0], dtype=np.float64),
+        binning_x=0, binning_y=0,
+        roi=Roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+
+
+def pose_msg(ts, T: np.ndarray, ns: int, frame_id: str = WORLD_FRAME):
+    tq = pose_to_tq(np.asarray(T, dtype=np.float64)).numpy()
+    P = ts.types
+    pose = P["geometry_msgs/msg/Pose"](
+        position=P["geometry_msgs/msg/Point"](x=float(tq[0]), y=float(tq[1]), z=float(tq[2])),
+        orientation=P["geometry_msgs/msg/Quaternion"](x=float(tq[3]), y=float(tq[4]),
+                                                       z=float(tq[5]), w=float(tq[6])))
+    return P[T_POSE](header=_header(ts, ns, frame_id), pose=pose)
+
+
+# -------------------------------------------- decoders (rosbags or mcap_ros2 objects)
+def msg_stamp_ns(msg) -> int:
+    return int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
+
+
+def _rows(msg, bytes_per_px: int) -> np.ndarray:
+    buf = np.frombuffer(msg.data if not isinstance(msg.data, list) else bytes(msg.data), np.uint8)
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if buf.size < h * step or step < w * bytes_per_px:
+        raise DatasetError(f"image message is truncated ({buf.size} bytes for {w}x{h}, step {step})")
+    return buf[:h * step].reshape(h, step)[:, :w * bytes_per_px]
+
+
+def image_from_msg(msg, keep_mono: bool = False) -> np.ndarray:
+    """sensor_msgs/Image (rgb8/bgr8/rgba8/bgra8/mono8) -> RGB uint8 (or HxW mono8 if kept)."""
+    enc = msg.encoding.lower()
+    chans = {"mono8": 1, "8uc1": 1, "rgb8": 3, "bgr8": 3, "8uc3": 3, "rgba8": 4, "bgra8": 4}
+    if enc not in chans:
+        raise DatasetError(f"unsupported image encoding {msg.encoding!r} (rgb8, bgr8, mono8, ...)")
+    c = chans[enc]
+    a = _rows(msg, c).reshape(int(msg.height), int(msg.width), c)
+    if c == 1:
+        a = a[..., 0]
+        return a.copy() if keep_mono else np.repeat(a[..., None], 3, axis=2)
+    a = a[..., :3]
+    if enc.startswith("bgr"):
+        a = a[..., ::-1]
+    return np.ascontiguousarray(a)
+
+
+def depth_from_msg(msg) -> np.ndarray:
+    """sensor_msgs/Image 32FC1 (metres) or 16UC1 (millimetres, REP-118) -> float32 metres."""
+    enc = msg.encoding.upper()
+    big = bool(msg.is_bigendian)
+    if enc == "32FC1":
+        a = _rows(msg, 4).copy().view(">f4" if big else "<f4")
+    elif enc in ("16UC1", "MONO16"):
+        a = _rows(msg, 2).copy().view(">u2" if big else "<u2").astype(np.float32) / 1000.0
+    else:
+        raise DatasetError(f"unsupported depth encoding {msg.encoding!r} (32FC1 or 16UC1)")
+    d = a.reshape(int(msg.height), int(msg.width)).astype(np.float32)
+    d[~np.isfinite(d)] = 0
+    return d
+
+
+def intrinsics_from_camera_info(msg) -> Intrinsics:
+    k = np.asarray(msg.k, dtype=np.float64).reshape(-1)
+    if k.size != 9 or k[0] == 0:
+        raise DatasetError("camera_info has no valid K matrix")
+    return Intrinsics(float(k[0]), float(k[4]), float(k[2]), float(k[5]), int(msg.width),
+                      int(msg.height), msg.distortion_model or "plumb_bob",
+                      [float(x) for x in np.asarray(msg.d, dtype=np.float64)])
+
+
+def pose_from_msg(msg) -> np.ndarray:
+    p, q = msg.pose.position, msg.pose.orientation
+    return pose_from_tq(np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w])).numpy()
+
+
+# -------------------------------------------------------------------- writing
+def _is_bag_dir(p: Path) -> bool:
+    return p.is_dir() and (p / "metadata.yaml").is_file()
+
+
+def _prepare_out(out: Path, overwrite: bool) -> None:
+    if not out.exists():
+        return
+    if out.is_dir() and not any(out.iterdir()):
+        out.rmdir()
+        return
+    if not overwrite:
+        raise DatasetError(f"output {out} already exists (use --overwrite to replace it)")
+    if not _is_bag_dir(out):
+        raise DatasetError(f"output {out} exists and is not a rosbag2 folder; not deleting it")
+    shutil.rmtree(out)
+
+
+def write_bag(dataset: Dataset, out_dir, progress: bool = True,
+              topics: Optional[Dict[str, Optional[str]]] = None,
+              overwrite: bool = False, compress: bool = False) -> dict:
+    """Write ``dataset`` as a rosbag2 folder (MCAP, CDR). Returns a summary dict
+    (path, frames, topics {name: count}, duration_s, size_bytes).
+
+    ``topics`` overrides DEFAULT_TOPICS per role (image, camera_info, depth, gt_pose); a
+    role mapped to None is not written. ``compress``: zstd-compressed MCAP chunks (about
+    2x smaller for raw images, slower to write; every MCAP reader decodes them). A failure
+    removes the partial bag.
+    """
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+
+    tp = dict(DEFAULT_TOPICS)
+    tp.update(topics or {})
+    if not tp.get("image"):
+        raise DatasetError("write_bag needs an image topic")
+    out = Path(out_dir)
+    _prepare_out(out, overwrite)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    ts = make_typestore(project_types=False)
+    info = dataset.info()
+    counts: Dict[str, int] = {}
+    first_ns = last_ns = None
+    writer = Writer(out, version=8, storage_plugin=StoragePlugin.MCAP)
+    if compress:
+        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    for key in ("name", "format", "source"):
+        writer.set_custom_data(f"splat_slam.{key}", str(info[key]))
+    writer.set_custom_data("splat_slam.frames", str(info["frames"]))
+    try:
+        writer.open()
+        conns = {}
+
+        def conn(role, msgtype):
+            if tp.get(role) and role not in conns:
+                conns[role] = writer.add_connection(tp[role], msgtype, typestore=ts)
+                counts[tp[role]] = 0
+            return conns.get(role)
+
+        conn("camera_info", T_INFO)
+        conn("image", T_IMAGE)
+        if dataset.has_gt_depth:
+            conn("depth", T_IMAGE)
+        if dataset.has_gt_pose:
+            conn("gt_pose", T_POSE)
+
+        def put(role, msg):
+            c = conns.get(role)
+            if c is not None:
+                writer.write(c, ns, ts.serialize_cdr(msg, msg.__msgtype__))
+                counts[tp[role]] += 1
+
+        bar = tqdm(total=len(dataset), disable=not progress, unit="frame",
+                   desc=f"bag {out.name}")
+        n = 0
+        for f in dataset.iter_frames(keep_mono=True):
+            ns = stamp_to_ns(f.timestamp)
+            if last_ns is not None and ns <= last_ns:
+                raise DatasetError(f"timestamps must increase: frame {f.index} at {f.timestamp:.9f}"
+                                   f" s is not after the previous frame")
+            first_ns = ns if first_ns is None else first_ns
+            last_ns = ns
+            put("camera_info", camera_info_msg(ts, f.intrinsics, ns))
+            put("image", image_msg(ts, f.image, ns))
+            if f.gt_depth is not None:
+                put("depth", depth_msg(ts, f.gt_depth, ns))
+            if f.gt_pose is not None:
+                put("gt_pose", pose_msg(ts, f.gt_pose, ns))
+            n += 1
+            bar.update(1)
+        bar.close()
+        if n == 0:
+            raise DatasetError(f"{dataset.source}: the dataset yielded no frames")
+        writer.close()
+    except BaseException:
+        try:
+            writer.close()
+        except Exception:
+            pass
+        shutil.rmtree(out, ignore_errors=True)
+        raise
+    info.update(frames=n, topics={k: v for k, v in tp.items() if v and v in counts},
+                message_counts=counts, bag_format="rosbag2 mcap cdr (metadata version 8)")
+    (out / INFO_FILE).write_text(yaml.safe_dump(info, sort_keys=False))
+    size = sum(p.stat().st_size for p in out.iterdir() if p.is_file())
+    return {"path": str(out), "frames": n, "topics": counts,
+            "duration_s": (last_ns - first_ns) / 1e9, "size_bytes": size}
+
+
+# -------------------------------------------------------------------- reading
+class _RosbagsBackend:
+    def __init__(self, path: Path):
+        from rosbags.rosbag2 import Reader
+        from rosbags.rosbag2.errors import ReaderError
+        try:
+            self.reader = Reader(path)
+            self.reader.open()
+        except ReaderError as e:
+            raise DatasetError(f"cannot read bag {path}: {e}") from None
+        self.ts = make_typestore()
+        self.custom = _custom_data(path)
+
+    def topics(self) -> Dict[str, Tuple[str, int]]:
+        return {t: (i.msgtype, i.msgcount) for t, i in self.reader.topics.items()}
+
+    def messages(self, topics) -> Iterator[Tuple[str, int, object]]:
+        """(topic, log_ns, decode()) in log-time order; decoding is deferred."""
+        conns = [c for c in self.reader.connections if c.topic in topics]
+        for c, t, raw in self.reader.messages(connections=conns):
+            yield c.topic, t, (lambda raw=raw, c=c: self.ts.deserialize_cdr(raw, c.msgtype))
+
+    def close(self):
+        self.reader.close()
+
+
+class _McapBackend:
+    def __init__(self, files: List[Path]):
+        from mcap.reader import make_reader
+        from mcap_ros2.decoder import DecoderFactory
+        self.files = files
+        self._make_reader = make_reader
+        self._factory = DecoderFactory()
+        self.custom = {}
+        self._topics: Dict[str, Tuple[str, int]] = {}
+        for f in files:
+            try:
+                with open(f, "rb") as fh:
+                    r = make_reader(fh)
+                    summ = r.get_summary()
+                    if summ is None:
+                        raise DatasetError(f"{f}: MCAP file without a summary section")
+                    stats = summ.statistics.channel_message_counts if summ.statistics else {}
+                    for cid, ch in summ.channels.items():
+                        name = summ.schemas[ch.schema_id].name if ch.schema_id else ""
+                        old = self._topics.get(ch.topic, (name, 0))[1]
+                        self._topics[ch.topic] = (name, old + stats.get(cid, 0))
+            except DatasetError:
+                raise
+            except Exception as e:   # mcap raises several exception types
+                raise DatasetError(f"cannot read MCAP file {f}: {e}") from None
+
+    def topics(self):
+        return dict(self._topics)
+
+    def messages(self, topics):
+        for f in self.files:
+            with open(f, "rb") as fh:
+                r = self._make_reader(fh)
+                decoders = {}
+                for schema, ch, m in r.iter_messages(topics=list(topics), log_time_order=True):
+                    if ch.id not in decoders:
+                        decoders[ch.id] = self._factory.decoder_for(ch.message_encoding, schema)
+                    yield ch.topic, m.log_time, (lambda d=decoders[ch.id], b=m.data: d(b))
+
+    def close(self):
+        pass
+
+
+def _custom_data(bag_dir: Path) -> Dict[str, str]:
+    try:
+        meta = yaml.safe_load((bag_dir / "metadata.yaml").read_text())
+        return dict(meta["rosbag2_bagfile_information"].get("custom_data") or {})
+    except (OSError, yaml.YAMLError, KeyError, TypeError, AttributeError):
+        return {}
+
+
+def _mcap_files_of(bag_dir: Path) -> List[Path]:
+    meta = yaml.safe_load((bag_dir / "metadata.yaml").read_text())
+    rel = meta["rosbag2_bagfile_information"]["relative_file_paths"]
+    return [bag_dir / Path(r).name for r in rel]
+
+
+class BagDataset(Dataset):
+    """Frames from a rosbag2 folder (or bare .mcap file) with the layout :func:`write_bag` makes.
+
+    Frames are the messages of the image topic; ``intrinsics`` come from the first
+    camera_info; ``gt_pose`` from the PoseStamped with the image's stamp (nearest within
+    0.02 s otherwise); ``gt_depth`` from the depth image with the same log time.
+    ``backend``: "auto" (rosbags for folders, mcap for a bare .mcap file), "rosbags", "mcap".
+    """
+    format = "bag"
+
+    def __init__(self, path, max_frames: Optional[int] = None, stride: int = 1,
+                 keep_mono: bool = False, topics: Optional[Dict[str, Optional[str]]] = None,
+                 backend: str = "auto"):
+        _check_selection(stride, max_frames)
+        p = Path(path)
+        if not p.exists():
+            raise DatasetError(f"bag not found: {p}")
+        bag_dir = p if p.is_dir() else None
+        if p.is_file():
+            if p.suffix.lower() != ".mcap":
+                raise DatasetError(f"{p}: a bag is a rosbag2 folder or a .mcap file")
+            if _is_bag_dir(p.parent) and p in _mcap_files_of(p.parent):
+                bag_dir = p.parent
+        if bag_dir is not None and not _is_bag_dir(bag_dir):
+            raise DatasetError(f"{bag_dir}: not a rosbag2 folder (no metadata.yaml)")
+        if backend == "auto":
+            backend = "rosbags" if bag_dir is not None else "mcap"
+        if backend == "rosbags":
+            if bag_dir is None:
+                raise DatasetError(f"{p}: the rosbags backend needs the bag folder (metadata.yaml)")
+            self._backend = _RosbagsBackend(bag_dir)
+        elif backend == "mcap":
+            self._backend = _McapBackend(_mcap_files_of(bag_dir) if p.is_dir() else [p])
+        else:
+            raise DatasetError(f"unknown bag backend {backend!r} (auto, rosbags, mcap)")
+        self.backend = backend
+        info = {}
+        if bag_dir is not None and (bag_dir / INFO_FILE).is_file():
+            info = yaml.safe_load((bag_dir / INFO_FILE).read_text()) or {}
+        custom = self._backend.custom
+        tp = dict(DEFAULT_TOPICS)
+        tp.update(info.get("topics") or {})
+        tp.update(topics or {})
+        self.topics = tp
+        self.info_file = info
+        name = info.get("name") or custom.get("splat_slam.name") or \
+            (bag_dir.name if bag_dir is not None else p.stem)
+        self.source_format = info.get("format") or custom.get("splat_slam.format")
+        avail = self._backend.topics()
+        for role in ("image", "camera_info"):
+            if tp.get(role) not in avail:
+                raise DatasetError(f"{p}: bag has no {role} topic {tp.get(role)!r} "
+                                   f"(topics: {', '.join(sorted(avail)) or 'none'})")
+        # First pass: small topics decoded, image topic only counted (log times).
+        K = None
+        img_ns: List[int] = []
+        gt: Dict[int, np.ndarray] = {}
+        want = [tp["image"], tp["camera_info"]] + ([tp["gt_pose"]] if tp.get("gt_pose") in avail
+                                                    else [])
+        for topic, t, dec in self._backend.messages(want):
+            if topic == tp["image"]:
+                img_ns.append(t)
+            elif topic == tp["camera_info"]:
+                if K is None:
+                    K = intrinsics_from_camera_info(dec())
+            else:
+                m = dec()
+                gt[msg_stamp_ns(m)] = pose_from_msg(m)
+        if K is None:
+            raise DatasetError(f"{p}: bag has no {tp['camera_info']} messages")
+        if not img_ns:
+            raise DatasetError(f"{p}: bag has no {tp['image']} messages")
+        super().__init__(name, p, K, keep_mono)
+        self._sel = _select(len(img_ns), int(stride), max_frames)
+        self._img_ns = img_ns
+        self._gt_ns = np.array(sorted(gt), dtype=np.int64)
+        self._gt = gt
+        self._has_depth = tp.get("depth") in avail and avail[tp["depth"]][1] > 0
+        if self._has_depth:
+            self.depth_scale = 1.0
+
+    # ---------------------------------------------------------------- helpers
+    def _gt_for(self, ns: int) -> Optional[np.ndarray]:
+        if ns in self._gt:
+            return self._gt[ns].copy()
+        if not len(self._gt_ns):
+            return None
+        j = associate([ns / 1e9], self._gt_ns / 1e9, ASSOC_TOL)[0]
+        return None if j is None else self._gt[int(self._gt_ns[j])].copy()
+
+    def __len__(self) -> int:
+        return len(self._sel)
+
+    @property
+    def has_gt_pose(self) -> bool:
+        return any(self._gt_for(self._img_ns[i]) is not None for i in self._sel)
+
+    @property
+    def has_gt_depth(self) -> bool:
+        return bool(self._has_depth)
+
+    def gt_trajectory(self):
+        rows = [(ns_to_stamp(self._img_ns[i]), self._gt_for(self._img_ns[i])) for i in self._sel]
+        rows = [r for r in rows if r[1] is not None]
+        if not rows:
+            return None
+        return (np.array([r[0] for r in rows]), np.stack([r[1] for r in rows]))
+
+    def iter_frames(self, keep_mono: Optional[bool] = None) -> Iterator[Frame]:
+        keep = self.keep_mono if keep_mono is None else keep_mono
+        wanted = set(self._sel)
+        last = self._sel[-1] if len(self._sel) else -1
+        tp = self.topics
+        topics = [tp["image"]] + ([tp["depth"]] if self._has_depth else [])
+        group_t, group = None, []
+        k = -1        # ordinal of the image message
+        out = 0
+
+        def flush():
+            nonlocal out
+            imgs = [(o, dec) for top, o, dec in group if top == tp["image"]]
+            depths = [dec for top, o, dec in group if top != tp["image"]]
+            for ordinal, dec in imgs:
+                m = dec()
+                ns = msg_stamp_ns(m)
+                depth = None
+                for dd in depths:
+                    dm = dd()
+                    if msg_stamp_ns(dm) == ns:
+                        depth = depth_from_msg(dm)
+                        break
+                img = image_from_msg(m, keep)
+                if (img.shape[1], img.shape[0]) != (self.intrinsics.width, self.intrinsics.height):
+                    raise DatasetError(f"image {ordinal} in the bag is {img.shape[1]}x"
+                                       f"{img.shape[0]} but camera_info says "
+                                       f"{self.intrinsics.width}x{self.intrinsics.height}")
+                yield Frame(index=out, timestamp=ns_to_stamp(ns), image=img,
+                            intrinsics=_copy_intrinsics(self.intrinsics),
+                            gt_pose=self._gt_for(ns), gt_depth=depth)
+                out += 1
+
+        for topic, t, dec in self._backend.messages(topics):
+            if t != group_t:
+                yield from flush()
+                group_t, group = t, []
+                if k >= last:
+                    return
+            if topic == tp["image"]:
+                k += 1
+                if k in wanted:
+                    group.append((topic, k, dec))
+            else:
+                group.append((topic, k, dec))
+        yield from flush()
