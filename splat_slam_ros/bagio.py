@@ -285,6 +285,9 @@ def write_bag(dataset: Dataset, out_dir, progress: bool = True,
         if n == 0:
             raise DatasetError(f"{dataset.source}: the dataset yielded no frames")
         writer.close()
+        info.update(frames=n, topics={k: v for k, v in tp.items() if v and v in counts},
+                    message_counts=counts, bag_format="rosbag2 mcap cdr (metadata version 8)")
+        (out / INFO_FILE).write_text(yaml.safe_dump(info, sort_keys=False))
     except BaseException:
         try:
             writer.close()
@@ -292,9 +295,6 @@ def write_bag(dataset: Dataset, out_dir, progress: bool = True,
             pass
         shutil.rmtree(out, ignore_errors=True)
         raise
-    info.update(frames=n, topics={k: v for k, v in tp.items() if v and v in counts},
-                message_counts=counts, bag_format="rosbag2 mcap cdr (metadata version 8)")
-    (out / INFO_FILE).write_text(yaml.safe_dump(info, sort_keys=False))
     size = sum(p.stat().st_size for p in out.iterdir() if p.is_file())
     return {"path": str(out), "frames": n, "topics": counts,
             "duration_s": (last_ns - first_ns) / 1e9, "size_bytes": size}
@@ -463,6 +463,9 @@ class BagDataset(Dataset):
         self._has_depth = tp.get("depth") in avail and avail[tp["depth"]][1] > 0
         if self._has_depth:
             self.depth_scale = 1.0
+
+    def close(self) -> None:
+        self._backend.close()
 
     # ---------------------------------------------------------------- helpers
     def _gt_for(self, ns: int) -> Optional[np.ndarray]:

@@ -342,16 +342,26 @@ class Dataset:
     def __iter__(self) -> Iterator[Frame]:
         return self.iter_frames()
 
+    def close(self) -> None:
+        """Release open files (bags); file datasets hold none."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
     def info(self) -> dict:
         """Plain-data description (written beside converted bags)."""
         K = self.intrinsics
         return {"name": self.name, "format": self.format, "source": str(self.source),
                 "frames": len(self), "has_gt_pose": bool(self.has_gt_pose),
-                "has_gt_depth": bool(self.has_gt_depth), "depth_scale": self.depth_scale,
-                "intrinsics": {"fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy,
-                               "width": K.width, "height": K.height,
-                               "distortion_model": K.distortion_model,
-                               "distortion": list(K.distortion)},
+                "has_gt_depth": bool(self.has_gt_depth),
+                "depth_scale": None if self.depth_scale is None else float(self.depth_scale),
+                "intrinsics": {"fx": float(K.fx), "fy": float(K.fy), "cx": float(K.cx),
+                               "cy": float(K.cy), "width": int(K.width), "height": int(K.height),
+                               "distortion_model": str(K.distortion_model),
+                               "distortion": [float(x) for x in K.distortion]},
                 "notes": list(self.notes)}
 
     def __repr__(self) -> str:
@@ -637,7 +647,7 @@ def _open_scannet(root: Path, K, extra, fps=None, **kw) -> FileDataset:
                                "or --intrinsics FILE")
         M = _numeric_matrix_rows(kf, 4)
         h, w = read_image(imgs[0], keep_mono=True).shape[:2]
-        K = Intrinsics(M[0, 0], M[1, 1], M[0, 2], M[1, 2], w, h)
+        K = Intrinsics(float(M[0, 0]), float(M[1, 1]), float(M[0, 2]), float(M[1, 2]), w, h)
     ddir = root / "depth"
     depths = None
     if ddir.is_dir():
