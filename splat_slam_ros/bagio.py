@@ -455,7 +455,8 @@ class BagDataset(Dataset):
             raise DatasetError(f"{p}: bag has no {tp['camera_info']} messages")
         if not img_ns:
             raise DatasetError(f"{p}: bag has no {tp['image']} messages")
-        super().__init__(name, p, K, keep_mono)
+        super().__init__(name, p, K, keep_mono,
+                         notes=[f"converted: {n}" for n in info.get("notes") or []])
         self._sel = _select(len(img_ns), int(stride), max_frames)
         self._img_ns = img_ns
         self._gt_ns = np.array(sorted(gt), dtype=np.int64)
@@ -466,6 +467,10 @@ class BagDataset(Dataset):
 
     def close(self) -> None:
         self._backend.close()
+
+    def topic_counts(self) -> Dict[str, Tuple[str, int]]:
+        """{topic: (message type, message count)} of the whole bag."""
+        return self._backend.topics()
 
     # ---------------------------------------------------------------- helpers
     def _gt_for(self, ns: int) -> Optional[np.ndarray]:

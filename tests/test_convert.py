@@ -203,6 +203,10 @@ def test_cli_convert_overwrite_and_errors(tmp_path, capsys):
     assert convert_main([str(root), "--out", str(out), "--quiet", "--overwrite",
                          "--max-frames", "2"]) == 0
     assert len(BagDataset(out)) == 2
+    assert convert_main([str(out), "--info"]) == 0
+    text = capsys.readouterr().out
+    assert "bag 'seq', 2 frames 32x24" in text and "converted from: tum" in text
+    assert "/camera/depth: sensor_msgs/msg/Image, 2 messages" in text
     # --overwrite never deletes a folder that is not a bag
     other = tmp_path / "precious"
     other.mkdir()

@@ -1,5 +1,6 @@
 """splat-slam-convert: any supported dataset -> rosbag2 (MCAP) with the project's topic layout.
 
+    splat-slam-convert INPUT --info       (describe a dataset or bag)
     splat-slam-convert INPUT --out BAG_DIR [--format auto|tum|replica|scannet|euroc|folder|
         video|posefolder] [--intrinsics FILE] [--max-frames N] [--stride K] [--fps F]
         [--depth-scale S] [--overwrite] [--compress] [--quiet]
@@ -18,9 +19,11 @@ def build_parser() -> argparse.ArgumentParser:
         description="Convert a dataset (TUM, Replica, ScanNet, EuRoC, ICL/slambook pose folder, "
                     "image folder, video) into a rosbag2 MCAP bag for the splat_slam nodes.")
     ap.add_argument("input", help="dataset folder, video file, or bag")
-    ap.add_argument("--out", required=True, help="output bag folder (must not exist)")
+    ap.add_argument("--out", help="output bag folder (must not exist)")
+    ap.add_argument("--info", action="store_true",
+                    help="only describe INPUT (dataset or bag): frames, intrinsics, topics")
     ap.add_argument("--format", default="auto",
-                    choices=["auto"] + [f for f in FORMATS if f != "bag"],
+                    choices=["auto"] + list(FORMATS),
                     help="input layout (default: detect)")
     ap.add_argument("--intrinsics", help="camera intrinsics YAML (fx fy cx cy width height "
                     "[distortion_model distortion depth_scale]) or ROS camera_info YAML; "
@@ -48,10 +51,36 @@ def _human(n: float) -> str:
     return f"{n:.1f} GiB"
 
 
+def describe(ds) -> None:
+    """Print what a dataset or bag holds (``--info``)."""
+    K = ds.intrinsics
+    print(f"{ds.source}: {ds.format} '{ds.name}', {len(ds)} frames {K.width}x{K.height}")
+    print(f"  intrinsics fx={K.fx:g} fy={K.fy:g} cx={K.cx:g} cy={K.cy:g} "
+          f"{K.distortion_model} {list(K.distortion)}")
+    print(f"  gt_pose={ds.has_gt_pose} gt_depth={ds.has_gt_depth}")
+    if ds.format == "bag":
+        print(f"  converted from: {ds.source_format or 'unknown'}")
+        for topic, (msgtype, n) in sorted(ds.topic_counts().items()):
+            print(f"  {topic}: {msgtype}, {n} messages")
+    tr = ds.gt_trajectory()
+    if tr is not None and len(tr[0]) > 1:
+        print(f"  ground truth: {len(tr[0])} poses over {tr[0][-1] - tr[0][0]:.3f} s")
+    for note in ds.notes:
+        print(f"  note: {note}")
+
+
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    if not args.info and not args.out:
+        ap.error("--out is required (or use --info to only describe INPUT)")
     from ..bagio import write_bag
     try:
+        if args.info:
+            with open_dataset(args.input, fmt=args.format, intrinsics=args.intrinsics,
+                              fps=args.fps, depth_scale=args.depth_scale) as ds:
+                describe(ds)
+            return 0
         ds = open_dataset(args.input, fmt=args.format, intrinsics=args.intrinsics,
                           max_frames=args.max_frames, stride=args.stride, fps=args.fps,
                           depth_scale=args.depth_scale)
