@@ -1,0 +1,646 @@
+"""The Gaussian mapper (§3.2 "Keyframe Selection and Optimization", supplementary Method).
+
+Per tracker keyframe (``Mapper.add_keyframe``):
+
+1. render the map at the keyframe's pose; the keyframe is mapped only if its covisibility
+   with the last mapped keyframe is low or the camera moved enough (keyframe_window.py);
+2. new Gaussians are anchored from its proxy depth (map_init.py) and it joins the window;
+3. ``iters_per_keyframe`` Adam iterations (``iters_first`` for the first keyframe) on the
+   Eq. 8 loss summed over the window keyframes (+ a few random older ones);
+4. every ``densify_every`` / ``prune_every`` iterations: 3DGS densification and opacity /
+   size pruning; when the window is full, visibility pruning of the newest Gaussians.
+
+Pose/depth updates from BA, loop closure or global BA deform the anchored Gaussians
+(``apply_update``, deformation.py) before the next mapping step. ``final_refine`` runs the
+supplementary's final refinement (random single keyframes, no pruning/densification).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, Iterable, List, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from .config import SlamConfig
+from .deformation import deform_gaussians
+from .gaussian_map import GaussianMap
+from .geometry import quat_to_matrix, se3_inverse
+from .keyframe_window import KeyframeDecision, KeyframeWindow
+from .map_init import init_gaussians
+from .ply_io import load_gaussians_ply, save_gaussians_ply
+from .types import Intrinsics
+
+
+class MapError(ValueError):
+    """A user-facing mapping mistake (bad input shapes, missing poses/depth, bad file)."""
+
+
+def _rasterizer():
+    try:
+        from .rasterizer import rasterize
+    except ImportError as e:
+        raise MapError(f"the Gaussian rasterizer is not available: {e}") from None
+    return rasterize
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise MapError(f"mapping.device is '{name}' but CUDA is not available; use cpu or auto")
+    return torch.device(name)
+
+
+@dataclass
+class MappedKeyframe:
+    kf_id: int
+    index: int                      # order of mapping (0 = first)
+    timestamp: float
+    pose: np.ndarray                # 4x4 camera-to-world (float64), current estimate
+    image: torch.Tensor             # (H, W, 3) uint8
+    depth: torch.Tensor             # (H, W) float32 proxy depth, 0 where invalid
+    valid: torch.Tensor             # (H, W) bool
+    exposure: torch.Tensor          # (2,) (log a, b): colour a * C + b (Eq. 8)
+
+
+class Mapper:
+    """Deformable 3D Gaussian map built from keyframes with poses and proxy depth."""
+
+    def __init__(self, cfg: SlamConfig, intrinsics: Intrinsics, device=None):
+        self.cfg = cfg
+        m = self.mcfg = cfg.mapping
+        if intrinsics.fx <= 0 or intrinsics.fy <= 0:
+            raise MapError(f"mapper needs positive focal lengths (fx={intrinsics.fx}, "
+                           f"fy={intrinsics.fy}); open the data with datasets.open_dataset, "
+                           "which converts negative-focal (ICL-NUIM) cameras")
+        if m.window_size < 1 or m.downsample < 1 or m.downsample_first < 1:
+            raise MapError("mapping.window_size and mapping.downsample* must be >= 1")
+        self.device = resolve_device(str(device or m.device))
+        self.K = intrinsics
+        self.W, self.H = int(intrinsics.width), int(intrinsics.height)
+        self.intr = (float(intrinsics.fx), float(intrinsics.fy), float(intrinsics.cx),
+                     float(intrinsics.cy))
+        self.map = GaussianMap(self.device, {
+            "means": m.lr_means, "quats": m.lr_rotations, "log_scales": m.lr_scales,
+            "opacity_logits": m.lr_opacity, "colors": m.lr_colors})
+        self.window = KeyframeWindow(m.window_size, m.kf_covisibility, m.kf_translation,
+                                     m.kf_cutoff)
+        self.keyframes: Dict[int, MappedKeyframe] = {}
+        self._exp_opt: Optional[torch.optim.Optimizer] = None
+        self.gen = torch.Generator().manual_seed(int(m.seed))
+        self.rng = np.random.default_rng(int(m.seed))
+        self.iteration = 0
+        self.n_deformations = 0
+        self.n_deformed_gaussians = 0
+        self.last_ms = 0.0
+        self.last_loss = float("nan")
+        self._scene_depth = 0.0
+        self.backend = "auto"
+
+    # ================================================================ render
+    def _viewmat(self, pose_c2w: np.ndarray) -> torch.Tensor:
+        T = torch.as_tensor(np.asarray(pose_c2w, dtype=np.float64))
+        return se3_inverse(T).to(device=self.device, dtype=torch.float32)
+
+    def _raster(self, pose, intr=None, width=None, height=None, means=None):
+        g = self.map
+        return _rasterizer()(
+            g.means if means is None else means, g.normalized_quats(), g.scales(),
+            g.opacities(), g.colors, self._viewmat(pose), intr or self.intr,
+            int(width or self.W), int(height or self.H), backend=self.backend)
+
+    @torch.no_grad()
+    def render(self, pose, width: Optional[int] = None, height: Optional[int] = None,
+               kf_id: Optional[int] = None) -> Tuple[np.ndarray, np.ndarray]:
+        """Render (rgb uint8 HxWx3, depth float32 HxW metres) at a camera-to-world pose.
+
+        ``width``/``height`` rescale the intrinsics; ``kf_id`` applies that keyframe's
+        learned exposure (a * C + b)."""
+        W, H = int(width or self.W), int(height or self.H)
+        intr = self.intr
+        if (W, H) != (self.W, self.H):
+            k = self.K.scaled(W / self.W, H / self.H)
+            intr = (k.fx, k.fy, k.cx, k.cy)
+        pose = np.asarray(pose, dtype=np.float64)
+        if pose.shape != (4, 4):
+            raise MapError(f"render pose must be 4x4, got {pose.shape}")
+        if len(self.map) == 0:
+            return np.zeros((H, W, 3), np.uint8), np.zeros((H, W), np.float32)
+        out = self._raster(pose, intr, W, H)
+        rgb = out.rgb
+        if kf_id is not None and kf_id in self.keyframes:
+            rgb = self._expose(rgb, self.keyframes[kf_id])
+        rgb = (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+        return rgb, out.depth.float().cpu().numpy()
+
+    @staticmethod
+    def _expose(rgb: torch.Tensor, kf: MappedKeyframe) -> torch.Tensor:
+        return rgb * kf.exposure[0].exp() + kf.exposure[1]      # a_k C_k + b_k (Eq. 8)
+
+    # ============================================================ keyframes
+    def _check_inputs(self, image, depth, valid):
+        image = np.asarray(image)
+        if image.ndim == 2:
+            image = np.repeat(image[..., None], 3, -1)
+        if image.shape != (self.H, self.W, 3):
+            raise MapError(f"keyframe image is {image.shape}, the mapper's intrinsics are for "
+                           f"{self.W}x{self.H}x3")
+        if image.dtype != np.uint8:
+            raise MapError(f"keyframe image must be uint8 RGB, got {image.dtype}")
+        depth = np.asarray(depth, dtype=np.float32)
+        if depth.shape != (self.H, self.W):
+            raise MapError(f"proxy depth is {depth.shape}, expected {(self.H, self.W)}")
+        ok = np.isfinite(depth) & (depth > 0)
+        if valid is not None:
+            valid = np.asarray(valid)
+            if valid.shape != depth.shape:
+                raise MapError(f"depth validity mask is {valid.shape}, expected {depth.shape}")
+            ok &= valid.astype(bool)
+        dev = self.device
+        return (torch.from_numpy(np.ascontiguousarray(image)).to(dev),
+                torch.from_numpy(np.where(ok, depth, 0).astype(np.float32)).to(dev),
+                torch.from_numpy(ok).to(dev))
+
+    @staticmethod
+    def _check_pose(pose) -> np.ndarray:
+        pose = np.asarray(pose, dtype=np.float64)
+        if pose.shape != (4, 4) or not np.isfinite(pose).all():
+            raise MapError(f"pose must be a finite 4x4 camera-to-world matrix, got {pose.shape}")
+        return pose
+
+    @torch.no_grad()
+    def decide(self, pose, depth, valid=None) -> KeyframeDecision:
+        """Would a keyframe at ``pose`` be mapped? (covisibility / translation rules)."""
+        pose = self._check_pose(pose)
+        if self.window.last is None or len(self.map) == 0:
+            return KeyframeDecision(True, "first", 0.0, 0.0, 0.0)
+        out = self._raster(pose)
+        vis = self.map.uid[out.visible]
+        d = np.asarray(depth, dtype=np.float32)
+        ok = np.isfinite(d) & (d > 0)
+        if valid is not None:
+            ok &= np.asarray(valid, bool)
+        med = float(np.median(d[ok])) if ok.any() else float(out.depth[out.alpha > 0.5].median()
+                                                            if (out.alpha > 0.5).any() else 0)
+        poses = {k: kf.pose for k, kf in self.keyframes.items()}
+        return self.window.decide(vis, pose, med, poses)
+
+    def add_keyframe(self, kf_id: int, image, pose, depth, valid=None,
+                     timestamp: Optional[float] = None, force: bool = False) -> dict:
+        """Offer a tracker keyframe to the map. Returns statistics of this step.
+
+        image (H,W,3) uint8 RGB; pose 4x4 camera-to-world; depth (H,W) float32 metres (proxy
+        depth, 0 = missing); valid (H,W) bool or None. ``force`` maps it regardless of the
+        covisibility rules."""
+        t0 = time.perf_counter()
+        kf_id = int(kf_id)
+        if kf_id in self.keyframes:
+            raise MapError(f"keyframe {kf_id} is already mapped; use apply_update to change it")
+        pose = self._check_pose(pose)
+        img_t, depth_t, valid_t = self._check_inputs(image, depth, valid)
+        first = len(self.keyframes) == 0
+        if first:
+            dec = KeyframeDecision(True, "first", 0.0, 0.0, 0.0)
+            vis = self.map.uid[:0]
+        else:
+            with torch.no_grad():
+                out = self._raster(pose)
+            vis = self.map.uid[out.visible]
+            med = float(depth_t[valid_t].median()) if bool(valid_t.any()) else 1.0
+            dec = self.window.decide(vis, pose, med,
+                                     {k: kf.pose for k, kf in self.keyframes.items()})
+            if force and not dec.mapped:
+                dec = KeyframeDecision(True, "forced", dec.iou, dec.translation, dec.threshold)
+        stats = {"kf_id": kf_id, "mapped": dec.mapped, "reason": dec.reason,
+                 "iou": round(dec.iou, 4), "translation": round(dec.translation, 4)}
+        if not dec.mapped:
+            self.last_ms = 1000 * (time.perf_counter() - t0)
+            stats.update(self.stats())
+            return stats
+
+        kf = MappedKeyframe(kf_id, len(self.keyframes),
+                            float(kf_id if timestamp is None else timestamp), pose, img_t,
+                            depth_t, valid_t, torch.zeros(2, device=self.device))
+        if not first:        # the first keyframe fixes the exposure gauge (a = 1, b = 0)
+            kf.exposure.requires_grad_(True)
+            grp = {"params": [kf.exposure], "lr": self.mcfg.lr_exposure}
+            if self._exp_opt is None:
+                self._exp_opt = torch.optim.Adam([grp], lr=self.mcfg.lr_exposure)
+            else:
+                self._exp_opt.add_param_group(grp)
+        self.keyframes[kf_id] = kf
+        if first and bool(valid_t.any()):
+            self._scene_depth = float(depth_t[valid_t].median())
+
+        # supplementary "Map Initialization": anchor new Gaussians from the proxy depth
+        new = init_gaussians(img_t, depth_t, valid_t, pose, self.intr,
+                             self.mcfg.downsample_first if first else self.mcfg.downsample,
+                             self.mcfg.init_opacity, self.gen, self.device)
+        n_new = int(new["means"].shape[0])
+        self.map.add(new["means"], new["colors"], new["log_scales"], new["quats"],
+                     new["opacity_logits"], kf_id=kf_id, created=kf.index, born=self.iteration)
+        removed = self.window.add(kf_id, vis, {k: k2.pose for k, k2 in self.keyframes.items()})
+
+        iters = self.mcfg.iters_first if first else self.mcfg.iters_per_keyframe
+        self._optimize(iters, densify=True)
+        n_vis_pruned = self._visibility_prune() if self.window.full else 0
+        self.last_ms = 1000 * (time.perf_counter() - t0)
+        stats.update({"new_gaussians": n_new, "left_window": removed,
+                      "visibility_pruned": n_vis_pruned, "loss": round(self.last_loss, 5)})
+        stats.update(self.stats())
+        return stats
+
+    # =========================================================== optimisation
+    def _pick_views(self, single_random: bool) -> List[int]:
+        ids = list(self.keyframes)
+        if single_random:
+            return [ids[int(self.rng.integers(len(ids)))]]
+        win = list(self.window.window)
+        k = self.mcfg.window_views_per_iter
+        if 0 < k < len(win):           # newest always, the rest sampled
+            rest = list(self.rng.choice(win[1:], size=k - 1, replace=False)) if k > 1 else []
+            win = [win[0]] + [int(x) for x in rest]
+        others = [i for i in ids if i not in self.window.window]
+        r = min(self.mcfg.random_views_per_iter, len(others))
+        if r > 0:
+            win += [int(x) for x in self.rng.choice(others, size=r, replace=False)]
+        return win
+
+    def _view_loss(self, kf: MappedKeyframe, out) -> torch.Tensor:
+        """Eq. 8 data terms of one keyframe: lambda/N |aC+b - C_gt|_1 + (1-lambda)/N |D^r - D|_1."""
+        lam = self.mcfg.rgb_weight
+        gt = kf.image.to(torch.float32) / 255.0
+        l_rgb = (self._expose(out.rgb, kf) - gt).abs().mean()
+        n_pix = kf.depth.numel()
+        l_depth = ((out.depth - kf.depth).abs() * kf.valid).sum() / n_pix
+        return lam * l_rgb + (1 - lam) * l_depth
+
+    def _isotropy(self) -> torch.Tensor:
+        """Eq. 8 regulariser: 1/|G| sum_i |s_i - mean(s_i)|_1 (scales, not log-scales)."""
+        s = self.map.scales()
+        return (s - s.mean(1, keepdim=True)).abs().sum(1).mean()
+
+    def _optimize(self, iters: int, densify: bool = True, single_random: bool = False,
+                  progress: bool = False) -> None:
+        if iters <= 0 or len(self.map) == 0:
+            return
+        m = self.mcfg
+        bar = None
+        if progress:
+            from tqdm import tqdm
+            bar = tqdm(total=iters, desc="refine", unit="it", dynamic_ncols=True, leave=False)
+        for _ in range(iters):
+            views = self._pick_views(single_random)
+            self.map.zero_grad()
+            if self._exp_opt is not None:
+                self._exp_opt.zero_grad(set_to_none=True)
+            loss = 0.0
+            tracked = []
+            for kid in views:
+                kf = self.keyframes[kid]
+                mv = None
+                if densify:            # per-view copy of the means: its grad is this view's
+                    mv = self.map.means * 1.0
+                    mv.retain_grad()
+                out = self._raster(kf.pose, means=mv)
+                m2 = out.means2d if densify else None
+                if m2 is not None and m2.requires_grad:
+                    m2.retain_grad()
+                loss = loss + self._view_loss(kf, out)
+                tracked.append((kf, mv, m2, out.radii, out.visible))
+            loss = loss + m.isotropy_weight * self._isotropy()
+            loss.backward()
+            self.last_loss = float(loss.detach())
+            with torch.no_grad():
+                for kf, mv, m2, radii, visible in tracked:
+                    if kf.kf_id in self.window.window:
+                        self.window.set_visibility(kf.kf_id, self.map.uid[visible])
+                    if m2 is not None and m2.grad is not None:
+                        self._accumulate_densify_stats(kf, radii, grad2d=m2.grad)
+                    elif mv is not None and mv.grad is not None:
+                        self._accumulate_densify_stats(kf, radii, grad3d=mv.grad)
+            self.map.step()
+            if self._exp_opt is not None:
+                self._exp_opt.step()
+            self.iteration += 1
+            if densify:
+                changed = False
+                if m.densify_every > 0 and self.iteration % m.densify_every == 0:
+                    self._densify()
+                    changed = True
+                if m.prune_every > 0 and self.iteration % m.prune_every == 0:
+                    self._prune()
+                    changed = True
+                if changed:
+                    self.map.reset_densify_stats()
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{self.last_loss:.4f}")
+        if bar is not None:
+            bar.close()
+
+    # ================================================== pruning / densification
+    def scene_extent(self) -> float:
+        """Spatial scale for the 3DGS size thresholds: camera spread, at least the depth."""
+        if self.mcfg.scene_extent > 0:
+            return float(self.mcfg.scene_extent)
+        c = np.stack([kf.pose[:3, 3] for kf in self.keyframes.values()]) if self.keyframes \
+            else np.zeros((1, 3))
+        radius = 1.1 * float(np.linalg.norm(c - c.mean(0), axis=1).max())
+        return max(radius, self._scene_depth, 1e-3)
+
+    @torch.no_grad()
+    def _accumulate_densify_stats(self, kf: MappedKeyframe, radii: torch.Tensor,
+                                  grad2d: Optional[torch.Tensor] = None,
+                                  grad3d: Optional[torch.Tensor] = None) -> None:
+        """3DGS view-space positional gradient of one view, in NDC units (pixel x W/2).
+
+        From the projected centres' gradient when the rasterizer exposes it; otherwise from
+        the 3D mean gradient: a pixel shift (du, dv) of the centre is the camera-frame move
+        (du z / fx, dv z / fy, 0), so dL/du = (z / fx) (R_cw dL/dmu)_x."""
+        if grad2d is not None:
+            gu, gv = grad2d[:, 0], grad2d[:, 1]
+        else:
+            V = self._viewmat(kf.pose)
+            R, t = V[:3, :3], V[:3, 3]
+            z = (self.map.means.detach() @ R.T + t)[:, 2].clamp_min(1e-6)
+            g = grad3d @ R.T
+            gu = g[:, 0] * z / self.intr[0]
+            gv = g[:, 1] * z / self.intr[1]
+        gu = gu * 0.5 * self.W
+        gv = gv * 0.5 * self.H
+        seen = radii > 0
+        self.map.grad_accum += torch.where(seen, torch.sqrt(gu * gu + gv * gv),
+                                           torch.zeros_like(gu))
+        self.map.grad_count += seen.to(self.map.grad_count.dtype)
+        self.map.max_radii = torch.maximum(self.map.max_radii, radii.to(self.map.max_radii.dtype))
+
+    @torch.no_grad()
+    def _densify(self) -> Tuple[int, int]:
+        """3DGS: clone small / split large Gaussians whose mean view-space gradient is high."""
+        g = self.map
+        n = len(g)
+        if n == 0:
+            return 0, 0
+        grad = g.grad_accum / g.grad_count.clamp_min(1)
+        sel = (grad >= self.mcfg.densify_grad_thresh) & (g.grad_count > 0)
+        scales = g.scales()
+        smax = scales.max(1).values
+        limit = self.mcfg.percent_dense * self.scene_extent()
+        clone = (sel & (smax <= limit)).nonzero()[:, 0]
+        split = (sel & (smax > limit)).nonzero()[:, 0]
+        t = g.tensors()
+        if len(clone):
+            g.add(t["means"][clone], t["colors"][clone], t["log_scales"][clone],
+                  t["quats"][clone], t["opacity_logits"][clone], kf_id=t["kf_id"][clone],
+                  created=t["created"][clone], born=self.iteration)
+        if len(split):
+            k = 2
+            idx = split.repeat(k)
+            s = scales[idx]
+            offs = torch.randn(s.shape, generator=self.gen).to(s) * s
+            R = quat_to_matrix(t["quats"][idx])
+            means = t["means"][idx] + (R @ offs[..., None])[..., 0]
+            g.add(means, t["colors"][idx], (s / (0.8 * k)).log(), t["quats"][idx],
+                  t["opacity_logits"][idx], kf_id=t["kf_id"][idx], created=t["created"][idx],
+                  born=self.iteration)
+            rm = torch.zeros(len(g), dtype=torch.bool, device=g.device)
+            rm[split] = True
+            g.remove(rm)
+        return len(clone), len(split)
+
+    @torch.no_grad()
+    def _prune(self) -> int:
+        """Remove low-opacity (old enough) and oversized Gaussians (supplementary)."""
+        g = self.map
+        if len(g) == 0:
+            return 0
+        m = self.mcfg
+        old = (self.iteration - g.born) >= m.prune_min_age
+        rm = (g.opacities() < m.prune_opacity) & old
+        if m.prune_max_screen_px > 0:
+            rm |= g.max_radii > m.prune_max_screen_px
+        if m.prune_max_scale_frac > 0:
+            rm |= g.scales().max(1).values > m.prune_max_scale_frac * self.scene_extent()
+        if bool(rm.all()):
+            return 0                   # never wipe the map
+        return g.remove(rm)
+
+    @torch.no_grad()
+    def _visibility_prune(self) -> int:
+        """New Gaussians (last ``prune_recent_kfs`` keyframes) seen by fewer than
+        ``prune_covis_min`` other window keyframes are removed (only when the window is full)."""
+        m = self.mcfg
+        g = self.map
+        if m.prune_covis_min <= 0 or len(g) == 0:
+            return 0
+        cand = g.created >= len(self.keyframes) - m.prune_recent_kfs
+        count = torch.zeros(len(g), dtype=torch.long, device=g.device)
+        for j in self.window.window:
+            vis = self.window.visibility.get(j)
+            if vis is None or vis.numel() == 0:
+                continue
+            count += (torch.isin(g.uid, vis) & (g.kf_id != j)).long()
+        return g.remove(cand & (count < m.prune_covis_min))
+
+    # ============================================================ deformation
+    @torch.no_grad()
+    def apply_update(self, kf_id: int, pose, depth=None, valid=None) -> int:
+        """A keyframe's pose (and proxy depth) changed: deform its Gaussians (Eq. 9), then
+        store the new pose/depth. Returns the number of Gaussians moved (0 for a keyframe
+        that was never mapped). Without ``depth`` the keyframe's Gaussians move rigidly."""
+        kf = self.keyframes.get(int(kf_id))
+        if kf is None:
+            return 0
+        pose = self._check_pose(pose)
+        new_depth = new_valid = None
+        if depth is not None:
+            _, new_depth, new_valid = self._check_inputs(
+                np.zeros((self.H, self.W, 3), np.uint8), depth, valid)
+        sel = (self.map.kf_id == kf.kf_id).nonzero()[:, 0]
+        if len(sel):
+            g = self.map
+            d = deform_gaussians(g.means[sel], g.quats[sel], g.log_scales[sel], kf.pose, pose,
+                                 self.intr, kf.depth if new_depth is not None else None,
+                                 new_depth, kf.valid, new_valid)
+            g.set_rows(sel, means=d.means, quats=d.quats, log_scales=d.log_scales)
+        kf.pose = pose
+        if new_depth is not None:
+            kf.depth, kf.valid = new_depth, new_valid
+        self.n_deformations += 1
+        self.n_deformed_gaussians += int(len(sel))
+        return int(len(sel))
+
+    def apply_updates(self, kf_ids: Sequence[int], poses, depths=None, valids=None) -> int:
+        """Several keyframes of one update event (see :meth:`apply_update`)."""
+        total = 0
+        for i, k in enumerate(kf_ids):
+            total += self.apply_update(k, poses[i], None if depths is None else depths[i],
+                                       None if valids is None else valids[i])
+        return total
+
+    # ============================================================== refinement
+    def final_refine(self, iters: Optional[int] = None, progress: bool = False) -> dict:
+        """Supplementary "Final Refinement": beta iterations on random single keyframes,
+        same loss, no pruning or densification."""
+        t0 = time.perf_counter()
+        iters = self.mcfg.final_refine_iters if iters is None else int(iters)
+        if self.keyframes:
+            self._optimize(iters, densify=False, single_random=True, progress=progress)
+        return {"refine_iters": iters, "refine_s": round(time.perf_counter() - t0, 3)}
+
+    # ================================================================ output
+    def stats(self) -> dict:
+        return {"gaussians": len(self.map), "keyframes": len(self.keyframes),
+                "window": list(self.window.window),
+                "map_mb": round(self.map.nbytes() / 2 ** 20, 4),
+                "last_ms": round(self.last_ms, 2), "deformations": self.n_deformations,
+                "deformed_gaussians": self.n_deformed_gaussians, "iterations": self.iteration}
+
+    def keyframe_trajectory(self) -> Tuple[np.ndarray, np.ndarray]:
+        """(timestamps, camera-to-world poses) of the mapped keyframes, by kf id."""
+        ks = sorted(self.keyframes)
+        if not ks:
+            return np.zeros(0), np.zeros((0, 4, 4))
+        return (np.array([self.keyframes[k].timestamp for k in ks]),
+                np.stack([self.keyframes[k].pose for k in ks]))
+
+    def save_ply(self, path) -> None:
+        """Standard 3DGS PLY (binary little-endian) + a kf_id property."""
+        g = self.map
+        save_gaussians_ply(path, g.means, g.normalized_quats(), g.log_scales,
+                           g.opacity_logits, g.colors, g.kf_id)
+
+    @classmethod
+    def load_ply(cls, path, cfg: SlamConfig, intrinsics: Intrinsics) -> "Mapper":
+        """A mapper holding the Gaussians of a PLY file (no keyframes): render/evaluate it."""
+        from .ply_io import PlyError
+        try:
+            d = load_gaussians_ply(path)
+        except PlyError as e:
+            raise MapError(str(e)) from None
+        mp = cls(cfg, intrinsics)
+        t = {k: torch.from_numpy(v) for k, v in d.items()}
+        mp.map.add(t["means"], t["colors"], t["log_scales"], t["quats"], t["opacity_logits"],
+                   kf_id=t["kf_id"], created=0, born=0)
+        return mp
+
+    def save_renders(self, folder, depth_scale: float = 1000.0) -> int:
+        """Write ``kf_<id>.png`` (rendered colour with the keyframe's exposure) and
+        ``kf_<id>_depth.png`` (16-bit, ``depth_scale`` units per metre) per keyframe."""
+        import cv2
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        for k, kf in sorted(self.keyframes.items()):
+            rgb, depth = self.render(kf.pose, kf_id=k)
+            cv2.imwrite(str(folder / f"kf_{k:05d}.png"), rgb[..., ::-1])
+            d = np.clip(depth * depth_scale, 0, 65535).astype(np.uint16)
+            cv2.imwrite(str(folder / f"kf_{k:05d}_depth.png"), d)
+        return len(self.keyframes)
+
+    # ============================================================ evaluation
+    def evaluate(self, frames: Optional[Iterable] = None, gt_depth=None,
+                 poses: Optional[Sequence[np.ndarray]] = None, render_dir=None,
+                 lpips_model=None, lpips_weights=None) -> dict:
+        """Rendering metrics (PSNR, SSIM, LPIPS with a backbone file, depth L1 in cm).
+
+        ``frames=None``: the mapped keyframes, each with its learned exposure (as the
+        reference evaluates); ``gt_depth`` then maps kf_id -> sensor depth (H,W metres).
+        Otherwise ``frames`` are :class:`~splat_slam_ros.types.Frame` objects rendered at
+        ``poses`` (default: their ``gt_pose``) against ``frame.image`` / ``frame.gt_depth``.
+        Also reports the Gaussian count and map size (MB)."""
+        from . import evaluation as ev
+        views = []
+        if frames is None:
+            for k, kf in sorted(self.keyframes.items()):
+                gd = None
+                if gt_depth is not None:
+                    gd = gt_depth.get(k) if isinstance(gt_depth, dict) else gt_depth[kf.index]
+                views.append((f"kf_{k:05d}", kf.pose, kf.image.cpu().numpy(), gd, k))
+        else:
+            for i, fr in enumerate(frames):
+                pose = poses[i] if poses is not None else fr.gt_pose
+                if pose is None:
+                    raise MapError(f"frame {fr.index} has no pose to render from")
+                views.append((f"frame_{fr.index:05d}", pose, np.asarray(fr.image),
+                              fr.gt_depth, None))
+        per_view = []
+        for name, pose, ref, gd, kid in views:
+            H, W = ref.shape[:2]
+            rgb, depth = self.render(pose, W, H, kf_id=kid)
+            m = {"psnr": ev.psnr(rgb, ref), "ssim": ev.ssim(rgb, ref)}
+            if lpips_model is not None:
+                m["lpips"] = ev.lpips(rgb, ref, lpips_model, lpips_weights)
+            if gd is not None:
+                m["depth_l1_cm"] = ev.depth_l1_cm(depth, gd)
+            per_view.append(m)
+            if render_dir is not None:
+                import cv2
+                Path(render_dir).mkdir(parents=True, exist_ok=True)
+                cv2.imwrite(str(Path(render_dir) / f"{name}.png"), rgb[..., ::-1])
+        out = ev.summarize(per_view) if per_view else {}
+        out.update({"views": len(per_view), "gaussians": len(self.map),
+                    "map_mb": round(self.map.nbytes() / 2 ** 20, 4)})
+        return out
+
+    def evaluate_keyframes(self, render_dir=None, gt_depth=None) -> dict:
+        """Keyframe metrics (what the pipeline reports), renders written to ``render_dir``."""
+        return self.evaluate(None, gt_depth=gt_depth, render_dir=render_dir)
+
+
+# ====================================================================== drivers
+def map_sequence(frames: Iterable, cfg: SlamConfig, intrinsics: Intrinsics,
+                 use_gt_depth: bool = True, progress: bool = True,
+                 keyframe_every: Optional[int] = None,
+                 refine_iters: Optional[int] = None) -> Tuple[Mapper, dict]:
+    """Mapping alone on ground-truth poses and depth (``splat-slam-run --gt-poses --gt-depth``).
+
+    Every frame is offered as a keyframe and the covisibility rules decide, or every
+    ``keyframe_every``-th frame is mapped (default ``mapping.keyframe_every``; 0 = rules).
+    Ends with the final refinement (``refine_iters``, default ``mapping.final_refine_iters``)
+    and returns (mapper, metrics on the mapped keyframes against the ground-truth depth).
+    """
+    from tqdm import tqdm
+    if not use_gt_depth:
+        raise MapError("mapping without the tracker needs depth: use ground-truth depth "
+                       "(--gt-depth) or run the full pipeline for proxy depth")
+    every = cfg.mapping.keyframe_every if keyframe_every is None else int(keyframe_every)
+    mapper = Mapper(cfg, intrinsics)
+    total = len(frames) if hasattr(frames, "__len__") else None
+    bar = tqdm(total=total, unit="frame", desc="mapping", disable=not progress,
+               dynamic_ncols=True)
+    gt_depth: Dict[int, np.ndarray] = {}
+    t0 = time.perf_counter()
+    map_time = 0.0
+    offered = 0
+    for i, fr in enumerate(frames):
+        bar.update(1)
+        if every > 0 and i % every != 0:
+            continue
+        if fr.gt_pose is None:
+            raise MapError(f"frame {fr.index} has no ground-truth pose (needed by --gt-poses)")
+        if fr.gt_depth is None:
+            raise MapError(f"frame {fr.index} has no ground-truth depth (needed by --gt-depth)")
+        offered += 1
+        t1 = time.perf_counter()
+        st = mapper.add_keyframe(fr.index, fr.image, fr.gt_pose, fr.gt_depth,
+                                 timestamp=fr.timestamp, force=every > 0)
+        if st["mapped"]:
+            map_time += time.perf_counter() - t1
+            gt_depth[fr.index] = np.asarray(fr.gt_depth, dtype=np.float32)
+        bar.set_postfix(kf=st["keyframes"], G=st["gaussians"], ms=int(st["last_ms"]))
+    bar.close()
+    if not mapper.keyframes:
+        raise MapError("no frames to map (empty input)")
+    n_kf = len(mapper.keyframes)
+    ref = mapper.final_refine(refine_iters, progress=progress)
+    metrics = mapper.evaluate(None, gt_depth=gt_depth)
+    metrics.update({"keyframes": n_kf, "frames_offered": offered,
+                    "mapping_s": round(map_time, 3),
+                    "s_per_keyframe": round(map_time / n_kf, 3),
+                    "iterations": mapper.iteration, **ref,
+                    "total_s": round(time.perf_counter() - t0, 3)})
+    return mapper, metrics
