@@ -51,6 +51,17 @@ def isolated_env(**extra):
     return ros_env.ros_environment(base)
 
 
+def _stop(p: subprocess.Popen):
+    """SIGTERM (rclpy shuts down cleanly and Fast DDS frees its shared memory), then SIGKILL."""
+    if p.poll() is None:
+        p.terminate()
+        try:
+            p.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
 # ------------------------------------------------------------------ ros_env (pure Python)
 def test_ros_environment_defaults_and_passthrough():
     env = ros_env.ros_environment({"ROS_DOMAIN_ID": " 42 ", "FOO": "bar"})
@@ -173,9 +184,7 @@ def test_two_process_transport_delivers_everything_intact():
         p_out, p_err = pub.communicate(timeout=30)
     finally:
         for p in (pub, sub):
-            if p.poll() is None:
-                p.kill()
-                p.wait()
+            _stop(p)
     elapsed = time.monotonic() - t0
     assert pub.returncode == 0, p_out + p_err[-3000:]
     assert sub.returncode == 0, s_err[-3000:]
@@ -190,3 +199,51 @@ def test_two_process_transport_delivers_everything_intact():
         assert [x["sha"] for x in items] == sent[kind], kind
     assert got["image"][0]["bytes"] > 640 * 480 * 3
     assert elapsed < 45, f"two-process exchange took {elapsed:.1f} s"
+
+
+# ------------------------------------------------------------------ splat-slam-topic
+def _tool(args, env, timeout=40):
+    return subprocess.run([sys.executable, "-m", "splat_slam_nodes.topic_tool", *args], env=env,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def test_topic_tool_help_and_usage_errors():
+    r = _tool(["--help"], dict(os.environ))
+    assert r.returncode == 0 and "list" in r.stdout and "echo" in r.stdout and "hz" in r.stdout
+    r = _tool(["hz", "/x", "--window", "0"], dict(os.environ))
+    assert r.returncode == 2 and r.stderr.strip() == "error: --window must be >= 1"
+    r = _tool(["list"], {**os.environ, "ROS_DOMAIN_ID": "abc"})
+    assert r.returncode == 2 and r.stderr.startswith("error: ROS_DOMAIN_ID must be")
+
+
+@pytest.mark.ros
+def test_topic_tool_list_echo_hz_against_a_publisher():
+    need_ros()
+    ns = "splat_tt_" + uuid.uuid4().hex[:8]
+    env = isolated_env()
+    pub = subprocess.Popen([sys.executable, str(HELPERS / "topic_publisher.py"), "--ns", ns,
+                            "--rate", "20", "--duration", "30"], env=env,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert pub.stdout.readline().strip() == "ready", pub.stderr.read()
+        r = _tool(["list", "-v"], env)
+        assert r.returncode == 0, r.stderr
+        assert f"/{ns}/image  [sensor_msgs/msg/Image]  publishers=1" in r.stdout, r.stdout
+        assert f"/{ns}/keyframes  [splat_slam_msgs/msg/Keyframe]  publishers=1" in r.stdout
+        # echo a transient-local keyframe published long before the tool started
+        r = _tool(["echo", f"{ns}/keyframes", "--once"], env)
+        assert r.returncode == 0, r.stderr
+        out = r.stdout
+        assert "splat_slam_msgs/msg/Keyframe" in out and "kf_id: 3\n" in out
+        assert "mono_depth: float32[307200]" in out and "data: uint8[921600]" in out
+        assert "intrinsics: [500, 501, 319.5, 239.5]" in out
+        r = _tool(["hz", f"/{ns}/image", "--window", "20", "--duration", "2.5"], env)
+        assert r.returncode == 0, r.stderr
+        rates = [float(line.split()[2]) for line in r.stdout.splitlines()
+                 if line.startswith("average rate:")]
+        assert rates, r.stdout
+        assert 12.0 < rates[-1] < 28.0, r.stdout        # published at 20 Hz (loaded machine)
+        r = _tool(["hz", f"/{ns}/missing", "--timeout", "1"], env)
+        assert r.returncode == 2 and "no publisher of" in r.stderr
+    finally:
+        _stop(pub)
