@@ -320,3 +320,24 @@ def test_frame_ack():
     assert (m.frame_index, m.consumer, m.is_keyframe, m.kf_id) == (17, "tracker", True, 4)
     m = C.frame_ack_msg(18, "tracker")
     assert not m.is_keyframe and m.kf_id == 0
+
+
+# ------------------------------------------------------------------ QoS presets
+def test_qos_presets():
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
+
+    from splat_slam_nodes import qos
+    for name in ("keyframe", "pose_graph", "proxy_depth"):
+        p = qos.qos(name)
+        assert p.reliability == ReliabilityPolicy.RELIABLE
+        assert p.durability == DurabilityPolicy.TRANSIENT_LOCAL
+        assert p.history == HistoryPolicy.KEEP_LAST and p.depth >= 100
+    assert qos.image_qos().reliability == ReliabilityPolicy.RELIABLE
+    assert qos.image_qos().durability == DurabilityPolicy.VOLATILE
+    assert qos.sensor_qos().reliability == ReliabilityPolicy.BEST_EFFORT
+    assert qos.ack_qos().durability == DurabilityPolicy.TRANSIENT_LOCAL
+    assert qos.rendered_qos().depth == 1 and qos.status_qos().depth == 1
+    assert qos.keyframe_qos() is not qos.keyframe_qos()          # fresh, mutable copies
+    assert all(spec.why for spec in qos.PRESETS.values())
+    with pytest.raises(KeyError, match="unknown QoS preset 'nope'"):
+        qos.qos("nope")
