@@ -213,3 +213,28 @@ def depth_to_points(depth: torch.Tensor, intr: torch.Tensor) -> torch.Tensor:
     h, w = depth.shape[-2:]
     uv = pixel_grid(h, w, dtype=depth.dtype, device=depth.device)
     return unproject(uv, depth, intr)
+
+
+# ------------------------------------------------- projection Jacobians (BA)
+def project_homogeneous(X: torch.Tensor, intr: torch.Tensor, min_z: float = 1e-6):
+    """Project homogeneous camera points ``X = (X, Y, Z)`` (any positive scale,
+    e.g. ``R q + t d`` with inverse depth ``d``) -> pixels (..., 2) and the
+    (..., 2, 3) Jacobian d(pixel)/dX. ``intr = (fx, fy, cx, cy)``."""
+    z = X[..., 2].clamp_min(min_z)
+    iz = 1.0 / z
+    xz = X[..., 0] * iz
+    yz = X[..., 1] * iz
+    uv = torch.stack([intr[0] * xz + intr[2], intr[1] * yz + intr[3]], -1)
+    zero = torch.zeros_like(z)
+    a, b = intr[0] * iz, intr[1] * iz
+    J = torch.stack([torch.stack([a, zero, -a * xz], -1),
+                     torch.stack([zero, b, -b * yz], -1)], -2)
+    return uv, J
+
+
+def point_jacobian_se3_world(Xw: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """d(Xw_h)/d(xi) for a homogeneous world point ``(Xw, d)`` under the left
+    (world-frame) perturbation ``T <- exp(xi) T``, xi = (t, w): (..., 3, 6) =
+    ``[d I, -hat(Xw)]``. Chain with ``R_j^T`` for a camera j observing it."""
+    eye = torch.eye(3, dtype=Xw.dtype, device=Xw.device).expand(*Xw.shape[:-1], 3, 3)
+    return torch.cat([d[..., None, None] * eye, -hat(Xw)], -1)

@@ -1,0 +1,331 @@
+"""Dense bundle adjustment over keyframe poses and per-pixel disparities (paper Eq. 1).
+
+Variables: camera-to-world poses ``T_i`` (N, 4, 4) float64 and inverse depths
+``d_i`` (N, h, w) at the BA resolution. An edge ``(i, j)`` carries a target
+``p~_ij`` (h, w, 2): where the pixels of keyframe ``i`` land in keyframe ``j``
+according to the optical flow (BA pixels, absolute coordinates), and a weight
+``Sigma_ij`` (h, w, 2) in [0, 1] (the flow confidence). Residual:
+
+    r_ij(p) = p~_ij(p) - pi(T_j^-1 T_i pi^-1(p, d_i(p)))
+
+Poses are updated on the left in the world frame, ``T <- exp(xi) T`` (the
+geometry.py convention); with that choice the Jacobian w.r.t. the target pose
+is exactly minus the one w.r.t. the source pose. Points are homogeneous
+``(R q + t d, d)`` with ``q = K^-1 [u, v, 1]``, so zero disparity (points at
+infinity) is handled. Disparities are eliminated with the Schur complement of
+their diagonal block, the reduced 6Nx6N pose system is solved densely.
+
+Everything is vectorised over edges and pixels (one batched matmul per
+quantity), float32 per pixel and float64 for the pose system; any device.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Tuple, Union
+
+import torch
+
+from .geometry import pixel_grid, project_homogeneous, se3_exp, se3_inverse
+
+MIN_DISP = 1e-3
+
+
+@dataclass
+class BAInfo:
+    """Diagnostics of one Gauss-Newton iteration (cost before the step)."""
+    cost: float            # sum of weighted squared residuals (robust weights included)
+    rms: float             # weighted RMS residual (BA pixels)
+    n_valid: int           # pixel-edges with a positive weight and depth
+
+
+def intr_tensor(intr, dtype=torch.float32, device=None) -> torch.Tensor:
+    """(fx, fy, cx, cy) as a tensor from an Intrinsics, a sequence or a tensor."""
+    if hasattr(intr, "fx"):
+        intr = (intr.fx, intr.fy, intr.cx, intr.cy)
+    return torch.as_tensor(intr, dtype=dtype, device=device)
+
+
+def _rays(h: int, w: int, intr: torch.Tensor) -> torch.Tensor:
+    """(3, h*w) normalised rays q = K^-1 [u, v, 1] of the BA grid."""
+    uv = pixel_grid(h, w, dtype=intr.dtype, device=intr.device).reshape(-1, 2)
+    x = (uv[:, 0] - intr[2]) / intr[0]
+    y = (uv[:, 1] - intr[3]) / intr[1]
+    return torch.stack([x, y, torch.ones_like(x)], 0)
+
+
+def reproject(poses: torch.Tensor, disps: torch.Tensor, intr, ii: torch.Tensor,
+              jj: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Pixels of keyframes ``ii`` reprojected into ``jj`` with the current
+    poses/disparities: (E, h, w, 2) coordinates and (E, h, w) validity (z > 0)."""
+    N, h, w = disps.shape
+    intr = intr_tensor(intr, disps.dtype, disps.device)
+    Gij = se3_inverse(poses[jj]) @ poses[ii]                      # cam i -> cam j
+    R = Gij[:, :3, :3].to(disps.dtype)
+    t = Gij[:, :3, 3].to(disps.dtype)
+    q = _rays(h, w, intr)
+    d = disps[ii].reshape(len(ii), 1, -1)
+    X = torch.einsum("eab,bp->eap", R, q) + t[:, :, None] * d      # (E, 3, P)
+    uv, _ = project_homogeneous(X.transpose(1, 2), intr)
+    valid = X[:, 2] > 1e-3 * d[:, 0].clamp_min(1e-6)
+    return uv.reshape(len(ii), h, w, 2), valid.reshape(len(ii), h, w)
+
+
+def induced_flow_distance(poses: torch.Tensor, disps: torch.Tensor, intr, ii: torch.Tensor,
+                          jj: torch.Tensor, stride: int = 2) -> torch.Tensor:
+    """Mean magnitude (BA pixels) of the flow induced by the current estimate for
+    each edge (i -> j), on a ``stride``-subsampled grid. Used for proximity edges
+    and loop candidates; invalid (behind-camera) pixels count as a large flow."""
+    N, h, w = disps.shape
+    if len(ii) == 0:
+        return torch.zeros(0, dtype=disps.dtype, device=disps.device)
+    ds = disps[:, ::stride, ::stride].contiguous()
+    intr = intr_tensor(intr, disps.dtype, disps.device)
+    # subsampled grid keeps pixel-centre geometry: u_sub = (u - 0) / stride
+    intr_s = torch.stack([intr[0] / stride, intr[1] / stride, intr[2] / stride,
+                          intr[3] / stride])
+    uv, valid = reproject(poses, ds, intr_s, ii, jj)
+    grid = pixel_grid(ds.shape[1], ds.shape[2], dtype=ds.dtype, device=ds.device)
+    mag = (uv - grid).norm(dim=-1) * stride
+    mag = torch.where(valid, mag, torch.full_like(mag, 1e3))
+    return mag.mean(dim=(1, 2))
+
+
+def _edge_terms(poses, disps, intr, ii, jj, target, weight, huber):
+    """Per-edge, per-pixel residuals and Jacobians of Eq. 1, pre-multiplied by
+    the square root of the (robust) weights.
+
+    Returns rs (E, P, 2), wgt (E, P, 2) (robust weights applied, 0 where the
+    point is behind camera j), Jp (E, P, 2, 6) the Jacobian of the projection
+    w.r.t. the source pose (the target pose's is -Jp), Jd (E, P, 2) w.r.t. the
+    source disparity; rs, Jp, Jd carry the factor sqrt(wgt).
+    """
+    E = len(ii)
+    N, h, w_ = disps.shape
+    P = h * w_
+    dt = disps.dtype
+    intr = intr_tensor(intr, dt, disps.device)
+    Ti, Tj = poses[ii], poses[jj]
+    Gij = se3_inverse(Tj) @ Ti
+    Rji = Gij[:, :3, :3].to(dt)
+    tji = Gij[:, :3, 3].to(dt)
+    Ri = Ti[:, :3, :3].to(dt)
+    ti = Ti[:, :3, 3].to(dt)
+    Rj = Tj[:, :3, :3].to(dt)
+    q = _rays(h, w_, intr)                                          # (3, P)
+    d = disps[ii].reshape(E, P)
+    X = torch.einsum("eab,bp->epa", Rji, q) + tji[:, None, :] * d[..., None]   # (E, P, 3)
+    Xw = torch.einsum("eab,bp->epa", Ri, q) + ti[:, None, :] * d[..., None]    # homog. world
+    z = X[..., 2]
+    valid = z > 1e-3 * d.clamp_min(1e-6)
+    iz = 1.0 / z.clamp_min(1e-6)
+    xz = X[..., 0] * iz
+    yz = X[..., 1] * iz
+    a = intr[0] * iz
+    b = intr[1] * iz
+    r = torch.stack([target[..., 0].reshape(E, P).to(dt) - (intr[0] * xz + intr[2]),
+                     target[..., 1].reshape(E, P).to(dt) - (intr[1] * yz + intr[3])], -1)
+    wgt = weight.reshape(E, P, 2).to(dt) * valid[..., None].to(dt)
+    if huber is not None and huber > 0:
+        rn = r.norm(dim=-1, keepdim=True)
+        wgt = wgt * torch.where(rn > huber, huber / rn.clamp_min(1e-12), torch.ones_like(rn))
+    r = torch.where(valid[..., None], r, torch.zeros_like(r))
+    sw = wgt.sqrt()
+    rs = r * sw
+    # rows of d(pixel)/d(Xw_h) = Jproj R_j^T (columns c0, c1, c2 of R_j), scaled by sqrt(w)
+    c0, c1, c2 = Rj[:, None, :, 0], Rj[:, None, :, 1], Rj[:, None, :, 2]     # (E, 1, 3)
+    sa = a * sw[..., 0]
+    sb = b * sw[..., 1]
+    M = torch.stack([sa[..., None] * (c0 - xz[..., None] * c2),
+                     sb[..., None] * (c1 - yz[..., None] * c2)], 2)          # (E, P, 2, 3)
+    # pose Jacobian: [d m, Xw x m]  (left world-frame perturbation, xi = (t, w))
+    Jp = torch.empty(E, P, 2, 6, dtype=dt, device=disps.device)
+    torch.mul(M, d[..., None, None], out=Jp[..., :3])
+    Xe = Xw[:, :, None, :]
+    Jp[..., 3] = Xe[..., 1] * M[..., 2] - Xe[..., 2] * M[..., 1]
+    Jp[..., 4] = Xe[..., 2] * M[..., 0] - Xe[..., 0] * M[..., 2]
+    Jp[..., 5] = Xe[..., 0] * M[..., 1] - Xe[..., 1] * M[..., 0]
+    tx, ty, tz = tji[:, None, 0], tji[:, None, 1], tji[:, None, 2]
+    Jd = torch.stack([sa * (tx - xz * tz), sb * (ty - yz * tz)], -1)       # (E, P, 2)
+    return rs, wgt, Jp, Jd
+
+
+def disparity_normal_equations(poses: torch.Tensor, disps: torch.Tensor, intr,
+                               ii: torch.Tensor, jj: torch.Tensor, target: torch.Tensor,
+                               weight: torch.Tensor, huber: Optional[float] = None
+                               ) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Per-pixel disparity normal equations of Eq. 1 with poses FIXED.
+
+    Returns ``H_dd`` (N, h, w) = sum_e J_d^T Sigma J_d and ``g_d`` (N, h, w) =
+    sum_e J_d^T Sigma r for every keyframe (zero where it is not an edge source);
+    the Gauss-Newton disparity step is ``g_d / H_dd``. For DSPO (Eq. 2), which
+    adds its own diagonal terms before dividing.
+    """
+    N, h, w = disps.shape
+    rs, _, _, Jd = _edge_terms(poses, disps, intr, ii, jj, target, weight, huber)
+    c = (Jd * Jd).sum(-1)
+    b = (Jd * rs).sum(-1)
+    H = torch.zeros(N, h * w, dtype=disps.dtype, device=disps.device)
+    g = torch.zeros_like(H)
+    H.index_add_(0, ii, c)
+    g.index_add_(0, ii, b)
+    return H.reshape(N, h, w), g.reshape(N, h, w)
+
+
+def _fixed_mask(fixed, N, device) -> torch.Tensor:
+    if torch.is_tensor(fixed) and fixed.dtype == torch.bool:
+        return fixed.to(device)
+    m = torch.zeros(N, dtype=torch.bool, device=device)
+    m[: int(fixed)] = True
+    return m
+
+
+def ba_step(poses: torch.Tensor, disps: torch.Tensor, intr, ii: torch.Tensor, jj: torch.Tensor,
+            target: torch.Tensor, weight: torch.Tensor, fixed: Union[int, torch.Tensor] = 1,
+            huber: Optional[float] = None, lm: float = 1e-4, ep: float = 1e-3,
+            disp_damping: float = 1e-4, optimize_disps: Optional[torch.Tensor] = None,
+            ) -> Tuple[torch.Tensor, torch.Tensor, BAInfo]:
+    """One Gauss-Newton (LM-damped) iteration of Eq. 1 (DBA).
+
+    poses (N,4,4) float64 c2w, disps (N,h,w), intr (fx,fy,cx,cy) at BA res,
+    ii/jj (E,) long, target (E,h,w,2) absolute BA-pixel coordinates, weight
+    (E,h,w,2) confidences. ``fixed``: number of leading poses kept fixed (gauge)
+    or a boolean mask (N,). ``optimize_disps``: optional boolean mask (N,) of
+    keyframes whose disparities may change (default: all edge sources).
+    Returns updated (poses, disps, info).
+    """
+    # Eq. 1 (DBA)
+    device = disps.device
+    N, h, w = disps.shape
+    P = h * w
+    E = len(ii)
+    dt = disps.dtype
+    ii = ii.to(device)
+    jj = jj.to(device)
+    rs, wgt, Jp, Jd = _edge_terms(poses, disps, intr, ii, jj, target, weight, huber)
+    cost = float((rs * rs).sum())
+    wsum = float(wgt.sum())
+    info = BAInfo(cost=cost, rms=(cost / max(wsum, 1e-12)) ** 0.5,
+                  n_valid=int((wgt.sum(-1) > 0).sum()))
+
+    # --- per-edge pose blocks: H_e = Jp^T W Jp, v_e = Jp^T W r (sqrt(W) is folded in)
+    Jf = Jp.reshape(E, P * 2, 6)
+    JfT = Jf.transpose(1, 2)
+    He = JfT @ Jf                                                    # (E, 6, 6)
+    ve = (JfT @ rs.reshape(E, P * 2, 1))[..., 0]                     # (E, 6)
+    # --- pose-disparity coupling a_e(p) = Jp^T W Jd, disparity diagonal C, rhs b
+    ae = Jp[:, :, 0] * Jd[:, :, 0:1] + Jp[:, :, 1] * Jd[:, :, 1:2]  # (E, P, 6)
+    ce = (Jd * Jd).sum(-1)                                           # (E, P)
+    be = (Jd * rs).sum(-1)                                           # (E, P)
+    C = torch.zeros(N, P, dtype=dt, device=device).index_add_(0, ii, ce)
+    b = torch.zeros(N, P, dtype=dt, device=device).index_add_(0, ii, be)
+    dmask = torch.zeros(N, dtype=torch.bool, device=device)
+    dmask[ii] = True
+    if optimize_disps is not None:
+        dmask &= optimize_disps.to(device)
+    # damping: relative (LM) plus a small absolute term so unobserved pixels stay put
+    Cd = C * (1 + disp_damping) + disp_damping * (C.mean() + 1e-6)
+    Cinv = torch.where(dmask[:, None], 1.0 / Cd, torch.zeros_like(Cd))
+
+    # --- reduced pose system S = B - E C^-1 E^T, v_red = v - E C^-1 b
+    Hd = He.to(torch.float64)
+    B = torch.zeros(N, N, 6, 6, dtype=torch.float64, device=device)
+    B.index_put_((ii, ii), Hd, accumulate=True)
+    B.index_put_((jj, jj), Hd, accumulate=True)
+    B.index_put_((ii, jj), -Hd, accumulate=True)
+    B.index_put_((jj, ii), -Hd, accumulate=True)
+    v = torch.zeros(N, 6, dtype=torch.float64, device=device)
+    v.index_add_(0, ii, ve.to(torch.float64))
+    v.index_add_(0, jj, -ve.to(torch.float64))
+
+    # pairs of edges sharing a source keyframe (including e1 == e2)
+    same = ii[:, None] == ii[None, :]
+    e1, e2 = same.nonzero(as_tuple=True)
+    aC = ae * Cinv[ii][..., None]                                    # (E, P, 6)
+    F = (aC[e1].transpose(1, 2) @ ae[e2]).to(torch.float64)          # (npairs, 6, 6)
+    i1, j1, j2 = ii[e1], jj[e1], jj[e2]
+    B.index_put_((i1, i1), -F, accumulate=True)
+    B.index_put_((i1, j2), F, accumulate=True)
+    B.index_put_((j1, i1), F, accumulate=True)
+    B.index_put_((j1, j2), -F, accumulate=True)
+    ge = (aC * b[ii][..., None]).sum(1).to(torch.float64)            # (E, 6)
+    v.index_add_(0, ii, -ge)
+    v.index_add_(0, jj, ge)
+
+    free = ~_fixed_mask(fixed, N, device)
+    nf = int(free.sum())
+    dxi = torch.zeros(N, 6, dtype=torch.float64, device=device)
+    if nf > 0:
+        S = B[free][:, free].permute(0, 2, 1, 3).reshape(6 * nf, 6 * nf)
+        rhs = v[free].reshape(-1)
+        diag = torch.diagonal(S)
+        S = S + torch.diag(lm * diag + ep)
+        try:
+            sol = torch.linalg.solve(S, rhs)
+        except RuntimeError:
+            sol = torch.linalg.lstsq(S, rhs[:, None]).solution[:, 0]
+        if torch.isfinite(sol).all():
+            dxi[free] = sol.reshape(nf, 6)
+
+    # --- back-substitution for the disparities
+    dxi_f = dxi.to(dt)
+    rel = dxi_f[ii] - dxi_f[jj]                                      # (E, 6)
+    Ed = (ae * rel[:, None, :]).sum(-1)                              # (E, P)
+    Etx = torch.zeros(N, P, dtype=dt, device=device).index_add_(0, ii, Ed)
+    dd = (b - Etx) * Cinv
+    dd = torch.where(torch.isfinite(dd), dd, torch.zeros_like(dd))
+    new_disps = (disps.reshape(N, P) + dd).clamp_min(MIN_DISP).reshape(N, h, w)
+    new_poses = se3_exp(dxi) @ poses
+    return new_poses, new_disps, info
+
+
+def bundle_adjust(poses, disps, intr, ii, jj, target, weight, iters: int = 4, fixed=1,
+                  huber=None, **kw):
+    """Run ``iters`` BA iterations; returns (poses, disps, list[BAInfo])."""
+    infos = []
+    for _ in range(iters):
+        poses, disps, info = ba_step(poses, disps, intr, ii, jj, target, weight, fixed=fixed,
+                                     huber=huber, **kw)
+        infos.append(info)
+    return poses, disps, infos
+
+
+def ba_cost(poses, disps, intr, ii, jj, target, weight, huber=None) -> float:
+    rs, _, _, _ = _edge_terms(poses, disps, intr, ii, jj, target, weight, huber)
+    return float((rs * rs).sum())
+
+
+# ------------------------------------------------------------ pose-only GN
+def pose_only_refine(T_ref: torch.Tensor, disp_ref: torch.Tensor, T_cur: torch.Tensor, intr,
+                     target: torch.Tensor, weight: torch.Tensor, iters: int = 5,
+                     huber: Optional[float] = None, lm: float = 1e-4, ep: float = 1e-3
+                     ) -> Tuple[torch.Tensor, BAInfo]:
+    """Refine the pose ``T_cur`` of a frame against the flow from a reference
+    keyframe (pose ``T_ref``, disparity ``disp_ref`` (h,w)) into it: the target
+    block of Eq. 1 with the keyframe fixed. Returns (T_cur, info of last iter)."""
+    poses = torch.stack([T_ref.to(torch.float64), T_cur.to(torch.float64)])
+    disps = disp_ref[None]
+    ii = torch.zeros(1, dtype=torch.long, device=disps.device)
+    jj = torch.ones(1, dtype=torch.long, device=disps.device)
+    info = None
+    for _ in range(iters):
+        rs, wgt, Jp, _ = _edge_terms(poses, disps, intr, ii, jj, target[None], weight[None],
+                                     huber)
+        cost = float((rs * rs).sum())
+        wsum = float(wgt.sum())
+        info = BAInfo(cost, (cost / max(wsum, 1e-12)) ** 0.5, int((wgt.sum(-1) > 0).sum()))
+        J = -Jp[0].reshape(-1, 6)                                    # target-pose Jacobian
+        H = (J.T @ J).to(torch.float64)
+        g = J.T @ rs[0].reshape(-1)
+        H = H + torch.diag(lm * torch.diagonal(H) + ep)
+        if wsum <= 0:
+            break
+        try:
+            dx = torch.linalg.solve(H, g.to(torch.float64))
+        except RuntimeError:
+            break
+        if not torch.isfinite(dx).all():
+            break
+        poses[1] = se3_exp(dx) @ poses[1]
+        if float(dx.norm()) < 1e-7:
+            break
+    return poses[1], info
