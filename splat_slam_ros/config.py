@@ -69,6 +69,14 @@ class DepthConfig:
     mv_min_views: int = 2                # n_c
     mv_max_depth_ratio: float = 3.0      # reject depth > ratio x median
     fill_small_holes: int = 0            # max hole size (px) filled when no mono model
+    device: str = "cpu"                  # "cpu", "cuda" or "auto" (torch part of proxy depth)
+    mv_neighbors: int = 8                # other keyframes used by Eq. 5 (nearest by kf id)
+    upsample_disc: float = 0.1           # upsampling: a 2x2 BA cell spanning more than this
+                                         # (relative disparity) is interpolated only if
+                                         # continuous with its neighbours, else nearest
+    fill_plane_tol: float = 0.02         # small holes filled only if their rim is planar to this
+    mono_fit_space: str = "auto"         # scale/shift fit: auto (model's output kind) | depth
+                                         # (paper §3.2) | disparity
 
 
 @dataclass

@@ -1,0 +1,680 @@
+"""Proxy depth (paper §3.2 "Map Initialization") and the multi-view consistency filter (Eq. 4-5).
+
+For every keyframe the tracker hands on a disparity map at BA resolution (1/8 of the tracking
+image). The mapper needs a depth map at the tracking resolution that it can trust:
+
+1. Multi-view filter (Eq. 4-5, :func:`multiview_filter`): every pixel of keyframe i is
+   warped with its depth into the other keyframes k, the depth of k is read there and
+   back-projected (Eq. 4); the pixel is consistent with k when the two 3D points are closer
+   than ``eta * mean depth of i``. It is valid when consistent in ``>= n_c`` views (Eq. 5)
+   and its depth is ``<= 3x`` the median valid depth. Done at BA resolution (the disparity
+   carries no finer information), batched over (target, view) pairs.
+2. Upsampling (:func:`upsample_disparity`) to the tracking resolution: bilinear in
+   disparity (exact for planes) where the 4 surrounding BA pixels are all valid AND within
+   ``1 + upsample_disc`` of each other; otherwise the nearest BA pixel (if valid). Across a
+   depth discontinuity no intermediate ("flying") depth is ever produced: the edge becomes
+   a step located half-way between BA pixel centres.
+3. Fill (:func:`compose_proxy_depth`):
+   - with a mono model: invalid pixels take the mono depth mapped by a least-squares
+     scale/shift fitted on the valid pixels (Eq. 3, in depth as §3.2 says, or in disparity
+     for disparity-output models, ``depth.mono_fit_space``); fitted values outside
+     (0, 3x median] stay empty;
+   - without: holes stay holes (the mapper ignores them). Optionally
+     (``depth.fill_small_holes`` > 0 px) enclosed holes up to that size are filled with the
+     plane fitted (in disparity) to their 1-pixel rim, only when that rim is planar within
+     ``fill_plane_tol``; holes across discontinuities, at the border or bigger stay empty.
+
+``source`` codes: 0 empty, 1 multi-view (including its bilinear upsampling and plane-filled
+small holes, both interpolations of multi-view depth), 2 mono.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Dict, Iterable, List, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from .config import SlamConfig
+from .geometry import pixel_grid, se3_inverse
+from .types import Intrinsics, KeyframeData, UpdateEvent
+
+SOURCE_EMPTY = 0
+SOURCE_MULTIVIEW = 1
+SOURCE_MONO = 2
+
+_PAIR_CHUNK_POINTS = 1 << 21      # (pairs x pixels) processed at once in the filter
+
+
+class ProxyDepthError(ValueError):
+    """Inconsistent inputs to the proxy depth stage (e.g. a disparity of the wrong size)."""
+
+
+@dataclass
+class ProxyDepthResult:
+    """Proxy depth of one keyframe, what the mapper consumes (``splat_slam_msgs/ProxyDepth``)."""
+    kf_id: int
+    depth: np.ndarray          # (H, W) float32 metres (map scale), 0 = no depth
+    source: np.ndarray         # (H, W) uint8: SOURCE_EMPTY / SOURCE_MULTIVIEW / SOURCE_MONO
+    pose: np.ndarray           # 4x4 float64 camera-to-world used to compute it
+    update_seq: int            # PoseGraphUpdate.seq it reflects (0 = first depth of a new KF)
+    mono_scale: float = float("nan")   # fitted theta (nan: no mono fill)
+    mono_shift: float = float("nan")   # fitted gamma
+    n_views: int = 0           # other keyframes used by the multi-view filter
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self.source > 0
+
+
+# ------------------------------------------------------------------ helpers
+def resolve_device(name: str) -> torch.device:
+    name = (name or "cpu").lower()
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def intr_vector(intr, dtype=torch.float32, device=None) -> torch.Tensor:
+    """(fx, fy, cx, cy) tensor from an Intrinsics, a sequence or a tensor."""
+    if isinstance(intr, Intrinsics):
+        intr = (intr.fx, intr.fy, intr.cx, intr.cy)
+    return torch.as_tensor(intr, dtype=dtype, device=device)
+
+
+def ba_intrinsics(intr: Intrinsics, h: int, w: int) -> Intrinsics:
+    """Intrinsics of the (h, w) BA grid of an image with intrinsics ``intr``."""
+    return intr.scaled(w / intr.width, h / intr.height)
+
+
+def _disp_to_depth(disp: torch.Tensor) -> torch.Tensor:
+    ok = torch.isfinite(disp) & (disp > 0)
+    return torch.where(ok, 1.0 / torch.where(ok, disp, torch.ones_like(disp)),
+                       torch.zeros_like(disp))
+
+
+# ------------------------------------------------------- Eq. 4-5 filter
+def all_pairs(n: int, device=None) -> torch.Tensor:
+    """(P, 2) (target, view) pairs over all ordered pairs i != k."""
+    t, k = torch.meshgrid(torch.arange(n, device=device), torch.arange(n, device=device),
+                          indexing="ij")
+    m = t != k
+    return torch.stack([t[m], k[m]], -1)
+
+
+def _sample_depth(depth_flat: torch.Tensor, valid_flat: torch.Tensor, k: torch.Tensor,
+                  u: torch.Tensor, v: torch.Tensor, h: int, w: int) -> Tuple[torch.Tensor,
+                                                                            torch.Tensor]:
+    """Depth of views ``k`` (P,) at continuous pixels (P, Q): bilinear where all four
+    neighbours are valid, nearest otherwise; returns (depth, ok)."""
+    inb = (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
+    uc = u.clamp(0, w - 1)
+    vc = v.clamp(0, h - 1)
+    x0 = uc.floor().clamp(max=w - 2 if w > 1 else 0).long()
+    y0 = vc.floor().clamp(max=h - 2 if h > 1 else 0).long()
+    x1 = (x0 + 1).clamp(max=w - 1)
+    y1 = (y0 + 1).clamp(max=h - 1)
+    ax = (uc - x0).clamp(0, 1)
+    ay = (vc - y0).clamp(0, 1)
+    base = (k * (h * w))[:, None]
+    D = depth_flat
+    V = valid_flat
+    i00, i01 = base + y0 * w + x0, base + y0 * w + x1
+    i10, i11 = base + y1 * w + x0, base + y1 * w + x1
+    d00, d01, d10, d11 = D[i00], D[i01], D[i10], D[i11]
+    all4 = V[i00] & V[i01] & V[i10] & V[i11]
+    bil = (d00 * (1 - ax) + d01 * ax) * (1 - ay) + (d10 * (1 - ax) + d11 * ax) * ay
+    inn = base + vc.round().long() * w + uc.round().long()
+    near_ok = V[inn]
+    out = torch.where(all4, bil, D[inn])
+    return out, inb & (all4 | near_ok)
+
+
+@torch.no_grad()
+def consistency_count(depths: torch.Tensor, poses: torch.Tensor, intr, eta: float,
+                      pairs: Optional[torch.Tensor] = None,
+                      valid: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Two-view consistency count n_i(u, v) of Eq. 5 for every keyframe that is a target.
+
+    depths (N, h, w) metres (<= 0 or non-finite = missing); poses (N, 4, 4) camera-to-world;
+    intr (fx, fy, cx, cy) of the (h, w) grid; pairs (P, 2) long (target, view), default all
+    ordered pairs. Returns (N, h, w) int32 (0 for keyframes that are no target).
+
+    Eq. 4: p_i = T_i D_i(u,v) K^-1[u,v,1]; (u^,v^) = pi(T_k^-1 p_i); p_k = T_k D_k(u^,v^)
+    K^-1[u^,v^,1] with D_k read at the continuous (u^,v^) (bilinear where its 4 neighbours
+    are valid, else nearest). p_i and p_k lie on the same ray of camera k, so
+    ||p_i - p_k|| = |z_ik - D_k(u^,v^)| * ||X_ik|| / z_ik, which is what is evaluated.
+    """
+    N, h, w = depths.shape
+    device = depths.device
+    D = depths.to(torch.float32)
+    ok = torch.isfinite(D) & (D > 0)
+    if valid is not None:
+        ok &= valid.to(device)
+    D = torch.where(ok, D, torch.zeros_like(D))
+    if pairs is None:
+        pairs = all_pairs(N, device)
+    pairs = pairs.to(device=device, dtype=torch.long).reshape(-1, 2)
+    count = torch.zeros(N, h * w, dtype=torch.int32, device=device)
+    if len(pairs) == 0:
+        return count.reshape(N, h, w)
+    intr = intr_vector(intr, torch.float32, device)
+    # threshold per target: eta * average depth (Eq. 5)
+    nvalid = ok.flatten(1).sum(1)
+    mean_d = D.flatten(1).sum(1) / nvalid.clamp_min(1)
+    thresh = eta * mean_d
+    # target camera points (N, Q, 3)
+    uv = pixel_grid(h, w, dtype=torch.float32, device=device).reshape(-1, 2)
+    rays = torch.stack([(uv[:, 0] - intr[2]) / intr[0], (uv[:, 1] - intr[3]) / intr[1],
+                        torch.ones_like(uv[:, 0])], -1)                       # (Q, 3)
+    Dflat = D.reshape(-1)
+    Vflat = ok.reshape(-1)
+    T = poses.to(device=device, dtype=torch.float64)
+    Tinv = se3_inverse(T)
+    Q = h * w
+    chunk = max(1, _PAIR_CHUNK_POINTS // Q)
+    for s in range(0, len(pairs), chunk):
+        pt, pk = pairs[s:s + chunk, 0], pairs[s:s + chunk, 1]
+        rel = (Tinv[pk] @ T[pt]).to(torch.float32)                           # cam t -> cam k
+        R, t = rel[:, :3, :3], rel[:, :3, 3]
+        dt = D[pt].reshape(len(pt), Q)                                        # (P, Q)
+        X = torch.einsum("pab,qb->pqa", R, rays) * dt[..., None] + t[:, None, :]
+        z = X[..., 2]
+        front = z > 1e-6
+        zs = torch.where(front, z, torch.ones_like(z))
+        u = intr[0] * X[..., 0] / zs + intr[2]
+        v = intr[1] * X[..., 1] / zs + intr[3]
+        dk, okk = _sample_depth(Dflat, Vflat, pk, u, v, h, w)
+        dist = (zs - dk).abs() * X.norm(dim=-1) / zs                          # ||p_i - p_k||
+        cons = front & okk & ok[pt].reshape(len(pt), Q) & (dist < thresh[pt][:, None])
+        count.index_add_(0, pt, cons.to(torch.int32))
+    return count.reshape(N, h, w)
+
+
+@torch.no_grad()
+def multiview_filter(depths: torch.Tensor, poses: torch.Tensor, intr, eta: float = 0.01,
+                     min_views: int = 2, max_depth_ratio: float = 3.0,
+                     pairs: Optional[torch.Tensor] = None,
+                     valid: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 5 validity: consistent in >= ``min_views`` other keyframes and depth <=
+    ``max_depth_ratio`` x the median of the consistent depths. Returns (valid (N,h,w) bool,
+    count (N,h,w) int32)."""
+    count = consistency_count(depths, poses, intr, eta, pairs, valid)
+    ok = count >= int(min_views)
+    if max_depth_ratio and max_depth_ratio > 0:
+        d = torch.where(ok, depths.to(torch.float32), torch.full_like(depths, float("nan"),
+                                                                      dtype=torch.float32))
+        med = torch.nanmedian(d.flatten(1), dim=1).values                     # nan if none
+        ok &= ~(depths > max_depth_ratio * med[:, None, None])
+    return ok, count
+
+
+# ------------------------------------------------------------ upsampling
+def smooth_cells(disp: torch.Tensor, valid: torch.Tensor, disc: float = 0.1,
+                 kappa: float = 1.5) -> torch.Tensor:
+    """(h-1, w-1) flags: may the 2x2 BA cell with top-left corner (i, j) be interpolated?
+
+    Yes when its 4 disparities are valid and either within ``1 + disc`` of each other, or
+    continuous along both axes: on each of its two rows (columns) the step across the cell
+    is at most ``kappa`` x the larger step of the neighbouring cells on that row (column)
+    plus ``disc/4`` x the disparity. Disparity is affine in the pixel coordinates on a 3D
+    plane, so steep planes (floors at grazing angles) and creases (wall corners) pass; a
+    jump between two surfaces is much larger than the steps on either side and does not.
+    """
+    d = torch.where(valid, disp, torch.zeros_like(disp)).to(torch.float32)
+    v = valid
+    a, b, c, e = d[:-1, :-1], d[:-1, 1:], d[1:, :-1], d[1:, 1:]
+    v4 = v[:-1, :-1] & v[:-1, 1:] & v[1:, :-1] & v[1:, 1:]
+    dmax = torch.maximum(torch.maximum(a, b), torch.maximum(c, e))
+    dmin = torch.minimum(torch.minimum(a, b), torch.minimum(c, e))
+    close = dmax <= (1.0 + disc) * dmin
+    eps = 0.25 * disc * dmin
+
+    def continuous(dd, vv):
+        # steps along the last axis (h', w-1), 0 where a side is missing / invalid
+        g = torch.where(vv[..., :-1] & vv[..., 1:], (dd[..., 1:] - dd[..., :-1]).abs(),
+                        torch.zeros_like(dd[..., 1:]))
+        z = torch.zeros_like(g[..., :1])
+        side = torch.maximum(torch.cat([z, g[..., :-1]], -1), torch.cat([g[..., 1:], z], -1))
+        return g <= kappa * side                        # (h', w-1)
+
+    cx = continuous(d, v)                               # rows: (h, w-1)
+    cy = continuous(d.T, v.T).T                         # columns: (h-1, w)
+    gx0, gx1 = (b - a).abs(), (e - c).abs()
+    gy0, gy1 = (c - a).abs(), (e - b).abs()
+    okx = (cx[:-1] | (gx0 <= eps)) & (cx[1:] | (gx1 <= eps))
+    oky = (cy[:, :-1] | (gy0 <= eps)) & (cy[:, 1:] | (gy1 <= eps))
+    return v4 & (close | (okx & oky))
+
+
+@torch.no_grad()
+def upsample_disparity(disp: torch.Tensor, valid: torch.Tensor, out_hw: Tuple[int, int],
+                       disc: float = 0.1) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Disparity (h, w) + validity -> (H, W) disparity + validity, pixel-centre aligned.
+
+    Bilinear in disparity inside BA cells that :func:`smooth_cells` accepts (the outer half
+    BA pixel at the image border is extrapolated linearly from the border cell); elsewhere
+    the nearest BA pixel when valid; else invalid. A cell across a depth discontinuity is
+    never interpolated, so no in-between ("flying") depth appears: the edge becomes a step
+    half-way between BA pixel centres.
+    """
+    h, w = disp.shape
+    H, W = out_hw
+    dev = disp.device
+    d = torch.where(valid, disp, torch.zeros_like(disp)).to(torch.float32)
+    vf = valid.to(torch.uint8)
+
+    def take(a, yi, xi):                            # separable gather: rows, then columns
+        return a.index_select(0, yi).index_select(1, xi)
+
+    ys = (torch.arange(H, device=dev, dtype=torch.float32) + 0.5) * (h / H) - 0.5
+    xs = (torch.arange(W, device=dev, dtype=torch.float32) + 0.5) * (w / W) - 0.5
+    yn = ys.round().long().clamp(0, h - 1)
+    xn = xs.round().long().clamp(0, w - 1)
+    near = take(d, yn, xn)
+    near_ok = take(vf, yn, xn).bool()
+    if h < 2 or w < 2:
+        return torch.where(near_ok, near, torch.zeros_like(near)), near_ok
+    y0 = ys.floor().long().clamp(0, h - 2)
+    x0 = xs.floor().long().clamp(0, w - 2)
+    y1, x1 = y0 + 1, x0 + 1
+    ay = (ys - y0).clamp(-0.5, 1.5)[:, None]
+    ax = (xs - x0).clamp(-0.5, 1.5)[None, :]
+    r0, r1 = d.index_select(0, y0), d.index_select(0, y1)
+    d00, d01, d10, d11 = (r0.index_select(1, x0), r0.index_select(1, x1),
+                          r1.index_select(1, x0), r1.index_select(1, x1))
+    smooth = take(smooth_cells(disp, valid, disc).to(torch.uint8), y0, x0).bool()
+    bil = (d00 * (1 - ax) + d01 * ax) * (1 - ay) + (d10 * (1 - ax) + d11 * ax) * ay
+    smooth &= bil > 0                               # extrapolation must stay in front
+    out = torch.where(smooth, bil, near)
+    ok = smooth | near_ok
+    return torch.where(ok, out, torch.zeros_like(out)), ok
+
+
+# ---------------------------------------------------------- scale / shift
+def fit_scale_shift(x: torch.Tensor, y: torch.Tensor, mask: torch.Tensor,
+                    weight: Optional[torch.Tensor] = None) -> Tuple[float, float]:
+    """Least squares ``argmin_{theta,gamma} sum w (theta x + gamma - y)^2`` over ``mask``
+    (Eq. 3). Returns (theta, gamma); (nan, nan) if fewer than 2 distinct x values."""
+    m = mask & torch.isfinite(x) & torch.isfinite(y)
+    xs = x[m].to(torch.float64)
+    ys = y[m].to(torch.float64)
+    ws = torch.ones_like(xs) if weight is None else weight[m].to(torch.float64)
+    sw = ws.sum()
+    if xs.numel() < 2 or float(sw) <= 0:
+        return float("nan"), float("nan")
+    mx = (ws * xs).sum() / sw
+    my = (ws * ys).sum() / sw
+    vx = (ws * (xs - mx) ** 2).sum()
+    if float(vx) <= 1e-12 * float(sw) * max(float(mx) ** 2, 1e-12):
+        return float("nan"), float("nan")
+    theta = (ws * (xs - mx) * (ys - my)).sum() / vx
+    gamma = my - theta * mx
+    return float(theta), float(gamma)
+
+
+# ------------------------------------------------------- small hole fill
+def fill_small_holes(depth: np.ndarray, valid: np.ndarray, max_px: int,
+                     plane_tol: float = 0.02) -> np.ndarray:
+    """Fill enclosed holes of <= ``max_px`` pixels whose 1-pixel rim is a plane.
+
+    The plane is fitted in disparity (affine in the pixel coordinates for any 3D plane) to
+    the rim by least squares; a hole is filled only if every rim pixel lies within
+    ``plane_tol`` (relative disparity) of it, the hole does not touch the image border and
+    the plane is in front of the camera on the whole hole. Returns a bool mask of the filled
+    pixels; ``depth`` is filled in place.
+    """
+    from scipy import ndimage
+    if max_px <= 0:
+        return np.zeros_like(valid, bool)
+    H, W = valid.shape
+    lab, n = ndimage.label(~valid)                       # 4-connected holes
+    if n == 0:
+        return np.zeros_like(valid, bool)
+    sizes = np.bincount(lab.ravel(), minlength=n + 1)
+    border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
+    small = sizes <= max_px
+    small[0] = False
+    small[border] = False
+    if not small.any():
+        return np.zeros_like(valid, bool)
+    slab = np.where(small[lab], lab, 0)
+    rim_lab = ndimage.grey_dilation(slab, size=(3, 3))
+    rim = valid & (rim_lab > 0)
+    rl = rim_lab[rim]
+    vv, uu = np.nonzero(rim)
+    disp = 1.0 / depth[rim].astype(np.float64)
+    u = uu.astype(np.float64)
+    v = vv.astype(np.float64)
+    L = n + 1
+    # per-hole normal equations of disp = a u + b v + c
+    cols = [u * u, u * v, u, v * v, v, np.ones_like(u), u * disp, v * disp, disp]
+    S = np.stack([np.bincount(rl, c, minlength=L) for c in cols], 1)
+    A = np.empty((L, 3, 3))
+    A[:, 0] = S[:, [0, 1, 2]]
+    A[:, 1] = S[:, [1, 3, 4]]
+    A[:, 2] = S[:, [2, 4, 5]]
+    b = S[:, 6:9]
+    cnt = S[:, 5]
+    good = small & (cnt >= 4)
+    A[~good] = np.eye(3)
+    b[~good] = 0
+    det = np.linalg.det(A)
+    good &= np.abs(det) > 1e-9
+    A[~good] = np.eye(3)
+    coef = np.linalg.solve(A, b[..., None])[..., 0]                # (L, 3)
+    pred = coef[rl, 0] * u + coef[rl, 1] * v + coef[rl, 2]
+    rel = np.abs(pred - disp) / np.maximum(disp, 1e-12)
+    worst = np.zeros(L)
+    np.maximum.at(worst, rl, rel)
+    good &= worst <= plane_tol
+    hole = good[lab] & ~valid
+    hv, hu = np.nonzero(hole)
+    hl = lab[hole]
+    dfill = coef[hl, 0] * hu + coef[hl, 1] * hv + coef[hl, 2]
+    bad = np.zeros(L, bool)
+    np.logical_or.at(bad, hl, ~(dfill > 0))
+    keep = ~bad[hl]
+    filled = np.zeros_like(valid, bool)
+    filled[hv[keep], hu[keep]] = True
+    depth[hv[keep], hu[keep]] = (1.0 / dfill[keep]).astype(depth.dtype)
+    return filled
+
+
+# ---------------------------------------------------------------- compose
+def sample_at_grid(img: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """Values of a full-resolution map (H, W) at the pixel centres of an (h, w) grid
+    (bilinear, pixel-centre aligned); 0 where any contributing pixel is 0."""
+    H, W = img.shape
+    x = img[None, None].to(torch.float32)
+    ys = (torch.arange(h, device=img.device, dtype=torch.float32) + 0.5) * (H / h) - 0.5
+    xs = (torch.arange(w, device=img.device, dtype=torch.float32) + 0.5) * (W / w) - 0.5
+    gy = ys / max(H - 1, 1) * 2 - 1
+    gx = xs / max(W - 1, 1) * 2 - 1
+    grid = torch.stack(torch.meshgrid(gy, gx, indexing="ij")[::-1], -1)[None]
+    val = torch.nn.functional.grid_sample(x, grid, mode="bilinear", align_corners=True)
+    ok = torch.nn.functional.grid_sample((x > 0).float(), grid, mode="bilinear",
+                                         align_corners=True)
+    return torch.where(ok > 0.999, val, torch.zeros_like(val))[0, 0]
+
+
+def _mono_to_fit_space(mono: torch.Tensor, fit_space: str) -> torch.Tensor:
+    mok = torch.isfinite(mono) & (mono > 0)
+    if fit_space == "disparity":
+        return torch.where(mok, 1.0 / torch.where(mok, mono, torch.ones_like(mono)),
+                           torch.zeros_like(mono))
+    return torch.where(mok, mono, torch.zeros_like(mono))
+
+
+def fit_mono(mono: torch.Tensor, depth: torch.Tensor, valid: torch.Tensor,
+             fit_space: str = "depth") -> Tuple[float, float]:
+    """Eq. 3 (§3.2 in depth, or in disparity): theta, gamma mapping the mono prediction onto
+    the valid multi-view ``depth`` (same grid as ``mono``)."""
+    x = _mono_to_fit_space(mono.to(torch.float32), fit_space)
+    y = _disp_to_depth(depth) if fit_space == "disparity" else depth
+    return fit_scale_shift(x, y, valid & (x > 0) & (depth > 0))
+
+
+def compose_proxy_depth(mv_depth: torch.Tensor, mv_valid: torch.Tensor,
+                        mono_depth: Optional[torch.Tensor] = None, fit_space: str = "depth",
+                        fill_small: int = 0, plane_tol: float = 0.02,
+                        max_depth_ratio: float = 3.0,
+                        scale_shift: Optional[Tuple[float, float]] = None):
+    """§3.2: D = multi-view depth where valid, else theta * D_mono + gamma (Eq. 3 in depth;
+    or in disparity for disparity models); without mono, optional small-hole fill.
+
+    ``scale_shift``: (theta, gamma) fitted elsewhere (the estimator fits at BA resolution,
+    where the multi-view depth is not interpolated); default: fitted here on ``mv_valid``.
+    Returns (depth (H,W) float32 numpy, source (H,W) uint8 numpy, theta, gamma).
+    """
+    depth = torch.where(mv_valid, mv_depth, torch.zeros_like(mv_depth)).to(torch.float32)
+    source = torch.where(mv_valid, SOURCE_MULTIVIEW, SOURCE_EMPTY).to(torch.uint8)
+    theta = gamma = float("nan")
+    if mono_depth is not None:
+        mono = mono_depth.to(depth.device, torch.float32)
+        x = _mono_to_fit_space(mono, fit_space)
+        mok = x > 0
+        if scale_shift is None:
+            theta, gamma = fit_mono(mono, depth, mv_valid, fit_space)
+        else:
+            theta, gamma = scale_shift
+        if np.isfinite(theta) and theta > 0:
+            fitted = theta * x + gamma
+            if fit_space == "disparity":
+                fitted = _disp_to_depth(fitted)
+            hole = ~mv_valid & mok & torch.isfinite(fitted) & (fitted > 0)
+            if max_depth_ratio and max_depth_ratio > 0 and bool(mv_valid.any()):
+                med = depth[mv_valid].median()
+                hole &= fitted <= max_depth_ratio * med
+            depth = torch.where(hole, fitted, depth)
+            source = torch.where(hole, torch.full_like(source, SOURCE_MONO), source)
+        else:
+            theta = gamma = float("nan")
+    depth_np = depth.cpu().numpy().astype(np.float32, copy=False)
+    source_np = source.cpu().numpy()
+    if mono_depth is None and fill_small > 0:
+        filled = fill_small_holes(depth_np, source_np > 0, fill_small, plane_tol)
+        source_np[filled] = SOURCE_MULTIVIEW
+    return depth_np, source_np, theta, gamma
+
+
+# --------------------------------------------------------------- estimator
+@dataclass
+class _KfState:
+    kf_id: int
+    pose: np.ndarray                 # 4x4 float64 c2w
+    disparity: np.ndarray            # (h, w) float32
+    mono: Optional[np.ndarray]       # (H, W) float32 relative depth or None
+    result: Optional[ProxyDepthResult] = None
+    n_views: int = 0                 # views used when ``result`` was computed
+
+
+class ProxyDepthEstimator:
+    """Stateful proxy depth for the depth node and the in-process pipeline.
+
+    Keeps the pose, BA disparity and mono depth of each keyframe (up to
+    ``tracking.keyframe_buffer``); the other views of keyframe i in Eq. 5 are the
+    ``depth.mv_neighbors`` stored keyframes nearest to i in keyframe id.
+    """
+
+    def __init__(self, cfg: SlamConfig, intrinsics: Intrinsics, mono_model=None):
+        self.cfg = cfg
+        self.dc = cfg.depth
+        self.intr = intrinsics
+        self.device = resolve_device(self.dc.device)
+        self.capacity = max(2, int(getattr(cfg.tracking, "keyframe_buffer", 512)))
+        self._kfs: "OrderedDict[int, _KfState]" = OrderedDict()
+        self._refreshed: List[Tuple[ProxyDepthResult, ProxyDepthResult]] = []
+        self.last_seq = 0
+        self.mono = mono_model
+        self.mono_kind = getattr(mono_model, "kind", "depth")
+        if self.mono is None and self.dc.mono_model:
+            from .mono_depth import load_mono_depth
+            self.mono = load_mono_depth(self.dc.mono_model, self.dc.mono_provider)
+            self.mono_kind = self.mono.kind
+        fs = (self.dc.mono_fit_space or "auto").lower()
+        if fs not in ("auto", "depth", "disparity"):
+            raise ProxyDepthError(f"depth.mono_fit_space must be auto, depth or disparity, "
+                                  f"got {fs!r}")
+        self.fit_space = self.mono_kind if fs == "auto" else fs
+        self.timings: Dict[str, float] = {"filter_ms": 0.0, "mono_ms": 0.0, "n": 0}
+
+    # ------------------------------------------------------------ queries
+    def get(self, kf_id: int) -> Optional[ProxyDepthResult]:
+        st = self._kfs.get(int(kf_id))
+        return None if st is None else st.result
+
+    def __len__(self) -> int:
+        return len(self._kfs)
+
+    def __contains__(self, kf_id) -> bool:
+        return int(kf_id) in self._kfs
+
+    def neighbours(self, kf_id: int) -> List[int]:
+        """The other keyframes used for ``kf_id`` in Eq. 5 (nearest kf ids, older first on ties)."""
+        others = [k for k in self._kfs if k != kf_id]
+        others.sort(key=lambda k: (abs(k - kf_id), k))
+        return sorted(others[: max(0, int(self.dc.mv_neighbors))])
+
+    # ------------------------------------------------------------ updates
+    def add_keyframe(self, kf: KeyframeData) -> ProxyDepthResult:
+        """Store ``kf`` (running the mono model if configured) and return its proxy depth."""
+        return self.add_keyframes([kf])[0]
+
+    def add_keyframes(self, kfs: Sequence[KeyframeData]) -> List[ProxyDepthResult]:
+        """Store several keyframes first, then compute them (e.g. the tracker's warm-up
+        burst): each then sees the others as views, not only the older ones."""
+        ids = []
+        for kf in kfs:
+            self._store(kf)
+            ids.append(int(kf.kf_id))
+        self._evict()
+        ids = [k for k in ids if k in self._kfs]
+        new = self._compute(ids, seq=0)
+        # earlier keyframes computed with fewer views than configured gain the new ones
+        want = max(0, int(self.dc.mv_neighbors))
+        stale = [k for k, st in self._kfs.items() if k not in ids and st.result is not None
+                 and st.n_views < min(want, len(self._kfs) - 1)
+                 and any(n in ids for n in self.neighbours(k))]
+        if stale:
+            olds = {k: self._kfs[k].result for k in stale}
+            res = self._compute(stale, seq=None)
+            for k in stale:
+                if _differs(olds[k], res[k]):
+                    self._refreshed.append((olds[k], res[k]))
+        return [new[k] for k in ids]
+
+    def take_refreshed(self) -> List[Tuple[ProxyDepthResult, ProxyDepthResult]]:
+        """(old, new) proxy depths of earlier keyframes recomputed because a new keyframe
+        gave them a view they lacked (only the first ``mv_neighbors`` keyframes); the caller
+        forwards them to the mapper like update results. Clears the queue."""
+        out, self._refreshed = self._refreshed, []
+        return out
+
+    def apply_update(self, ev: UpdateEvent) -> List[Tuple[ProxyDepthResult, ProxyDepthResult]]:
+        """Apply a BA / loop-closure / global-BA update.
+
+        Recomputes the keyframes whose pose or disparity changed and every stored keyframe
+        that uses one of them as a view. Returns (old, new) for each keyframe whose pose,
+        depth or source changed (what the mapper's deformation needs).
+        """
+        self.last_seq = max(self.last_seq, int(ev.seq))
+        poses = np.asarray(ev.poses, dtype=np.float64).reshape(-1, 4, 4)
+        if len(poses) != len(ev.kf_ids):
+            raise ProxyDepthError(f"update {ev.seq}: {len(ev.kf_ids)} kf_ids but "
+                                  f"{len(poses)} poses")
+        disps = None if ev.disparities is None else np.asarray(ev.disparities, np.float32)
+        changed = []
+        for i, k in enumerate(ev.kf_ids):
+            st = self._kfs.get(int(k))
+            if st is None:
+                continue
+            moved = not np.array_equal(st.pose, poses[i])
+            if moved:
+                st.pose = poses[i].copy()
+            if disps is not None:
+                if disps[i].shape != st.disparity.shape:
+                    raise ProxyDepthError(f"update {ev.seq}: disparity of kf {k} has shape "
+                                          f"{disps[i].shape}, expected {st.disparity.shape}")
+                if not np.array_equal(st.disparity, disps[i]):
+                    st.disparity = disps[i].copy()
+                    moved = True
+            if moved:
+                changed.append(int(k))
+        if not changed:
+            return []
+        cset = set(changed)
+        recompute = [k for k in self._kfs
+                     if k in cset or any(n in cset for n in self.neighbours(k))]
+        olds = {k: self._kfs[k].result for k in recompute}
+        new = self._compute(recompute, seq=int(ev.seq))
+        out = []
+        for k in recompute:
+            old = olds[k]
+            if old is None or k in cset or _differs(old, new[k]):
+                out.append((old, new[k]))
+        return out
+
+    # ------------------------------------------------------------ internals
+    def _store(self, kf: KeyframeData) -> None:
+        disp = np.asarray(kf.disparity, np.float32)
+        if disp.ndim != 2:
+            raise ProxyDepthError(f"keyframe {kf.kf_id}: disparity must be 2-D, got {disp.shape}")
+        for st in self._kfs.values():
+            if st.disparity.shape != disp.shape:
+                raise ProxyDepthError(f"keyframe {kf.kf_id}: disparity {disp.shape} differs "
+                                      f"from earlier keyframes {st.disparity.shape}")
+            break
+        H, W = self.intr.height, self.intr.width
+        mono = None
+        if kf.mono_depth is not None:
+            mono = np.asarray(kf.mono_depth, np.float32)
+        elif self.mono is not None:
+            import time
+            t0 = time.perf_counter()
+            mono = self.mono.predict(np.asarray(kf.image))
+            self.timings["mono_ms"] += 1e3 * (time.perf_counter() - t0)
+        if mono is not None and mono.shape != (H, W):
+            import cv2
+            mono = cv2.resize(mono, (W, H), interpolation=cv2.INTER_LINEAR)
+        old = self._kfs.pop(int(kf.kf_id), None)
+        self._kfs[int(kf.kf_id)] = _KfState(int(kf.kf_id), np.asarray(kf.pose, np.float64).copy(),
+                                            disp.copy(), mono,
+                                            old.result if old is not None else None)
+        # keep insertion order == kf id order for neighbour lookups
+        if len(self._kfs) > 1 and list(self._kfs)[-2] > int(kf.kf_id):
+            self._kfs = OrderedDict(sorted(self._kfs.items()))
+
+    def _evict(self) -> None:
+        while len(self._kfs) > self.capacity:
+            self._kfs.popitem(last=False)
+
+    def _compute(self, ids: Sequence[int], seq: Optional[int]) -> Dict[int, ProxyDepthResult]:
+        import time
+        if not ids:
+            return {}
+        t0 = time.perf_counter()
+        nb = {k: self.neighbours(k) for k in ids}
+        used = sorted(set(ids).union(*[set(v) for v in nb.values()]))
+        index = {k: i for i, k in enumerate(used)}
+        dev = self.device
+        disp = torch.from_numpy(np.stack([self._kfs[k].disparity for k in used])).to(dev)
+        poses = torch.from_numpy(np.stack([self._kfs[k].pose for k in used])).to(dev)
+        h, w = disp.shape[1:]
+        intr_ba = ba_intrinsics(self.intr, h, w)
+        pairs = torch.tensor([(index[k], index[n]) for k in ids for n in nb[k]],
+                             dtype=torch.long, device=dev).reshape(-1, 2)
+        depth_ba = _disp_to_depth(disp)
+        valid_ba, _ = multiview_filter(depth_ba, poses, intr_ba, self.dc.mv_eta,
+                                       self.dc.mv_min_views, self.dc.mv_max_depth_ratio,
+                                       pairs=pairs)
+        self.timings["filter_ms"] += 1e3 * (time.perf_counter() - t0)
+        self.timings["n"] += len(ids)
+        H, W = self.intr.height, self.intr.width
+        out = {}
+        for k in ids:
+            i = index[k]
+            st = self._kfs[k]
+            dup, vup = upsample_disparity(disp[i], valid_ba[i], (H, W), self.dc.upsample_disc)
+            mv_depth = _disp_to_depth(dup)
+            mono = None if st.mono is None else torch.from_numpy(st.mono).to(dev)
+            fit = None
+            if mono is not None:   # Eq. 3 at BA resolution (multi-view depth not interpolated)
+                fit = fit_mono(sample_at_grid(mono, h, w), depth_ba[i], valid_ba[i],
+                               self.fit_space)
+            depth, source, th, ga = compose_proxy_depth(
+                mv_depth, vup & (mv_depth > 0), mono, self.fit_space,
+                int(self.dc.fill_small_holes), self.dc.fill_plane_tol,
+                self.dc.mv_max_depth_ratio, scale_shift=fit)
+            s = seq if seq is not None else (st.result.update_seq if st.result else 0)
+            res = ProxyDepthResult(k, depth, source, st.pose.copy(), int(s), th, ga, len(nb[k]))
+            st.result = res
+            st.n_views = len(nb[k])
+            out[k] = res
+        return out
+
+
+def _differs(a: ProxyDepthResult, b: ProxyDepthResult) -> bool:
+    return (not np.array_equal(a.pose, b.pose) or not np.array_equal(a.source, b.source)
+            or not np.array_equal(a.depth, b.depth))
