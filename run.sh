@@ -51,7 +51,7 @@ ensure_venv() {
     "$PY" -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
     echo "$want" > "$VENV/.splat_deps_stamp"
   fi
-  want=$(stamp_of msg_defs/CMakeLists.txt msg_defs/package.xml msg_defs/msg/*.msg msg_defs/build.sh)
+  want=$(stamp_of msg_defs/CMakeLists.txt msg_defs/package.xml msg_defs/msg/*.msg msg_defs/srv/*.srv msg_defs/build.sh)
   have=$(cat "$VENV/.splat_msgs_stamp" 2>/dev/null || true)
   if [ "$want" != "$have" ]; then
     log "building the splat_slam_msgs interface package into .venv"
