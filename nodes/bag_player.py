@@ -1,0 +1,351 @@
+"""splat-slam-bag-player: play a rosbag2 (MCAP, CDR) into the graph — ``ros2 bag play`` is
+not on PyPI.
+
+Messages are republished as the raw CDR bytes stored in the bag (no decoding). A *frame* is
+one message of the image topic together with the other selected messages of the same log
+time (camera_info; depth / ground truth with ``--topics all``); before each frame the bag
+time is published on ``/clock`` (rosgraph_msgs/Clock) for nodes with ``use_sim_time``.
+
+Modes
+- ``lockstep`` (default): frame N+1 is published only after frame N was consumed: the
+  tracker's FrameAck with the image's stamp, and — when that frame made keyframe K — the
+  acks of the ``--wait-acks`` consumers (default loop_closure, mapper) for a keyframe id
+  >= K. Nothing is dropped however slow the machine; results match the in-process pipeline.
+- ``realtime``: frames at bag time / ``--rate``; no waiting (a slow tracker drops frames).
+
+Before the first message the player waits until the image and camera_info topics have
+subscribers and the ``--wait-nodes`` have announced ``ready`` on /splat/graph_events.
+After the last frame it publishes ``end_of_stream`` there (the launcher's finalisation
+starts from it) and exits 0.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import struct
+import sys
+import time
+from pathlib import Path
+from typing import Dict, Iterator, List, Optional, Tuple
+
+from .node_common import TOPICS, events_qos, init_process
+
+ROLE_TOPICS = ("image", "camera_info", "depth", "gt_pose")
+
+
+class PlayerError(Exception):
+    """User-facing error: printed as ``error: ...``, exit status 2."""
+
+
+def cdr_stamp_ns(raw: bytes) -> Optional[int]:
+    """header.stamp of a serialized message whose first field is std_msgs/Header."""
+    if len(raw) < 12:
+        return None
+    little = raw[1] in (0x01, 0x03)
+    sec, nsec = struct.unpack("<iI" if little else ">iI", raw[4:12])
+    return sec * 1_000_000_000 + nsec
+
+
+def _import_type(name: str):
+    parts = name.split("/")
+    if len(parts) != 3:
+        raise PlayerError(f"unexpected message type name {name!r} in the bag")
+    try:
+        return getattr(importlib.import_module(f"{parts[0]}.{parts[1]}"), parts[2])
+    except (ImportError, AttributeError):
+        raise PlayerError(f"message type {name} is not installed in this environment") from None
+
+
+class BagReader:
+    """Raw (topic, log_ns, type name, bytes) of a rosbag2 MCAP folder or a bare .mcap file."""
+
+    def __init__(self, path):
+        import yaml
+        p = Path(path)
+        if not p.exists():
+            raise PlayerError(f"bag not found: {p}")
+        if p.is_dir():
+            meta_f = p / "metadata.yaml"
+            if not meta_f.is_file():
+                raise PlayerError(f"{p}: not a rosbag2 folder (no metadata.yaml)")
+            meta = yaml.safe_load(meta_f.read_text())["rosbag2_bagfile_information"]
+            if meta.get("storage_identifier", "mcap") != "mcap":
+                raise PlayerError(f"{p}: storage {meta.get('storage_identifier')!r} is not mcap "
+                                  "(convert it with splat-slam-convert)")
+            self.files = [p / Path(r).name for r in meta["relative_file_paths"]]
+            info = p / "splat_slam_info.yaml"
+            self.info = yaml.safe_load(info.read_text()) if info.is_file() else {}
+        else:
+            if p.suffix.lower() != ".mcap":
+                raise PlayerError(f"{p}: a bag is a rosbag2 folder or a .mcap file")
+            self.files = [p]
+            self.info = {}
+        self.types: Dict[str, str] = {}
+        self.counts: Dict[str, int] = {}
+        from mcap.reader import make_reader
+        for f in self.files:
+            try:
+                with open(f, "rb") as fh:
+                    summ = make_reader(fh).get_summary()
+            except Exception as e:
+                raise PlayerError(f"cannot read MCAP file {f}: {e}") from None
+            if summ is None:
+                raise PlayerError(f"{f}: MCAP file without a summary section")
+            stats = summ.statistics.channel_message_counts if summ.statistics else {}
+            for cid, ch in summ.channels.items():
+                if ch.message_encoding != "cdr":
+                    continue
+                self.types[ch.topic] = summ.schemas[ch.schema_id].name
+                self.counts[ch.topic] = self.counts.get(ch.topic, 0) + stats.get(cid, 0)
+
+    def messages(self, topics) -> Iterator[Tuple[str, int, bytes]]:
+        from mcap.reader import make_reader
+        for f in self.files:
+            with open(f, "rb") as fh:
+                for _schema, ch, m in make_reader(fh).iter_messages(topics=list(topics),
+                                                                   log_time_order=True):
+                    yield ch.topic, m.log_time, m.data
+
+
+def frames(reader: BagReader, topics: List[str], image_topic: str):
+    """Groups of (topic, raw) with one image each, in log-time order."""
+    group: List[Tuple[str, bytes]] = []
+    group_t = None
+    for topic, t, raw in reader.messages(topics):
+        if group_t is not None and t != group_t and any(tp == image_topic for tp, _ in group):
+            yield group_t, group
+            group = []
+        group_t = t
+        group.append((topic, raw))
+    if any(tp == image_topic for tp, _ in group):
+        yield group_t, group
+
+
+class Player:
+    def __init__(self, args, reader: BagReader):
+        import rclpy
+        from rosgraph_msgs.msg import Clock
+        from splat_slam_msgs.msg import FrameAck
+        from std_msgs.msg import String
+
+        from . import qos as Q
+        self.args = args
+        self.reader = reader
+        self.node = rclpy.create_node(args.name)
+        self.log = self.node.get_logger()
+        bag_topics = dict(reader.info.get("topics") or {})
+        self.roles = {r: (getattr(args, f"{r}_topic") or bag_topics.get(r) or
+                          {"image": "/camera/image_raw", "camera_info": "/camera/camera_info",
+                           "depth": "/camera/depth", "gt_pose": "/ground_truth/pose"}[r])
+                      for r in ROLE_TOPICS}
+        if self.roles["image"] not in reader.types:
+            raise PlayerError(f"bag has no image topic {self.roles['image']!r} "
+                              f"(topics: {', '.join(sorted(reader.types))})")
+        roles = ("image", "camera_info") if args.topics == "camera" else ROLE_TOPICS
+        self.topics = [self.roles[r] for r in roles if self.roles[r] in reader.types]
+        self.remap = {self.roles["image"]: args.out_image or self.roles["image"],
+                      self.roles["camera_info"]: args.out_camera_info or self.roles["camera_info"]}
+        self.pubs = {}
+        for t in self.topics:
+            self.pubs[t] = self.node.create_publisher(_import_type(reader.types[t]),
+                                                      self.remap.get(t, t), Q.image_qos())
+        self.clock_pub = self.node.create_publisher(Clock, "/clock", 10) if args.clock else None
+        self.events_pub = self.node.create_publisher(String, TOPICS["events"], events_qos())
+        self.String = String
+        self.ready_nodes = set()
+        self.acks: Dict[str, Dict] = {}
+        self.tracker_acks: Dict[int, Tuple[bool, int]] = {}
+        self.node.create_subscription(FrameAck, TOPICS["ack"], self._on_ack, Q.ack_qos())
+        self.node.create_subscription(String, TOPICS["events"], self._on_event, events_qos())
+
+    # ---------------------------------------------------------------- callbacks
+    def _on_ack(self, m) -> None:
+        ns = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+        if m.consumer == "tracker":
+            self.tracker_acks[ns] = (bool(m.is_keyframe), int(m.kf_id))
+        elif m.is_keyframe:
+            a = self.acks.setdefault(m.consumer, {"kf": -1})
+            a["kf"] = max(a["kf"], int(m.kf_id))
+
+    def _on_event(self, m) -> None:
+        try:
+            d = json.loads(m.data)
+        except ValueError:
+            return
+        if d.get("event") == "ready":
+            self.ready_nodes.add(d.get("node"))
+
+    def spin_until(self, cond, timeout: float, what: str) -> bool:
+        import rclpy
+        t0 = time.monotonic()
+        last_note = t0
+        while not cond():
+            if not rclpy.ok():
+                raise KeyboardInterrupt
+            rclpy.spin_once(self.node, timeout_sec=0.02)
+            now = time.monotonic()
+            if now - t0 > timeout:
+                return False
+            if now - last_note > 30:
+                last_note = now
+                self.log.info(f"still waiting for {what} ({now - t0:.0f} s)")
+        return True
+
+    # ---------------------------------------------------------------- play
+    def event(self, event: str, **kw) -> None:
+        d = {"node": "player", "event": event, "t": time.time(), **kw}
+        self.events_pub.publish(self.String(data=json.dumps(d)))
+
+    def wait_for_graph(self) -> None:
+        a = self.args
+        want = [n for n in (a.wait_nodes.split(",") if a.wait_nodes else []) if n]
+        need = [self.pubs[t] for t in self.topics if t in (self.roles["image"],
+                                                           self.roles["camera_info"])]
+        ok = self.spin_until(lambda: all(p.get_subscription_count() >= a.min_subscribers
+                                         for p in need) and
+                             all(n in self.ready_nodes for n in want),
+                             a.start_timeout, "subscribers / ready nodes")
+        if not ok:
+            missing = [n for n in want if n not in self.ready_nodes]
+            subs = {p.topic_name: p.get_subscription_count() for p in need}
+            raise PlayerError(f"graph not ready after {a.start_timeout:g} s: nodes not ready "
+                              f"{missing or 'none'}, subscribers {subs}")
+        # let the matched subscribers' reliable channels settle (first-message loss)
+        self.spin_until(lambda: False, 0.3, "")
+
+    def play(self) -> int:
+        import rclpy
+        from builtin_interfaces.msg import Time
+        from rosgraph_msgs.msg import Clock
+        a = self.args
+        self.wait_for_graph()
+        total = self.reader.counts.get(self.roles["image"], 0)
+        if a.max_frames:
+            total = min(total, a.max_frames)
+        self.log.info(f"playing {total} frames ({a.mode}"
+                      f"{'' if a.mode == 'lockstep' else f', rate {a.rate:g}'}) on "
+                      f"{', '.join(self.remap.get(t, t) for t in self.topics)}")
+        wait_kf = [c for c in (a.wait_acks.split(",") if a.wait_acks else []) if c]
+        t_wall0 = t_bag0 = None
+        n = 0
+        last_kf = -1
+        t_start = time.monotonic()
+        last_report = t_start
+        lost_acks = 0
+        for t_ns, group in frames(self.reader, self.topics, self.roles["image"]):
+            if a.max_frames and n >= a.max_frames:
+                break
+            if a.mode == "realtime":
+                if t_wall0 is None:
+                    t_wall0, t_bag0 = time.monotonic(), t_ns
+                due = t_wall0 + (t_ns - t_bag0) * 1e-9 / a.rate
+                while time.monotonic() < due:
+                    rclpy.spin_once(self.node, timeout_sec=min(0.02, max(0.0, due - time.monotonic())))
+            if self.clock_pub is not None:
+                self.clock_pub.publish(Clock(clock=Time(sec=t_ns // 10**9, nanosec=t_ns % 10**9)))
+            img_raw = None
+            for topic, raw in group:              # the image last: camera_info first
+                if topic == self.roles["image"]:
+                    img_raw = raw
+                    continue
+                self.pubs[topic].publish(raw)
+            self.pubs[self.roles["image"]].publish(img_raw)
+            n += 1
+            if a.mode == "lockstep":
+                stamp = cdr_stamp_ns(img_raw)
+                ok = self.spin_until(lambda: stamp in self.tracker_acks, a.ack_timeout,
+                                     f"the tracker's ack of frame {n - 1}")
+                if not ok:
+                    lost_acks += 1
+                    self.log.error(f"no ack of frame {n - 1} from the tracker within "
+                                   f"{a.ack_timeout:g} s; going on")
+                else:
+                    is_kf, kf = self.tracker_acks.pop(stamp)
+                    if is_kf and wait_kf:
+                        last_kf = max(last_kf, kf)
+                        for c in wait_kf:
+                            if not self.spin_until(
+                                    lambda c=c: self.acks.get(c, {"kf": -1})["kf"] >= kf,
+                                    a.ack_timeout, f"{c}'s ack of keyframe {kf}"):
+                                lost_acks += 1
+                                self.log.error(f"no ack of keyframe {kf} from {c} within "
+                                               f"{a.ack_timeout:g} s; going on")
+            else:
+                rclpy.spin_once(self.node, timeout_sec=0)
+            now = time.monotonic()
+            if now - last_report >= a.report_every:
+                last_report = now
+                self.log.info(f"frame {n}/{total}  {n / (now - t_start):.2f} frames/s")
+        wall = time.monotonic() - t_start
+        self.log.info(f"end of stream: {n} frames in {wall:.1f} s ({n / max(wall, 1e-9):.2f} "
+                      f"frames/s){f', {lost_acks} acks missing' if lost_acks else ''}")
+        self.event("end_of_stream", frames=n, wall_s=wall, mode=a.mode, lost_acks=lost_acks)
+        try:
+            self.events_pub.wait_for_all_acked(timeout=rclpy.duration.Duration(seconds=5))
+        except Exception:
+            pass
+        self.spin_until(lambda: False, 0.2, "")
+        return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="splat-slam-bag-player", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("bag", help="rosbag2 folder (MCAP storage) or a .mcap file")
+    ap.add_argument("--mode", choices=["lockstep", "realtime"], default="lockstep")
+    ap.add_argument("--rate", type=float, default=1.0, help="realtime mode: speed factor")
+    ap.add_argument("--topics", choices=["camera", "all"], default="camera",
+                    help="camera: image + camera_info (default); all: also depth / ground truth")
+    ap.add_argument("--image-topic", help="image topic in the bag (default from the bag info)")
+    ap.add_argument("--camera-info-topic", help="camera_info topic in the bag")
+    ap.add_argument("--depth-topic", help=argparse.SUPPRESS)
+    ap.add_argument("--gt-pose-topic", help=argparse.SUPPRESS)
+    ap.add_argument("--out-image", help="publish the image on this topic instead")
+    ap.add_argument("--out-camera-info", help="publish camera_info on this topic instead")
+    ap.add_argument("--wait-nodes", default="",
+                    help="comma list of graph nodes that must announce 'ready' first")
+    ap.add_argument("--wait-acks", default="loop_closure,mapper",
+                    help="lockstep: consumers whose keyframe acks are awaited after a keyframe")
+    ap.add_argument("--min-subscribers", type=int, default=1)
+    ap.add_argument("--start-timeout", type=float, default=120.0)
+    ap.add_argument("--ack-timeout", type=float, default=300.0)
+    ap.add_argument("--max-frames", type=int, default=0)
+    ap.add_argument("--no-clock", dest="clock", action="store_false", help="do not publish /clock")
+    ap.add_argument("--report-every", type=float, default=10.0, help="progress line period (s)")
+    ap.add_argument("--name", default="bag_player", help="node name")
+    return ap
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    init_process()
+    import rclpy
+    from rclpy.utilities import remove_ros_args
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(remove_ros_args(["x"] + argv)[1:])
+    if args.rate <= 0:
+        print("error: --rate must be positive", file=sys.stderr)
+        return 2
+    try:
+        reader = BagReader(args.bag)
+    except PlayerError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    rclpy.init(args=["x"] + argv)
+    try:
+        return Player(args, reader).play()
+    except PlayerError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    except Exception as e:
+        if type(e).__name__ == "ExternalShutdownException":
+            return 130
+        raise
+    finally:
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,401 @@
+"""What every splat_slam_ros node shares: topic names, config <-> ROS parameters, robust raw
+subscriptions, a worker thread, the graph-event channel and process start/stop.
+
+A node is a thin adapter: callbacks turn messages into core types (nodes/convert.py) and hand
+them to a core stage (splat_slam_ros.*) on the node's worker thread; results go back out as
+messages. Extra conversions that convert.py does not have (PoseStamped, Path, PointCloud2,
+TF) live here.
+
+Graph events (``/splat/graph_events``, std_msgs/String with one JSON object, RELIABLE +
+TRANSIENT_LOCAL) carry the control protocol: ``ready``, ``end_of_stream``, ``finalized``,
+``saved`` (see nodes/launch.py for the end-of-stream / finalisation sequence).
+"""
+from __future__ import annotations
+
+import array
+import hashlib
+import json
+import os
+import queue
+import sys
+import threading
+import time
+import traceback
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional
+
+from splat_slam_ros.ros_env import RosEnvError, apply_ros_environment
+
+# --------------------------------------------------------------------------- names
+NS = "/splat"
+TOPICS = {
+    "keyframes": f"{NS}/keyframes",                  # splat_slam_msgs/Keyframe
+    "updates": f"{NS}/pose_graph_updates",           # splat_slam_msgs/PoseGraphUpdate
+    "proxy_depth": f"{NS}/proxy_depth",              # splat_slam_msgs/ProxyDepth
+    "ack": f"{NS}/frame_ack",                        # splat_slam_msgs/FrameAck
+    "events": f"{NS}/graph_events",                  # std_msgs/String (JSON)
+    "camera_pose": f"{NS}/camera_pose",              # geometry_msgs/PoseStamped
+    "trajectory": f"{NS}/trajectory",                # nav_msgs/Path
+    "rendered_rgb": f"{NS}/map/rendered_rgb",        # sensor_msgs/Image rgb8 (latest keyframe)
+    "rendered_depth": f"{NS}/map/rendered_depth",    # sensor_msgs/Image 32FC1
+    "render_request": f"{NS}/map/render_request",    # geometry_msgs/PoseStamped
+    "view_rgb": f"{NS}/map/view_rgb",                # sensor_msgs/Image rgb8 (requested pose)
+    "view_depth": f"{NS}/map/view_depth",            # sensor_msgs/Image 32FC1
+    "points": f"{NS}/map/points",                    # sensor_msgs/PointCloud2
+    "status": f"{NS}/map/status",                    # splat_slam_msgs/MapperStatus
+}
+SERVICES = {
+    "save_map": f"{NS}/map/save",                    # splat_slam_msgs/SaveMap
+    "reset_map": f"{NS}/map/reset",                  # std_srvs/Trigger
+    "render": f"{NS}/map/render",                    # splat_slam_msgs/RenderPose
+}
+NODE_NAMES = ("tracker", "depth", "loop_closure", "mapper")
+
+# update reasons: the tracker publishes local_ba, the loop closer the others
+TRACKER_REASONS = ("local_ba",)
+
+
+def init_process() -> None:
+    """Project DDS environment, before rclpy is imported (every node's first call)."""
+    try:
+        apply_ros_environment()
+    except RosEnvError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+
+
+def raw_hash(raw: bytes) -> str:
+    """Identity of a serialized message (deduplication of replayed messages after restarts)."""
+    return hashlib.sha1(raw).hexdigest()
+
+
+class Throttle:
+    """At most one log line per key every ``period`` seconds (plus a count of the rest)."""
+
+    def __init__(self, period: float = 5.0):
+        self.period = period
+        self.last: Dict[str, float] = {}
+        self.skipped: Dict[str, int] = {}
+
+    def __call__(self, key: str) -> Optional[str]:
+        now = time.monotonic()
+        if now - self.last.get(key, -1e9) >= self.period:
+            self.last[key] = now
+            n = self.skipped.pop(key, 0)
+            return f" ({n} similar suppressed)" if n else ""
+        self.skipped[key] = self.skipped.get(key, 0) + 1
+        return None
+
+
+# --------------------------------------------------------------------------- node base
+def _param_value(v):
+    if isinstance(v, tuple):
+        return list(v)
+    return v
+
+
+class SplatNode:
+    """Mixin-style helper wrapped around an rclpy Node (composition keeps rclpy imports lazy).
+
+    Declares ``config_file`` + every SlamConfig key (dotted names, dynamic typing so that
+    ``-p tracking.keyframe_thresh:=3`` works) + node options; builds ``self.cfg``.
+    """
+
+    def __init__(self, name: str, options: Dict[str, Any]):
+        import rclpy
+        from rclpy.node import Node
+        from rcl_interfaces.msg import ParameterDescriptor
+        from std_msgs.msg import String
+
+        from splat_slam_ros.config import ConfigError, load_config
+
+        self.name = name
+        self.node: Node = rclpy.create_node(name)
+        self.log = self.node.get_logger()
+        self.throttle = Throttle()
+        dyn = ParameterDescriptor(dynamic_typing=True)
+        cfg_file = self.node.declare_parameter("config_file", "", dyn).value or None
+        try:
+            cfg = load_config(cfg_file)
+        except ConfigError as e:
+            self.log.fatal(str(e))
+            raise SystemExit(2)
+        for key, default in cfg.flat().items():
+            val = self.node.declare_parameter(key, _param_value(default), dyn).value
+            if val != _param_value(default):
+                try:
+                    cfg.set(key, val)
+                except ConfigError as e:
+                    self.log.fatal(f"parameter {key}: {e}")
+                    raise SystemExit(2)
+        self.cfg = cfg
+        self.opts: Dict[str, Any] = {}
+        for key, default in {"output_dir": "", "state_dir": "", **options}.items():
+            self.opts[key] = self.node.declare_parameter(f"node.{key}", default, dyn).value
+        self.frame_id = cfg.ros.map_frame
+        self._events_pub = self.node.create_publisher(String, TOPICS["events"], events_qos())
+        self._event_handlers: List[Callable[[dict], None]] = []
+        self._events_sub = None
+        self.worker = Worker(self)
+
+    # ------------------------------------------------------------ helpers
+    @property
+    def output_dir(self) -> Optional[Path]:
+        d = self.opts.get("output_dir") or ""
+        return Path(d) if d else None
+
+    @property
+    def state_dir(self) -> Optional[Path]:
+        d = self.opts.get("state_dir") or ""
+        return Path(d) if d else None
+
+    def now(self) -> float:
+        return self.node.get_clock().now().nanoseconds * 1e-9
+
+    def warn_throttled(self, key: str, text: str, error: bool = True) -> None:
+        suffix = self.throttle(key)
+        if suffix is not None:
+            (self.log.error if error else self.log.warning)(text + suffix)
+
+    def subscribe(self, msg_type, topic: str, qos_profile, callback: Callable, what: str):
+        """Raw subscription: deserialise here so that garbage bytes are a logged error, not a
+        crash of the executor. ``callback(msg, raw)``; exceptions are logged, never raised."""
+        from rclpy.serialization import deserialize_message
+
+        def cb(raw: bytes):
+            try:
+                msg = deserialize_message(raw, msg_type)
+            except Exception as e:            # Fast CDR raises RMWError on garbage
+                self.warn_throttled(f"deser:{topic}", f"dropping a {what} message on {topic} "
+                                    f"that cannot be deserialised ({len(raw)} bytes): "
+                                    f"{str(e).splitlines()[0][:120]}")
+                return
+            try:
+                callback(msg, raw)
+            except Exception as e:
+                self.warn_throttled(f"cb:{topic}", f"error handling a {what} message on {topic}: "
+                                    f"{type(e).__name__}: {e}")
+        return self.node.create_subscription(msg_type, topic, cb, qos_profile, raw=True)
+
+    # ------------------------------------------------------------ graph events
+    def publish_event(self, event: str, **fields) -> None:
+        from std_msgs.msg import String
+        d = {"node": self.name, "event": event, "t": time.time(), **fields}
+        try:
+            self._events_pub.publish(String(data=json.dumps(d, default=str)))
+        except Exception as e:                 # context shut down meanwhile
+            self.log.debug(f"event {event} not published: {e}")
+
+    def on_events(self, handler: Callable[[dict], None]) -> None:
+        from std_msgs.msg import String
+        self._event_handlers.append(handler)
+        if self._events_sub is None:
+            prof = events_qos()
+
+            def cb(msg, raw):
+                try:
+                    d = json.loads(msg.data)
+                except ValueError:
+                    return
+                if not isinstance(d, dict) or d.get("node") == self.name:
+                    return
+                for h in self._event_handlers:
+                    h(d)
+            self._events_sub = self.subscribe(String, TOPICS["events"], prof, cb, "graph event")
+
+    def spin(self) -> int:
+        """Spin until shutdown (SIGINT / SIGTERM); returns the exit status."""
+        import rclpy
+        from rclpy.executors import ExternalShutdownException
+        self.worker.start()
+        rc = 0
+        try:
+            rclpy.spin(self.node)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        finally:
+            self.worker.stop()
+            rc = self.worker.fatal_rc
+            try:
+                self.node.destroy_node()
+            except Exception:
+                pass
+            rclpy.try_shutdown()
+        return rc
+
+
+class Worker:
+    """One thread that runs the node's core work in arrival order (callbacks only enqueue),
+    so receiving never stalls behind a long mapping / BA step. ``lock`` serialises core
+    access with service callbacks."""
+
+    def __init__(self, owner: SplatNode):
+        self.owner = owner
+        self.q: "queue.Queue" = queue.Queue()
+        self.lock = threading.RLock()
+        self.thread = threading.Thread(target=self._run, name=f"{owner.name}-worker", daemon=True)
+        self._stop = threading.Event()
+        self.fatal_rc = 0
+        self.busy = False
+
+    def start(self) -> None:
+        if not self.thread.is_alive():
+            self.thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.q.put(None)
+        if self.thread.is_alive() and threading.current_thread() is not self.thread:
+            self.thread.join(timeout=5)
+
+    def submit(self, fn: Callable, *args, **kw) -> None:
+        self.q.put((fn, args, kw))
+
+    def pending(self) -> int:
+        return self.q.qsize()
+
+    def _run(self) -> None:
+        import rclpy
+        while not self._stop.is_set():
+            item = self.q.get()
+            if item is None:
+                break
+            fn, args, kw = item
+            self.busy = True
+            try:
+                with self.lock:
+                    fn(*args, **kw)
+            except SystemExit as e:          # a core stage cannot go on: stop the node
+                self.fatal_rc = int(e.code or 1)
+                self.owner.log.fatal(f"stopping: exit status {self.fatal_rc}")
+                rclpy.try_shutdown()
+                break
+            except Exception as e:
+                if not rclpy.ok():
+                    break
+                self.owner.log.error(f"{type(e).__name__}: {e}\n{traceback.format_exc(limit=6)}")
+            finally:
+                self.busy = False
+
+
+def run_node(make: Callable[[], SplatNode], argv: Optional[List[str]] = None) -> int:
+    """Entry point body of every node executable: env, rclpy.init, build, spin."""
+    init_process()
+    import rclpy
+    rclpy.init(args=sys.argv if argv is None else argv)
+    try:
+        n = make()
+    except SystemExit as e:
+        rclpy.try_shutdown()
+        return int(e.code or 0)
+    try:
+        import torch
+        torch.set_num_threads(int(os.environ.get("SPLAT_SLAM_THREADS", "0")) or
+                              max(1, os.cpu_count() or 1))
+    except ImportError:
+        pass
+    return n.spin()
+
+
+# --------------------------------------------------------------------------- conversions
+def pose_stamped(T, stamp: float, frame_id: str):
+    from geometry_msgs.msg import PoseStamped
+
+    from .convert import pose_to_msg, to_stamp
+    m = PoseStamped()
+    m.header.stamp = to_stamp(stamp)
+    m.header.frame_id = frame_id
+    m.pose = pose_to_msg(T)
+    return m
+
+
+def path_msg(stamps, poses, frame_id: str, stamp: float):
+    from nav_msgs.msg import Path as PathMsg
+
+    from .convert import poses_to_msgs, to_stamp
+    m = PathMsg()
+    m.header.stamp = to_stamp(stamp)
+    m.header.frame_id = frame_id
+    out = []
+    if len(poses):
+        from geometry_msgs.msg import PoseStamped
+        for t, p in zip(stamps, poses_to_msgs(poses)):
+            ps = PoseStamped()
+            ps.header.stamp = to_stamp(t)
+            ps.header.frame_id = frame_id
+            ps.pose = p
+            out.append(ps)
+    m.poses = out
+    return m
+
+
+def pointcloud2(points, colors_u8, stamp: float, frame_id: str):
+    """N x 3 float points + N x 3 uint8 RGB -> sensor_msgs/PointCloud2 (x y z rgb, PCL's
+    packed-float rgb convention)."""
+    import numpy as np
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    from .convert import to_stamp
+    pts = np.asarray(points, np.float32).reshape(-1, 3)
+    col = np.asarray(colors_u8, np.uint8).reshape(-1, 3)
+    n = len(pts)
+    rec = np.zeros(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4")])
+    rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    rec["rgb"] = (col[:, 0].astype(np.uint32) << 16) | (col[:, 1].astype(np.uint32) << 8) | col[:, 2]
+    m = PointCloud2()
+    m.header.stamp = to_stamp(stamp)
+    m.header.frame_id = frame_id
+    m.height, m.width = 1, n
+    m.fields = [PointField(name=nm, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+                for i, nm in enumerate(("x", "y", "z", "rgb"))]
+    m.is_bigendian = False
+    m.point_step = 16
+    m.row_step = 16 * n
+    buf = array.array("B")
+    buf.frombytes(rec.tobytes())
+    m.data = buf
+    m.is_dense = True
+    return m
+
+
+def pointcloud2_to_arrays(m):
+    """Inverse of :func:`pointcloud2` (tests, viewers)."""
+    import numpy as np
+    rec = np.frombuffer(bytes(m.data), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                               ("rgb", "<u4")])
+    pts = np.stack([rec["x"], rec["y"], rec["z"]], -1)
+    rgb = np.stack([(rec["rgb"] >> 16) & 255, (rec["rgb"] >> 8) & 255, rec["rgb"] & 255], -1)
+    return pts, rgb.astype(np.uint8)
+
+
+def tf_available() -> bool:
+    try:
+        import tf2_msgs.msg  # noqa: F401
+        return True
+    except ImportError:
+        return False
+
+
+def tf_message(T, stamp: float, parent: str, child: str):
+    """tf2_msgs/TFMessage with one transform parent -> child (needs tf2_msgs)."""
+    from geometry_msgs.msg import TransformStamped
+    from tf2_msgs.msg import TFMessage
+
+    from .convert import pose_to_msg, to_stamp
+    p = pose_to_msg(T)
+    t = TransformStamped()
+    t.header.stamp = to_stamp(stamp)
+    t.header.frame_id = parent
+    t.child_frame_id = child
+    t.transform.translation.x = p.position.x
+    t.transform.translation.y = p.position.y
+    t.transform.translation.z = p.position.z
+    t.transform.rotation = p.orientation
+    return TFMessage(transforms=[t])
+
+
+def events_qos():
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)

@@ -1,0 +1,134 @@
+"""bag_player: lockstep (never ahead of the consumer's ack), realtime pacing + /clock,
+waiting for subscribers / ready nodes, end_of_stream, user errors."""
+import json
+import subprocess
+import time
+
+import numpy as np
+import pytest
+
+from test_graph_support import (PY, isolated_env, need_ros, read_jsonl, start, start_probe, stop,
+                                wait_for, write_tiny_bag)
+
+pytestmark = pytest.mark.ros
+
+SUBS = [["/camera/image_raw", "sensor_msgs/msg/Image", "image"],
+        ["/camera/camera_info", "sensor_msgs/msg/CameraInfo", "image"],
+        ["/clock", "rosgraph_msgs/msg/Clock", "image"],
+        ["/splat/graph_events", "std_msgs/msg/String", "events"]]
+
+
+def _player(bag, env, log, *extra):
+    return start([PY, "-m", "splat_slam_nodes.bag_player", str(bag), "--wait-nodes", "probe",
+                  "--start-timeout", "60", *extra], env, log)
+
+
+def _eos(recs):
+    return [json.loads(r["data"]) for r in recs if r.get("topic") == "/splat/graph_events"
+            and json.loads(r["data"]).get("event") == "end_of_stream"]
+
+
+def test_lockstep_waits_for_each_ack(tmp_path):
+    need_ros()
+    bag = write_tiny_bag(tmp_path / "bag", n=10)
+    env = isolated_env()
+    probe = start_probe({"name": "probe", "subs": SUBS, "ack_topic": "/camera/image_raw",
+                         "ack_delay": 0.15, "duration": 90}, env, tmp_path / "probe.log")
+    player = _player(bag, env, tmp_path / "player.log", "--wait-acks", "")
+    try:
+        assert player.wait(timeout=90) == 0, (tmp_path / "player.log").read_text()
+        assert wait_for(lambda: _eos(read_jsonl(tmp_path / "probe.log")), 10)
+    finally:
+        stop(player)
+        stop(probe)
+    recs = read_jsonl(tmp_path / "probe.log")
+    imgs = [r for r in recs if r.get("topic") == "/camera/image_raw"]
+    acks = [r for r in recs if "acked" in r]
+    infos = [r for r in recs if r.get("topic") == "/camera/camera_info"]
+    clocks = [r for r in recs if r.get("topic") == "/clock"]
+    stamps = [r["stamp"] for r in imgs]
+    assert len(imgs) == 10 and stamps == sorted(stamps) and len(set(stamps)) == 10
+    assert len(infos) == 10 and len(clocks) == 10
+    # frame i+1 is never received before the ack of frame i was sent
+    ack_t = {a["acked"]: a["t"] for a in acks}
+    for prev, nxt in zip(imgs[:-1], imgs[1:]):
+        assert nxt["t"] >= ack_t[prev["stamp"]], "player ran ahead of the ack"
+    eos = _eos(recs)
+    assert eos and eos[0]["frames"] == 10 and eos[0]["mode"] == "lockstep"
+
+
+def test_lockstep_waits_for_keyframe_consumers(tmp_path):
+    """A keyframe ack makes the player wait for the other consumers (here: none acks, so the
+    player waits its --ack-timeout per keyframe and reports the missing acks)."""
+    need_ros()
+    bag = write_tiny_bag(tmp_path / "bag", n=4, with_depth=False, with_gt=False)
+    env = isolated_env()
+    probe = start_probe({"name": "probe", "subs": SUBS, "ack_topic": "/camera/image_raw",
+                         "kf_every": 2, "duration": 90}, env, tmp_path / "probe.log")
+    player = _player(bag, env, tmp_path / "player.log", "--wait-acks", "mapper",
+                     "--ack-timeout", "1.0")
+    try:
+        t0 = time.monotonic()
+        assert player.wait(timeout=90) == 0
+        wall = time.monotonic() - t0
+    finally:
+        stop(player)
+        stop(probe)
+    log = (tmp_path / "player.log").read_text()
+    assert "no ack of keyframe 0 from mapper" in log and "no ack of keyframe 1 from mapper" in log
+    eos = _eos(read_jsonl(tmp_path / "probe.log"))
+    assert eos and eos[0]["lost_acks"] == 2
+    assert wall >= 2.0
+
+
+def test_realtime_rate_and_clock(tmp_path):
+    need_ros()
+    bag = write_tiny_bag(tmp_path / "bag", n=12, fps=30.0)
+    env = isolated_env()
+    probe = start_probe({"name": "probe", "subs": SUBS, "duration": 90}, env,
+                        tmp_path / "probe.log")
+    player = _player(bag, env, tmp_path / "player.log", "--mode", "realtime", "--rate", "0.5")
+    try:
+        assert player.wait(timeout=90) == 0, (tmp_path / "player.log").read_text()
+        assert wait_for(lambda: _eos(read_jsonl(tmp_path / "probe.log")), 10)
+    finally:
+        stop(player)
+        stop(probe)
+    recs = read_jsonl(tmp_path / "probe.log")
+    imgs = [r for r in recs if r.get("topic") == "/camera/image_raw"]
+    clocks = [r for r in recs if r.get("topic") == "/clock"]
+    assert len(imgs) == 12
+    span = imgs[-1]["t"] - imgs[0]["t"]
+    assert 11 / 30 / 0.5 * 0.8 < span < 11 / 30 / 0.5 + 1.0       # paced at bag time / rate
+    assert [c["stamp"] for c in clocks] == [r["stamp"] for r in imgs]
+
+
+def test_all_topics_and_user_errors(tmp_path):
+    need_ros()
+    bag = write_tiny_bag(tmp_path / "bag", n=3)
+    env = isolated_env()
+    r = subprocess.run([PY, "-m", "splat_slam_nodes.bag_player", str(tmp_path / "nope")],
+                       env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "error: bag not found" in r.stderr
+    (tmp_path / "x.db3").write_bytes(b"")
+    r = subprocess.run([PY, "-m", "splat_slam_nodes.bag_player", str(tmp_path / "x.db3")],
+                       env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "rosbag2 folder or a .mcap" in r.stderr
+    # nobody listens: a clear error after --start-timeout, exit 2
+    r = subprocess.run([PY, "-m", "splat_slam_nodes.bag_player", str(bag), "--start-timeout",
+                        "1"], env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "graph not ready" in r.stderr
+    subs = SUBS + [["/camera/depth", "sensor_msgs/msg/Image", "image"],
+                   ["/ground_truth/pose", "geometry_msgs/msg/PoseStamped", "image"]]
+    probe = start_probe({"name": "probe", "subs": subs, "ack_topic": "/camera/image_raw",
+                         "duration": 60}, env, tmp_path / "probe.log")
+    player = _player(bag, env, tmp_path / "player.log", "--topics", "all", "--wait-acks", "")
+    try:
+        assert player.wait(timeout=60) == 0
+        assert wait_for(lambda: _eos(read_jsonl(tmp_path / "probe.log")), 10)
+    finally:
+        stop(player)
+        stop(probe)
+    recs = read_jsonl(tmp_path / "probe.log")
+    for t in ("/camera/depth", "/ground_truth/pose"):
+        assert len([r for r in recs if r.get("topic") == t]) == 3
