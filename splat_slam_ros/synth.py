@@ -20,6 +20,7 @@ world points into it.
 """
 from __future__ import annotations
 
+import functools
 import math
 import shutil
 import sys
@@ -126,16 +127,6 @@ def default_intrinsics(width: int, height: int, fov_deg: Optional[float] = None)
 
 
 # ================================================================ trajectories
-def _look_at(p: np.ndarray, target: np.ndarray, up=np.array([0.0, 0.0, 1.0])) -> np.ndarray:
-    """Camera-to-world rotation (OpenCV axes) looking from p at target with world up."""
-    z = target - p
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    return np.stack([x, y, z], 1)
-
-
 def builtin_trajectory(duration: float = 60.0, seed: int = 0,
                        rate: float = 100.0) -> Tuple[np.ndarray, np.ndarray]:
     """A smooth hand-held-like path (world z up, 100 Hz, t from 0): a person strolling in a
@@ -157,12 +148,17 @@ def builtin_trajectory(duration: float = 60.0, seed: int = 0,
     pos += np.stack([wave(0.004, 0.25, 0.7), wave(0.004, 0.25, 0.7), wave(0.003, 0.25, 0.7)], 1)
     target = np.stack([1.9 + wave(0.5, 8, 20), wave(1.2, 10, 25), 0.75 + wave(0.35, 6, 14)], 1)
     roll = np.radians(3.0) * wave(1.0, 3, 9) + np.radians(0.3) * wave(1.0, 0.3, 0.8)
+    z = target - pos
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    x = np.cross(z, np.array([0.0, 0.0, 1.0]))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    y = np.cross(z, x)
+    c, s = np.cos(roll)[:, None], np.sin(roll)[:, None]
     poses = np.tile(np.eye(4), (n, 1, 1))
-    for i in range(n):
-        R = _look_at(pos[i], target[i])
-        c, s = math.cos(roll[i]), math.sin(roll[i])
-        poses[i, :3, :3] = R @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-        poses[i, :3, 3] = pos[i]
+    poses[:, :3, 0] = c * x + s * y          # roll about the optical axis
+    poses[:, :3, 1] = -s * x + c * y
+    poses[:, :3, 2] = z
+    poses[:, :3, 3] = pos
     return t, poses
 
 
@@ -306,15 +302,23 @@ def _point_box_distance(P: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.nda
 
 
 # ------------------------------------------------------------------ textures
+_FREQ_CACHE: Dict = {}
+
+
 def _noise(rng, S: int, fmin: float, fmax: float, beta: float = 1.0,
            aniso: Tuple[float, float] = (1.0, 1.0)) -> np.ndarray:
     """Periodic (tileable) band-limited noise on S x S, zero mean, unit std.
     fmin/fmax in cycles per tile; aniso stretches the spectrum (x, y)."""
-    fy = np.fft.fftfreq(S)[:, None] * S * aniso[1]
-    fx = np.fft.rfftfreq(S)[None, :] * S * aniso[0]
-    f = np.sqrt(fx ** 2 + fy ** 2)
-    amp = np.where((f >= fmin) & (f <= fmax), 1.0 / np.maximum(f, 1.0) ** beta, 0.0)
-    spec = (rng.standard_normal(f.shape) + 1j * rng.standard_normal(f.shape)) * amp
+    key = (S, aniso)
+    if key not in _FREQ_CACHE:
+        fy = np.fft.fftfreq(S)[:, None] * S * aniso[1]
+        fx = np.fft.rfftfreq(S)[None, :] * S * aniso[0]
+        f = np.sqrt(fx ** 2 + fy ** 2).astype(np.float32)
+        _FREQ_CACHE[key] = (f, 1.0 / np.maximum(f, 1.0))
+    f, inv_f = _FREQ_CACHE[key]
+    amp = np.where((f >= fmin) & (f <= fmax), inv_f if beta == 1.0 else inv_f ** beta, 0.0)
+    spec = rng.standard_normal((2,) + f.shape, dtype=np.float32) * amp
+    spec = spec[0] + 1j * spec[1]
     n = np.fft.irfft2(spec, s=(S, S))
     return ((n - n.mean()) / (n.std() + 1e-12)).astype(np.float32)
 
@@ -534,6 +538,15 @@ def _to_u8(img: np.ndarray) -> np.ndarray:
     return np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
+@functools.lru_cache(maxsize=48)
+def procedural_texture(kind: str, seed: int, slot: int) -> np.ndarray:
+    """A TEX_SIZE^2 tileable uint8 RGB texture of ``kind`` (see PROCEDURAL), deterministic in
+    (seed, slot); cached (read-only) so scenes re-built with one seed share textures."""
+    arr = _to_u8(PROCEDURAL[kind](np.random.default_rng([int(seed), 31, int(slot)]), TEX_SIZE))
+    arr.setflags(write=False)
+    return arr
+
+
 def _load_texture_images(folder, rng, S: int, max_images: int = 24) -> List[Tuple[str, np.ndarray]]:
     d = Path(folder)
     if not d.is_dir():
@@ -593,6 +606,13 @@ class Scene:
     def n_boxes(self) -> int:
         return len(self.boxes_lo)
 
+    def without_boxes(self) -> "Scene":
+        """The same room (textures, lights, frame) with every box removed."""
+        return Scene(self.room_lo, self.room_hi, np.zeros((0, 3)), np.zeros((0, 3)),
+                     self.T_room_world, self.textures, self.texture_names, self.surf_tex[:6],
+                     self.surf_density[:6], self.surf_offset[:6], self.surf_tint[:6],
+                     self.light_pos, self.light_dir, dict(self.info))
+
     def summary(self) -> Dict:
         return {"room_size_m": [round(float(x), 3) for x in self.room_hi - self.room_lo],
                 "boxes": int(self.n_boxes), "textures": list(self.texture_names), **self.info}
@@ -635,7 +655,7 @@ class Scene:
         # each level with one wrapped border row/column so bilinear sampling tiles seamlessly
         S = TEX_SIZE
         Hb = sum((S >> l) + 1 for l in range(TEX_LEVELS))
-        atlas = np.zeros((Hb, len(self.textures) * (S + 1), 3), np.float32)
+        atlas = np.zeros((3, Hb, len(self.textures) * (S + 1)), np.float32)
         org = np.zeros((len(self.textures), TEX_LEVELS, 2), np.float32)   # (x, y) of texel 0
         for i, tx in enumerate(self.textures):
             y = 0
@@ -644,7 +664,7 @@ class Scene:
                 x = i * (S + 1)
                 wrapped = np.concatenate([arr, arr[:1]], 0)
                 wrapped = np.concatenate([wrapped, wrapped[:, :1]], 1)
-                atlas[y:y + sl + 1, x:x + sl + 1] = wrapped
+                atlas[:, y:y + sl + 1, x:x + sl + 1] = wrapped.transpose(2, 0, 1)
                 org[i, l] = (x, y)
                 y += sl + 1
         # baked contact shadows of the boxes standing on the floor (view-independent)
@@ -678,7 +698,7 @@ class Scene:
                  boxes_lo=f32(self.boxes_lo.reshape(-1, 3)), boxes_hi=f32(self.boxes_hi.reshape(-1, 3)),
                  tabf=torch.cat([f32(tabf), f32(tabv), f32(self.surf_tint)], 1),
                  tabi=torch.as_tensor(tabi),
-                 atlas=torch.from_numpy(atlas).permute(2, 0, 1)[None].contiguous(),
+                 atlas=torch.from_numpy(atlas)[None],
                  org=f32(org.reshape(-1, 2)),
                  light_pos=f32(self.light_pos), light_dir=f32(self.light_dir),
                  floor_shadow=torch.from_numpy(shadow)[None, None],
@@ -707,34 +727,36 @@ def make_scene(room_lo, room_hi, boxes_lo=(), boxes_hi=(), *, seed: int = 0,
     texs: List[np.ndarray] = []
 
     def add(name, arr):
+        if name.startswith("image:") and name in names:
+            return names.index(name)
         names.append(name)
         texs.append(arr if arr.dtype == np.uint8 else _to_u8(arr))
         return len(texs) - 1
 
     # room: floor (z lo), ceiling (z hi), four walls
-    fk = str(rng.choice(["wood", "tiles", "carpet"]))
-    floor = add(fk, PROCEDURAL[fk](rng, S))
-    ceiling = add("plaster", tex_plaster(rng, S))
+    slot = iter(range(10 ** 6))
+
+    def proc(kind):
+        return add(kind, procedural_texture(kind, seed, next(slot)))
+
+    floor = proc(str(rng.choice(["wood", "tiles", "carpet"])))
+    ceiling = proc("plaster")
     wall_kinds = ["wallpaper", "bricks", "clutter", "whiteboard", "tiles", "wallpaper"]
     rng.shuffle(wall_kinds)
     walls = []
     for i in range(4):
         if images and rng.uniform() < 0.5:
-            n, arr = images[int(rng.integers(len(images)))]
-            walls.append(add(n, arr))
+            walls.append(add(*images[int(rng.integers(len(images)))]))
         else:
-            walls.append(add(wall_kinds[i], PROCEDURAL[wall_kinds[i]](rng, S)))
+            walls.append(proc(wall_kinds[i]))
     obj_kinds = ["wood", "fabric", "clutter", "granite", "tiles", "whiteboard", "carpet",
                  "plaster", "clutter", "wood"]
-    n_obj = min(max(B, 1), 10)
     obj = []
-    for i in range(n_obj):
+    for i in range(min(max(B, 1), 10)):
         if images and rng.uniform() < 0.6:
-            n, arr = images[int(rng.integers(len(images)))]
-            obj.append(add(n, arr))
+            obj.append(add(*images[int(rng.integers(len(images)))]))
         else:
-            k = obj_kinds[int(rng.integers(len(obj_kinds)))]
-            obj.append(add(k, PROCEDURAL[k](rng, S)))
+            obj.append(proc(obj_kinds[int(rng.integers(len(obj_kinds)))]))
     nS = 6 + 6 * B
     tex = np.zeros(nS, np.int64)
     dens = np.zeros(nS)
@@ -1130,137 +1152,169 @@ def resolve_realism(realism: Optional[str] = None, **overrides) -> RealismOption
     return RealismOptions(**d)
 
 
-def _render_loop(it, scene, poses, stamps, interp, K, ropts, effects, out, names) -> None:
-    E = ropts.exposure_ms * 1e-3
-    n_sub = ropts.motion_blur
-    with torch.no_grad():
-        for k in it:
-            rgb, depth = _render_room(scene, poses[k], K)
+@dataclass
+class SequencePlan:
+    """Everything a sequence is rendered from (what ``generate_sequence`` writes out)."""
+    stamps: np.ndarray              # (N,) frame stamps, seconds
+    poses: np.ndarray               # (N, 4, 4) camera-to-world at the stamps (world frame)
+    intrinsics: Intrinsics
+    realism: RealismOptions
+    scene: Scene
+    interpolator: PoseInterpolator
+    fps: float
+    seed: int
+    record: Dict                    # generation options (written to intrinsics.yaml)
+
+    def render(self, k: int, effects: Optional["CameraEffects"] = None
+               ) -> Tuple[np.ndarray, np.ndarray]:
+        """Frame ``k`` exactly as written: (rgb uint8 with the realism effects, clean depth)."""
+        effects = effects or CameraEffects(self.realism, self.intrinsics, self.seed)
+        with torch.no_grad():
+            rgb, depth = _render_room(self.scene, self.poses[k], self.intrinsics)
+            n_sub = self.realism.motion_blur
             if n_sub > 1:   # sub-exposures over [t - E, t]; the last one is the frame's pose
-                sub_t = stamps[k] - E * (1.0 - np.arange(n_sub - 1) / (n_sub - 1))
+                E = self.realism.exposure_ms * 1e-3
+                sub_t = self.stamps[k] - E * (1.0 - np.arange(n_sub - 1) / (n_sub - 1))
                 acc = rgb.clone()
-                for T_sub in interp(sub_t):
-                    acc += _render_room(scene, T_sub, K)[0]
+                for T_sub in self.interpolator(sub_t):
+                    acc += _render_room(self.scene, T_sub, self.intrinsics)[0]
                 rgb = acc / n_sub
-            img = effects(rgb.numpy(), k, float(stamps[k] - stamps[0]))
-            cv2.imwrite(str(out / "rgb" / names[k]), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-            cv2.imwrite(str(out / "depth" / names[k]), depth_to_png16(depth.numpy()))
+        img = effects(rgb.numpy(), k, float(self.stamps[k] - self.stamps[0]))
+        return img, depth.numpy().astype(np.float32)
 
 
-def generate_sequence(trajectory, frames: int, size="640x480", out=None, *,
-                      fps: float = 30.0, start: float = 0.0, fmt: str = "auto",
-                      kitti_dt: float = 0.1, seed: int = 0, textures=None,
-                      fov: Optional[float] = None, intrinsics=None, up=None,
-                      realism: Optional[str] = None, motion_blur: Optional[int] = None,
-                      exposure_ms: Optional[float] = None, auto_exposure: Optional[float] = None,
-                      vignetting: Optional[float] = None, noise: Optional[float] = None,
-                      jpeg: Optional[int] = None, overwrite: bool = False,
-                      threads: Optional[int] = 1, progress: bool = True,
-                      stats: Optional[Dict] = None) -> Path:
-    """Render a TUM-layout RGB-D sequence; returns the output folder.
+def _resolve_intrinsics(size, intrinsics, fov) -> Intrinsics:
+    if intrinsics is None:
+        w, h = parse_size("640x480" if size is None else size)
+        return default_intrinsics(w, h, fov)
+    if fov is not None:
+        raise SynthError("give either --fov or --intrinsics, not both")
+    K = intrinsics if isinstance(intrinsics, Intrinsics) else Intrinsics.from_yaml(intrinsics)
+    if K.width <= 0 or K.height <= 0 or K.fx == 0 or K.fy == 0:
+        raise SynthError(f"intrinsics need positive width/height and non-zero fx, fy: {K}")
+    if K.has_distortion and K.distortion_model not in ("plumb_bob", "rational_polynomial",
+                                                       "equidistant"):
+        raise SynthError(f"unsupported distortion model '{K.distortion_model}' "
+                         "(plumb_bob, rational_polynomial or equidistant)")
+    if size is not None:
+        w, h = parse_size(size)
+        if (w, h) != (K.width, K.height):
+            sx, sy = w / K.width, h / K.height
+            if abs(sx - sy) > 1e-3 * max(sx, sy):
+                raise SynthError(f"--size {w}x{h} has another aspect ratio than the intrinsics "
+                                 f"({K.width}x{K.height}); omit --size to use theirs")
+            K = K.scaled(sx, sy)
+    return K
 
-    ``trajectory``: a TUM/KITTI/EuRoC file, ``"builtin"`` or ``(timestamps, poses)``.
-    ``frames`` camera frames are sampled at ``fps`` from the trajectory's first stamp +
-    ``start`` seconds (poses interpolated: linear translation, SLERP rotation).
-    ``size``: ``'WxH'`` or (W, H); with ``intrinsics`` (a YAML path or Intrinsics) and no
-    explicit size, the file's size is used. ``threads``: torch CPU threads while rendering
-    (1 by default: fastest on a shared 2-core machine; None = leave torch's setting).
-    ``stats`` (a dict) receives timings.
-    """
-    if out is None:
-        raise SynthError("an output directory is required (--out)")
-    try:
-        frames_i = int(frames)
-    except (TypeError, ValueError):
-        raise SynthError(f"--frames must be an integer, got {frames!r}") from None
-    if frames_i != frames or frames_i <= 0:
+
+def plan_sequence(trajectory, frames: int, size="640x480", *, fps: float = 30.0,
+                  start: float = 0.0, fmt: str = "auto", kitti_dt: float = 0.1, seed: int = 0,
+                  textures=None, fov: Optional[float] = None, intrinsics=None, up=None,
+                  realism: Optional[str] = None, motion_blur: Optional[int] = None,
+                  exposure_ms: Optional[float] = None, auto_exposure: Optional[float] = None,
+                  vignetting: Optional[float] = None, noise: Optional[float] = None,
+                  jpeg: Optional[int] = None, warn: bool = True) -> SequencePlan:
+    """Validate the options, sample the frame stamps and poses, fit the scene (no rendering).
+    Same options as :func:`generate_sequence`."""
+    if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames <= 0:
         raise SynthError(f"--frames must be a positive integer, got {frames}")
+    frames = int(frames)
     if not (isinstance(fps, (int, float)) and 0 < fps <= 1000):
         raise SynthError(f"--fps must be in (0, 1000], got {fps}")
     fps = float(fps)
-    out = Path(out)
-    # ---- intrinsics
-    if intrinsics is not None:
-        K = intrinsics if isinstance(intrinsics, Intrinsics) else Intrinsics.from_yaml(intrinsics)
-        if size is not None:
-            w, h = parse_size(size)
-            if (w, h) != (K.width, K.height):
-                sx, sy = w / K.width, h / K.height
-                if abs(sx - sy) > 1e-3 * max(sx, sy):
-                    raise SynthError(f"--size {w}x{h} has another aspect ratio than the "
-                                     f"intrinsics ({K.width}x{K.height}); omit --size to use it")
-                K = K.scaled(sx, sy)
-        if K.distortion_model not in ("plumb_bob", "rational_polynomial", "equidistant") \
-                and K.has_distortion:
-            raise SynthError(f"unsupported distortion model '{K.distortion_model}'")
-        if fov is not None:
-            raise SynthError("give either --fov or --intrinsics, not both")
-        w, h = K.width, K.height
-    else:
-        w, h = parse_size("640x480" if size is None else size)
-        K = default_intrinsics(w, h, fov)
+    K = _resolve_intrinsics(size, intrinsics, fov)
     ropts = resolve_realism(realism, motion_blur=motion_blur, exposure_ms=exposure_ms,
                             auto_exposure=auto_exposure, vignetting=vignetting, noise=noise,
                             jpeg=jpeg).validate(fps)
-    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not overwrite)):
-        _prepare_out(out, overwrite)          # raises the clear error before any work
-    # ---- trajectory and stamps
-    t_setup = time.perf_counter()
     ts, P, fmt_used = load_trajectory(trajectory, fmt=fmt, kitti_dt=kitti_dt,
-                                      min_duration=start + frames_i / fps + 1.0, seed=seed)
+                                      min_duration=start + frames / fps + 1.0, seed=seed)
     interp = PoseInterpolator(ts, P)
-    stamps = frame_stamps(interp.t_start, interp.t_end, frames_i, fps, start)
+    stamps = frame_stamps(interp.t_start, interp.t_end, frames, fps, start)
     poses = interp(stamps)
     gaps = interp.gap_at(stamps)
     n_gap = int((gaps > GAP_WARN_S).sum())
-    if n_gap:
-        print(f"warning: {n_gap} of {frames_i} frames fall in ground-truth gaps longer than "
+    if n_gap and warn:
+        print(f"warning: {n_gap} of {frames} frames fall in ground-truth gaps longer than "
               f"{GAP_WARN_S:g} s (longest {gaps.max():.2f} s); their poses are interpolated "
               "linearly across the gap", file=sys.stderr)
+    # every position the camera passes through, exposure windows included, stays clear of boxes
     dense = interp.positions_between(max(stamps[0] - 1.0 / fps, interp.t_start), stamps[-1])
-    scene = build_scene(poses, seed=seed, textures=textures, up=up,
-                        fmt=fmt_used, positions=dense)
-    effects = CameraEffects(ropts, K, seed)
-    t_setup = time.perf_counter() - t_setup
-    _prepare_out(out, overwrite)
-    # ---- render
-    names = [f"{t:.6f}.png" for t in stamps]
-    t_render = time.perf_counter()
-    it = range(frames_i)
-    if progress:
-        from tqdm import tqdm
-        it = tqdm(it, desc="synth", unit="frame", total=frames_i)
-    old_threads = torch.get_num_threads()
-    if threads:
-        torch.set_num_threads(int(threads))
-    try:
-        _render_loop(it, scene, poses, stamps, interp, K, ropts, effects, out, names)
-    finally:
-        torch.set_num_threads(old_threads)
-    t_render = time.perf_counter() - t_render
-    # ---- index files, ground truth, intrinsics
-    src = str(trajectory) if not isinstance(trajectory, (tuple, list)) else "array"
-    for kind, label in (("rgb", "color images"), ("depth", "depth maps")):
-        with open(out / f"{kind}.txt", "w") as fh:
-            fh.write(f"# {label}\n# file: 'splat-slam-synth {Path(src).name}'\n"
-                     "# timestamp filename\n")
-            for t, n in zip(stamps, names):
-                fh.write(f"{t:.6f} {kind}/{n}\n")
-    write_tum(out / "groundtruth.txt", stamps, poses)
+    scene = build_scene(poses, seed=seed, textures=textures, up=up, fmt=fmt_used,
+                        positions=dense)
+    src = "array" if isinstance(trajectory, (tuple, list)) else str(trajectory)
     record = {
         "tool": "splat-slam-synth", "trajectory": src, "trajectory_format": fmt_used,
-        "frames": frames_i, "fps": fps, "start": float(start), "seed": int(seed),
-        "size": [w, h], "fov": fov, "intrinsics_file": None if intrinsics is None or isinstance(
-            intrinsics, Intrinsics) else str(intrinsics),
+        "frames": frames, "fps": fps, "start": float(start), "seed": int(seed),
+        "size": [K.width, K.height], "fov": fov,
+        "intrinsics_file": None if intrinsics is None or isinstance(intrinsics, Intrinsics)
+        else str(intrinsics),
         "textures": None if textures is None else str(textures),
         "up": None if up is None else (up if isinstance(up, str) else [float(x) for x in up]),
         "realism": realism or "clean", "realism_options": asdict(ropts),
         "first_stamp": float(stamps[0]), "last_stamp": float(stamps[-1]),
-        "gt_gap_frames": n_gap, "gt_duplicates_dropped": interp.dropped_duplicates,
+        "gt_gap_frames": n_gap, "gt_longest_gap_s": round(float(gaps.max()), 4),
+        "gt_duplicates_dropped": interp.dropped_duplicates,
         "scene": scene.summary(),
     }
-    K.to_yaml(out / "intrinsics.yaml", depth_scale=DEPTH_SCALE, fps=fps, generation=record)
+    return SequencePlan(stamps, poses, K, ropts, scene, interp, fps, int(seed), record)
+
+
+def generate_sequence(trajectory, frames: int, size="640x480", out=None, *,
+                      overwrite: bool = False, threads: Optional[int] = 1,
+                      progress: bool = True, stats: Optional[Dict] = None,
+                      **options) -> Path:
+    """Render a TUM-layout RGB-D sequence into ``out``; returns the output folder.
+
+    ``trajectory``: a TUM/KITTI/EuRoC file, ``"builtin"`` or ``(timestamps, poses)``.
+    ``frames`` camera frames are sampled at ``fps`` (default 30) from the trajectory's first
+    stamp + ``start`` seconds (poses interpolated: linear translation, SLERP rotation).
+    ``size``: ``'WxH'`` or (W, H); None with ``intrinsics`` (YAML path or Intrinsics) keeps
+    the file's size. Other options (see :func:`plan_sequence`): fps, start, fmt, kitti_dt,
+    seed, textures, fov, intrinsics, up, realism ('clean' | 'realistic'), motion_blur,
+    exposure_ms, auto_exposure, vignetting, noise, jpeg.
+    ``threads``: torch CPU threads while rendering (1 by default: fastest on a shared
+    2-core machine; None = leave torch's setting). ``stats`` (a dict) receives timings.
+    """
+    if out is None:
+        raise SynthError("an output directory is required (--out)")
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not overwrite)):
+        _prepare_out(out, overwrite)          # raises the clear error before any work
+    t_setup = time.perf_counter()
+    plan = plan_sequence(trajectory, frames, size, **options)
+    t_setup = time.perf_counter() - t_setup
+    _prepare_out(out, overwrite)
+    names = [f"{t:.6f}.png" for t in plan.stamps]
+    effects = CameraEffects(plan.realism, plan.intrinsics, plan.seed)
+    it = range(len(plan.stamps))
+    if progress:
+        from tqdm import tqdm
+        it = tqdm(it, desc="synth", unit="frame")
+    old_threads = torch.get_num_threads()
+    if threads:
+        torch.set_num_threads(int(threads))
+    t_render = time.perf_counter()
+    try:
+        for k in it:
+            img, depth = plan.render(k, effects)
+            cv2.imwrite(str(out / "rgb" / names[k]), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+            cv2.imwrite(str(out / "depth" / names[k]), depth_to_png16(depth))
+    finally:
+        torch.set_num_threads(old_threads)
+    t_render = time.perf_counter() - t_render
+    # ---- index files, ground truth, intrinsics
+    src_name = Path(plan.record["trajectory"]).name
+    for kind, label in (("rgb", "color images"), ("depth", "depth maps")):
+        with open(out / f"{kind}.txt", "w") as fh:
+            fh.write(f"# {label}\n# file: 'splat-slam-synth {src_name}'\n# timestamp filename\n")
+            for t, n in zip(plan.stamps, names):
+                fh.write(f"{t:.6f} {kind}/{n}\n")
+    write_tum(out / "groundtruth.txt", plan.stamps, plan.poses)
+    plan.intrinsics.to_yaml(out / "intrinsics.yaml", depth_scale=DEPTH_SCALE, fps=plan.fps,
+                            generation=plan.record)
     if stats is not None:
-        stats.update(setup_s=t_setup, render_s=t_render, s_per_frame=t_render / frames_i,
-                     frames=frames_i, size=[w, h], boxes=scene.n_boxes)
+        n = len(plan.stamps)
+        stats.update(setup_s=t_setup, render_s=t_render, s_per_frame=t_render / n, frames=n,
+                     size=[plan.intrinsics.width, plan.intrinsics.height],
+                     boxes=plan.scene.n_boxes)
     return out
