@@ -319,7 +319,7 @@ def test_realism_changes_images_as_expected(fast_plan_args):
     assert abs(g - 1) > 1e-3
     x0 = clean.render(2)[0].astype(float)
     unclipped = (x0 > 20) & (x0 < 200)
-    assert np.abs(ae.render(2)[0][unclipped] - (g * x0[unclipped] + b)).max() <= 1.0
+    assert np.abs(ae.render(2)[0][unclipped] - (g * x0[unclipped] + b)).max() <= 1.1  # 2 roundings
     # the preset switches the effects on, explicit options override it
     r = synth.resolve_realism("realistic", noise=0.0)
     assert r.motion_blur > 1 and r.jpeg > 0 and r.vignetting > 0 and r.noise == 0.0
