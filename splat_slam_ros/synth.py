@@ -618,9 +618,15 @@ class Scene:
                 "boxes": int(self.n_boxes), "textures": list(self.texture_names), **self.info}
 
     # ------------------------------------------------------------- torch state
-    def _torch(self) -> Dict[str, torch.Tensor]:
-        if "t" in self._cache:
-            return self._cache["t"]
+    def _torch(self, device=None) -> Dict[str, torch.Tensor]:
+        dev = torch.device(device or "cpu")
+        key = f"t:{dev}"
+        if key in self._cache:
+            return self._cache[key]
+        if dev.type != "cpu":
+            t = {k: v.to(dev) for k, v in self._torch("cpu").items()}
+            self._cache[key] = t
+            return t
         B = self.n_boxes
         nS = 6 + 6 * B
         normal = np.zeros((nS, 3), np.float32)
@@ -705,7 +711,7 @@ class Scene:
                  floor_grid=torch.tensor([self.room_lo[0], self.room_lo[1],
                                           2.0 / (res * (len(gx) - 1)), 2.0 / (res * (len(gy) - 1))],
                                          dtype=torch.float32))
-        self._cache["t"] = t
+        self._cache[key] = t
         return t
 
 
@@ -910,10 +916,10 @@ def build_scene(poses: np.ndarray, *, seed: int = 0, textures=None, up=None, fmt
 
 
 # =================================================================== rendering
-def _camera_rays(scene: Scene, K: Intrinsics) -> torch.Tensor:
+def _camera_rays(scene: Scene, K: Intrinsics, device=None) -> torch.Tensor:
     """(H, W, 3) camera-frame ray directions with z = 1 through the pixel centres."""
     key = ("rays", K.fx, K.fy, K.cx, K.cy, K.width, K.height, K.distortion_model,
-           tuple(K.distortion))
+           tuple(K.distortion), str(torch.device(device or "cpu")))
     if key in scene._cache:
         return scene._cache[key]
     v, u = np.mgrid[0:K.height, 0:K.width].astype(np.float64)
@@ -929,6 +935,7 @@ def _camera_rays(scene: Scene, K: Intrinsics) -> torch.Tensor:
     else:
         x, y = (u - K.cx) / K.fx, (v - K.cy) / K.fy
     rays = torch.from_numpy(np.stack([x, y, np.ones_like(x)], -1).astype(np.float32))
+    rays = rays.to(torch.device(device or "cpu"))
     scene._cache[key] = rays
     return rays
 
@@ -949,20 +956,22 @@ def _sample_trilinear(t, tex, lev, u, v):
     atlas = t["atlas"]
     Ha, Wa = atlas.shape[-2:]
     g = torch.stack(pts, 0)                                    # (2, P, 2) atlas pixels
-    g = g * torch.tensor([2.0 / (Wa - 1), 2.0 / (Ha - 1)]) - 1.0
+    g = g * torch.tensor([2.0 / (Wa - 1), 2.0 / (Ha - 1)], device=g.device) - 1.0
     c = torch.nn.functional.grid_sample(atlas, g[None], mode="bilinear",
                                         padding_mode="border", align_corners=True)[0]
     w = (lev - l0)[None]
     return (c[:, 0] + (c[:, 1] - c[:, 0]) * w).T                # (P, 3) in 0..255
 
 
-def _render_room(scene: Scene, pose_world: np.ndarray, K: Intrinsics):
-    """Core ray caster. Returns (rgb float32 (H,W,3) in [0,255+], z-depth (H,W)) torch."""
-    t = scene._torch()
+def _render_room(scene: Scene, pose_world: np.ndarray, K: Intrinsics, device=None):
+    """Core ray caster. Returns (rgb float32 (H,W,3) in [0,255+], z-depth (H,W)) torch
+    tensors on ``device`` (default CPU)."""
+    dev = torch.device(device or "cpu")
+    t = scene._torch(dev)
     T_rc = scene.T_room_world @ np.asarray(pose_world, np.float64)
-    R = torch.from_numpy(T_rc[:3, :3].astype(np.float32))
-    o = torch.from_numpy(T_rc[:3, 3].astype(np.float32))
-    rays = _camera_rays(scene, K)
+    R = torch.from_numpy(T_rc[:3, :3].astype(np.float32)).to(dev)
+    o = torch.from_numpy(T_rc[:3, 3].astype(np.float32)).to(dev)
+    rays = _camera_rays(scene, K, dev)
     H, W = rays.shape[:2]
     d = rays @ R.T                                       # (H, W, 3) room-frame, camera z = 1
     d = torch.where(d == 0, torch.full_like(d, 1e-12), d)
@@ -1039,24 +1048,24 @@ def _render_room(scene: Scene, pose_world: np.ndarray, K: Intrinsics):
         sh = torch.nn.functional.grid_sample(t["floor_shadow"], xy[None, None], mode="bilinear",
                                              padding_mode="border", align_corners=True)[0, 0, 0]
         ao[fl] = ao[fl] * sh
-    amb = ((0.4 + 0.25 * direc) * ao)[:, None] * torch.tensor([0.97, 0.99, 1.03])
-    pnt = (0.6 * point * ao)[:, None] * torch.tensor([1.03, 0.98, 0.9])
+    amb = ((0.4 + 0.25 * direc) * ao)[:, None] * torch.tensor([0.97, 0.99, 1.03], device=dev)
+    pnt = (0.6 * point * ao)[:, None] * torch.tensor([1.03, 0.98, 0.9], device=dev)
     rgb = albedo * (amb + pnt)
     return rgb.reshape(H, W, 3), depth
 
 
 def render_frame(scene: Scene, pose: np.ndarray, intrinsics: Intrinsics,
-                 as_float: bool = False) -> Tuple[np.ndarray, np.ndarray]:
+                 as_float: bool = False, device=None) -> Tuple[np.ndarray, np.ndarray]:
     """Render one clean view. ``pose``: 4x4 camera-to-world in the trajectory's world frame.
 
     Returns (rgb H x W x 3 uint8 RGB — or float32 in [0, 255] with ``as_float`` —, depth
-    H x W float32 z-depth in metres)."""
+    H x W float32 z-depth in metres), numpy; ``device`` (torch) does the work."""
     with torch.no_grad():
-        rgb, depth = _render_room(scene, pose, intrinsics)
-    rgb = rgb.numpy()
+        rgb, depth = _render_room(scene, pose, intrinsics, device)
+    rgb = rgb.cpu().numpy()
     if not as_float:
         rgb = np.clip(rgb + 0.5, 0, 255).astype(np.uint8)
-    return rgb, depth.numpy().astype(np.float32)
+    return rgb, depth.cpu().numpy().astype(np.float32)
 
 
 # ===================================================================== realism
@@ -1164,23 +1173,37 @@ class SequencePlan:
     fps: float
     seed: int
     record: Dict                    # generation options (written to intrinsics.yaml)
+    device: str = "cpu"             # torch device used for rendering
 
     def render(self, k: int, effects: Optional["CameraEffects"] = None
                ) -> Tuple[np.ndarray, np.ndarray]:
         """Frame ``k`` exactly as written: (rgb uint8 with the realism effects, clean depth)."""
         effects = effects or CameraEffects(self.realism, self.intrinsics, self.seed)
         with torch.no_grad():
-            rgb, depth = _render_room(self.scene, self.poses[k], self.intrinsics)
+            rgb, depth = _render_room(self.scene, self.poses[k], self.intrinsics, self.device)
             n_sub = self.realism.motion_blur
             if n_sub > 1:   # sub-exposures over [t - E, t]; the last one is the frame's pose
                 E = self.realism.exposure_ms * 1e-3
                 sub_t = self.stamps[k] - E * (1.0 - np.arange(n_sub - 1) / (n_sub - 1))
                 acc = rgb.clone()
                 for T_sub in self.interpolator(sub_t):
-                    acc += _render_room(self.scene, T_sub, self.intrinsics)[0]
+                    acc += _render_room(self.scene, T_sub, self.intrinsics, self.device)[0]
                 rgb = acc / n_sub
-        img = effects(rgb.numpy(), k, float(self.stamps[k] - self.stamps[0]))
-        return img, depth.numpy().astype(np.float32)
+        img = effects(rgb.cpu().numpy(), k, float(self.stamps[k] - self.stamps[0]))
+        return img, depth.cpu().numpy().astype(np.float32)
+
+
+def _resolve_device(device) -> str:
+    name = str(device or "cpu")
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        dev = torch.device(name)
+    except RuntimeError:
+        raise SynthError(f"unknown --device '{name}' (cpu, cuda, cuda:N or auto)") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise SynthError("--device cuda requested but CUDA is not available")
+    return str(dev)
 
 
 def _resolve_intrinsics(size, intrinsics, fov) -> Intrinsics:
@@ -1213,12 +1236,14 @@ def plan_sequence(trajectory, frames: int, size="640x480", *, fps: float = 30.0,
                   realism: Optional[str] = None, motion_blur: Optional[int] = None,
                   exposure_ms: Optional[float] = None, auto_exposure: Optional[float] = None,
                   vignetting: Optional[float] = None, noise: Optional[float] = None,
-                  jpeg: Optional[int] = None, warn: bool = True) -> SequencePlan:
+                  jpeg: Optional[int] = None, device: str = "cpu",
+                  warn: bool = True) -> SequencePlan:
     """Validate the options, sample the frame stamps and poses, fit the scene (no rendering).
     Same options as :func:`generate_sequence`."""
     if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames <= 0:
         raise SynthError(f"--frames must be a positive integer, got {frames}")
     frames = int(frames)
+    device = _resolve_device(device)
     if not (isinstance(fps, (int, float)) and 0 < fps <= 1000):
         raise SynthError(f"--fps must be in (0, 1000], got {fps}")
     fps = float(fps)
@@ -1250,13 +1275,13 @@ def plan_sequence(trajectory, frames: int, size="640x480", *, fps: float = 30.0,
         else str(intrinsics),
         "textures": None if textures is None else str(textures),
         "up": None if up is None else (up if isinstance(up, str) else [float(x) for x in up]),
-        "realism": realism or "clean", "realism_options": asdict(ropts),
+        "realism": realism or "clean", "realism_options": asdict(ropts), "device": device,
         "first_stamp": float(stamps[0]), "last_stamp": float(stamps[-1]),
         "gt_gap_frames": n_gap, "gt_longest_gap_s": round(float(gaps.max()), 4),
         "gt_duplicates_dropped": interp.dropped_duplicates,
         "scene": scene.summary(),
     }
-    return SequencePlan(stamps, poses, K, ropts, scene, interp, fps, int(seed), record)
+    return SequencePlan(stamps, poses, K, ropts, scene, interp, fps, int(seed), record, device)
 
 
 def generate_sequence(trajectory, frames: int, size="640x480", out=None, *,
@@ -1271,7 +1296,7 @@ def generate_sequence(trajectory, frames: int, size="640x480", out=None, *,
     ``size``: ``'WxH'`` or (W, H); None with ``intrinsics`` (YAML path or Intrinsics) keeps
     the file's size. Other options (see :func:`plan_sequence`): fps, start, fmt, kitti_dt,
     seed, textures, fov, intrinsics, up, realism ('clean' | 'realistic'), motion_blur,
-    exposure_ms, auto_exposure, vignetting, noise, jpeg.
+    exposure_ms, auto_exposure, vignetting, noise, jpeg, device ('cpu' | 'cuda' | 'auto').
     ``threads``: torch CPU threads while rendering (1 by default: fastest on a shared
     2-core machine; None = leave torch's setting). ``stats`` (a dict) receives timings.
     """

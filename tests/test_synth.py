@@ -335,6 +335,19 @@ def test_realistic_sequence_keeps_depth_and_poses(tmp_path):
     assert not np.array_equal(ra[1], rb[1])
 
 
+def test_device_option():
+    import torch
+    if not torch.cuda.is_available():
+        with pytest.raises(synth.SynthError, match="CUDA"):
+            synth.plan_sequence("builtin", 2, "32x24", device="cuda")
+        return
+    plan = synth.plan_sequence("builtin", 2, "64x48", device="cuda")
+    rgb_g, d_g = plan.render(1)
+    rgb_c, d_c = replace(plan, device="cpu").render(1)
+    assert np.abs(d_g - d_c).max() < 1e-4
+    assert np.median(np.abs(rgb_g.astype(float) - rgb_c)) <= 1
+
+
 # --------------------------------------------------------------- determinism
 def test_deterministic_with_seed(tmp_path):
     a = gen(tmp_path, "a", frames=3, seed=7, noise=2.0)

@@ -62,6 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--up", default=None, choices=["+x", "-x", "+y", "-y", "+z", "-z"],
                    help="world up axis for the room (default: +z for TUM/EuRoC/builtin, -y for "
                         "KITTI)")
+    c.add_argument("--device", default="cpu",
+                   help="torch device for rendering: cpu (default), cuda[:N] or auto")
     c.add_argument("--threads", type=int, default=1,
                    help="torch CPU threads for rendering (default 1: fastest on a busy 2-core "
                         "machine; 0 = torch default)")
@@ -106,7 +108,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             intrinsics=args.intrinsics, up=args.up, realism=args.realism,
             motion_blur=args.motion_blur, exposure_ms=args.exposure_ms,
             auto_exposure=args.auto_exposure, vignetting=args.vignetting, noise=args.noise,
-            jpeg=args.jpeg, overwrite=args.overwrite, threads=args.threads or None,
+            jpeg=args.jpeg, device=args.device, overwrite=args.overwrite, threads=args.threads or None,
             progress=not args.quiet, stats=stats)
         w, h = stats["size"]
         print(f"wrote {stats['frames']} frames {w}x{h} to {out} "
