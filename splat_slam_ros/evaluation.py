@@ -432,6 +432,23 @@ def _load_weights(path: Path) -> List[torch.Tensor]:
                       "state dict with keys 'lin<i>.model.1.weight' / 'lpips_w<i>'")
 
 
+def _load_backbone(p: Path) -> torch.nn.Module:
+    """TorchScript file (torch.jit.save), else a torch.export program (torch.export.save)."""
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)   # torch.jit is deprecated in 2.x
+        try:
+            return torch.jit.load(str(p), map_location="cpu")
+        except Exception as e:  # noqa: BLE001 - any failure means "not TorchScript"
+            jit_err = type(e).__name__
+        try:
+            return torch.export.load(str(p)).module()
+        except Exception:  # noqa: BLE001
+            pass
+    raise MetricError(f"LPIPS backbone {p} is not a loadable TorchScript file ({jit_err}) nor "
+                      "a torch.export program; save it with torch.jit.save or torch.export.save")
+
+
 def _load_lpips(model, weights_path, device) -> tuple:
     if isinstance(model, torch.nn.Module):
         key = (id(model), str(weights_path), str(device))
@@ -443,14 +460,19 @@ def _load_lpips(model, weights_path, device) -> tuple:
     if key in _LPIPS_CACHE:
         return _LPIPS_CACHE[key]
     if not isinstance(model, torch.nn.Module):
-        try:
-            net = torch.jit.load(str(p), map_location="cpu")
-        except Exception as e:  # noqa: BLE001
-            raise MetricError(f"LPIPS backbone {p} is not a loadable TorchScript file "
-                              f"({type(e).__name__}); save it with torch.jit.save") from None
+        net = _load_backbone(p)
     else:
         net = model
-    net = net.eval().to(device)
+    try:
+        net = net.eval()
+    except NotImplementedError:          # torch.export modules have no train/eval switch
+        pass
+    if torch.device(device) != torch.device("cpu"):
+        try:
+            net = net.to(device)
+        except Exception as e:  # noqa: BLE001
+            raise MetricError(f"cannot move the LPIPS backbone to {device}: "
+                              f"{type(e).__name__}") from None
     if weights_path is not None:
         weights = _load_weights(Path(os.fspath(weights_path)))
     else:
@@ -464,7 +486,8 @@ def _load_lpips(model, weights_path, device) -> tuple:
 def lpips(img, ref, model_path, weights_path=None, layer_reduce: str = "sum") -> float:
     """LPIPS-style perceptual distance with a user-supplied backbone (no downloads).
 
-    ``model_path``: a TorchScript file (``torch.jit.save``) or an ``nn.Module`` whose
+    ``model_path``: a TorchScript file (``torch.jit.save``; a ``torch.export.save`` program
+    also loads) or an ``nn.Module`` whose
     forward maps a (B, 3, H, W) batch in [-1, 1] to a list/tuple of feature maps
     (B, C_l, H_l, W_l) (a single tensor counts as one layer); any input normalisation
     belongs inside the module. Per-layer channel weights ``w_l`` come from

@@ -187,11 +187,20 @@ def main(argv: Optional[List[str]] = None) -> int:
         est_path = _resolve_est(args.est)
         gt_ts, gt_P, gt_fmt = _read(gt_path, args.gt_format, args.kitti_dt)
         est_ts, est_P, est_fmt = _read(est_path, args.est_format, args.kitti_dt)
-        a = ate(gt_ts, gt_P, est_ts, est_P, align=args.align, max_diff=args.max_diff,
-                offset=args.offset)
+        try:
+            a = ate(gt_ts, gt_P, est_ts, est_P, align=args.align, max_diff=args.max_diff,
+                    offset=args.offset)
+        except MetricError as e:
+            if (gt_fmt == "kitti") != (est_fmt == "kitti") and "associate" in str(e):
+                raise UserError(f"{e}; note: KITTI files carry no timestamps (row index x "
+                                "--kitti-dt), so compare them with KITTI files") from None
+            raise
+        delta = args.rpe_delta
+        if args.rpe_unit == "frames" and float(delta).is_integer():
+            delta = int(delta)
         r, r_err = None, None
         try:
-            r = rpe(gt_ts, gt_P, est_ts, est_P, delta=args.rpe_delta, unit=args.rpe_unit,
+            r = rpe(gt_ts, gt_P, est_ts, est_P, delta=delta, unit=args.rpe_unit,
                     align=args.align, max_diff=args.max_diff, offset=args.offset)
         except MetricError as e:
             r_err = str(e)
