@@ -103,32 +103,34 @@ def all_pairs(n: int, device=None) -> torch.Tensor:
     return torch.stack([t[m], k[m]], -1)
 
 
-def _sample_depth(depth_flat: torch.Tensor, valid_flat: torch.Tensor, k: torch.Tensor,
-                  u: torch.Tensor, v: torch.Tensor, h: int, w: int) -> Tuple[torch.Tensor,
-                                                                            torch.Tensor]:
-    """Depth of views ``k`` (P,) at continuous pixels (P, Q): bilinear where all four
-    neighbours are valid, nearest otherwise; returns (depth, ok)."""
+def _sample_depth(depth_flat: torch.Tensor, k: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
+                  h: int, w: int) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Depth of views ``k`` (P,) at continuous pixels (P, Q) (``depth_flat``: all views
+    flattened, 0 = missing): bilinear where all four neighbours have depth, nearest
+    otherwise; returns (depth, ok)."""
+    P, Q = u.shape
     inb = (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
     uc = u.clamp(0, w - 1)
     vc = v.clamp(0, h - 1)
-    x0 = uc.floor().clamp(max=w - 2 if w > 1 else 0).long()
-    y0 = vc.floor().clamp(max=h - 2 if h > 1 else 0).long()
-    x1 = (x0 + 1).clamp(max=w - 1)
-    y1 = (y0 + 1).clamp(max=h - 1)
-    ax = (uc - x0).clamp(0, 1)
-    ay = (vc - y0).clamp(0, 1)
-    base = (k * (h * w))[:, None]
-    D = depth_flat
-    V = valid_flat
-    i00, i01 = base + y0 * w + x0, base + y0 * w + x1
-    i10, i11 = base + y1 * w + x0, base + y1 * w + x1
-    d00, d01, d10, d11 = D[i00], D[i01], D[i10], D[i11]
-    all4 = V[i00] & V[i01] & V[i10] & V[i11]
-    bil = (d00 * (1 - ax) + d01 * ax) * (1 - ay) + (d10 * (1 - ax) + d11 * ax) * ay
-    inn = base + vc.round().long() * w + uc.round().long()
-    near_ok = V[inn]
-    out = torch.where(all4, bil, D[inn])
-    return out, inb & (all4 | near_ok)
+    x0 = uc.floor().clamp_(max=max(w - 2, 0))
+    y0 = vc.floor().clamp_(max=max(h - 2, 0))
+    ax = uc - x0
+    ay = vc - y0
+    dx = 1 if w > 1 else 0
+    dy = w if h > 1 else 0
+    i00 = (y0 * w + x0).long() + (k * (h * w))[:, None]
+    i00 = i00.reshape(-1)
+
+    def gather(idx):
+        return depth_flat.index_select(0, idx).view(P, Q)
+
+    d00, d01, d10, d11 = gather(i00), gather(i00 + dx), gather(i00 + dy), gather(i00 + dx + dy)
+    all4 = (d00 > 0) & (d01 > 0) & (d10 > 0) & (d11 > 0)
+    bil = torch.lerp(torch.lerp(d00, d01, ax), torch.lerp(d10, d11, ax), ay)
+    left, top = ax < 0.5, ay < 0.5
+    near = torch.where(top, torch.where(left, d00, d01), torch.where(left, d10, d11))
+    out = torch.where(all4, bil, near)
+    return out, inb & (out > 0)
 
 
 @torch.no_grad()
@@ -169,25 +171,26 @@ def consistency_count(depths: torch.Tensor, poses: torch.Tensor, intr, eta: floa
     rays = torch.stack([(uv[:, 0] - intr[2]) / intr[0], (uv[:, 1] - intr[3]) / intr[1],
                         torch.ones_like(uv[:, 0])], -1)                       # (Q, 3)
     Dflat = D.reshape(-1)
-    Vflat = ok.reshape(-1)
     T = poses.to(device=device, dtype=torch.float64)
     Tinv = se3_inverse(T)
     Q = h * w
+    raysT = rays.T.contiguous()                                               # (3, Q)
+    okf = ok.reshape(N, Q)
     chunk = max(1, _PAIR_CHUNK_POINTS // Q)
     for s in range(0, len(pairs), chunk):
         pt, pk = pairs[s:s + chunk, 0], pairs[s:s + chunk, 1]
         rel = (Tinv[pk] @ T[pt]).to(torch.float32)                           # cam t -> cam k
-        R, t = rel[:, :3, :3], rel[:, :3, 3]
-        dt = D[pt].reshape(len(pt), Q)                                        # (P, Q)
-        X = torch.einsum("pab,qb->pqa", R, rays) * dt[..., None] + t[:, None, :]
-        z = X[..., 2]
+        dt = D[pt].reshape(len(pt), 1, Q)
+        X = torch.matmul(rel[:, :3, :3], raysT) * dt + rel[:, :3, 3:4]       # (P, 3, Q)
+        x, y, z = X.unbind(1)
         front = z > 1e-6
-        zs = torch.where(front, z, torch.ones_like(z))
-        u = intr[0] * X[..., 0] / zs + intr[2]
-        v = intr[1] * X[..., 1] / zs + intr[3]
-        dk, okk = _sample_depth(Dflat, Vflat, pk, u, v, h, w)
-        dist = (zs - dk).abs() * X.norm(dim=-1) / zs                          # ||p_i - p_k||
-        cons = front & okk & ok[pt].reshape(len(pt), Q) & (dist < thresh[pt][:, None])
+        iz = 1.0 / torch.where(front, z, torch.ones_like(z))
+        xn, yn = x * iz, y * iz
+        dk, okk = _sample_depth(Dflat, pk, intr[0] * xn + intr[2], intr[1] * yn + intr[3],
+                                h, w)
+        # ||p_i - p_k||: both on the ray (xn, yn, 1) of camera k
+        dist = (z - dk).abs() * torch.sqrt(1.0 + xn * xn + yn * yn)
+        cons = front & okk & okf[pt] & (dist < thresh[pt][:, None])
         count.index_add_(0, pt, cons.to(torch.int32))
     return count.reshape(N, h, w)
 
