@@ -1,0 +1,175 @@
+#!/usr/bin/env python
+"""Rasterizer speed: C++ kernel vs the pure-torch reference on room-like scenes.
+
+Prints a table and writes benchmarks/results/rasterizer.json. Scenes: Gaussians initialised
+like the mapper does from a keyframe (pixels unprojected onto the surfaces of a box room with
+a few objects, flattened along the surface normal, sized to the pixel spacing), plus 30 %
+extra Gaussians from nearby "other keyframes" so several layers overlap along each ray.
+
+    python benchmarks/bench_rasterizer.py [--threads 2] [--repeats 5] [--quick]
+    LD_PRELOAD=/usr/lib/x86_64-linux-gnu/libjemalloc.so.2 python benchmarks/bench_rasterizer.py
+
+The forward+backward loss is L1 on rgb + 0.1 * L1 on depth (as in mapping).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from splat_slam_ros.geometry import matrix_to_quat
+from splat_slam_ros.rasterizer import rasterize
+from splat_slam_ros.rasterizer.kernel import load_extension
+
+
+def room_scene(n: int, width: int, height: int, seed: int = 0):
+    """N Gaussians on the surfaces of a 4 x 2.7 x 5 m room seen from inside."""
+    g = torch.Generator().manual_seed(seed)
+    fx = fy = 0.9 * width
+    cx, cy = (width - 1) / 2, (height - 1) / 2
+    n_main = int(n * 0.77)
+
+    def ray_cast(u, v):
+        d = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], -1)
+        # planes: x = +-2, y = -1.2 (ceiling) / 1.5 (floor), z = 5 (back wall), box at z 2..2.8
+        cands, normals = [], []
+        for axis, off in ((0, -2.0), (0, 2.0), (1, -1.2), (1, 1.5), (2, 5.0)):
+            t = off / d[:, axis]
+            t = torch.where(t > 0, t, torch.full_like(t, math.inf))
+            cands.append(t)
+            nrm = torch.zeros(3)
+            nrm[axis] = 1.0
+            normals.append(nrm.expand_as(d))
+        # a table-sized box in front: its front face z = 2.2, x in [-0.8, 0.6], y in [0.5, 1.5]
+        t = 2.2 / d[:, 2]
+        p = d * t[:, None]
+        hit = (p[:, 0] > -0.8) & (p[:, 0] < 0.6) & (p[:, 1] > 0.5)
+        cands.append(torch.where(hit, t, torch.full_like(t, math.inf)))
+        normals.append(torch.tensor([0.0, 0.0, 1.0]).expand_as(d))
+        T = torch.stack(cands, -1)
+        t_min, idx = T.min(-1)
+        nrm = torch.stack(normals, 1)[torch.arange(len(u)), idx]
+        return d * t_min[:, None], nrm
+
+    u = torch.rand(n, generator=g) * width - 0.5
+    v = torch.rand(n, generator=g) * height - 0.5
+    pts, nrm = ray_cast(u, v)
+    # extra Gaussians "from other keyframes": shifted along the surface, slightly off it
+    extra = torch.arange(n) >= n_main
+    pts = pts + extra[:, None] * (torch.randn(n, 3, generator=g) * 0.05)
+    spacing_px = math.sqrt(width * height / n_main)
+    z = pts[:, 2]
+    s_tan = spacing_px * z / fx * (0.6 + 0.8 * torch.rand(n, generator=g))
+    s_nrm = s_tan * 0.1
+    # orthonormal frame with the normal as third axis
+    a = torch.where(nrm[:, :1].abs() > 0.9, torch.tensor([0.0, 1.0, 0.0]), torch.tensor([1.0, 0.0, 0.0]))
+    t1 = torch.nn.functional.normalize(torch.cross(nrm, a, dim=-1), dim=-1)
+    t2 = torch.cross(nrm, t1, dim=-1)
+    Rm = torch.stack([t1, t2, nrm], -1)
+    quats = matrix_to_quat(Rm.double()).float()
+    scales = torch.stack([s_tan, s_tan * (0.5 + torch.rand(n, generator=g)), s_nrm], -1)
+    opac = 0.5 + 0.49 * torch.rand(n, generator=g)
+    colors = torch.rand(n, 3, generator=g)
+    viewmat = torch.eye(4)
+    return (pts.float().contiguous(), quats.contiguous(), scales.float().contiguous(),
+            opac.contiguous(), colors.contiguous(), viewmat, (fx, fy, cx, cy))
+
+
+def time_backend(scene, width, height, backend, repeats):
+    means, quats, scales, opac, colors, viewmat, intr = scene
+    params = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors)]
+    target = torch.rand(height, width, 3, generator=torch.Generator().manual_seed(1))
+
+    def fwd():
+        with torch.no_grad():
+            rasterize(*params, viewmat, intr, width, height, backend=backend)
+
+    def fwd_bwd():
+        out = rasterize(*params, viewmat, intr, width, height, backend=backend)
+        loss = (out.rgb - target).abs().mean() + 0.1 * (out.depth - 2.0).abs().mean()
+        loss.backward()
+        for p in params:
+            p.grad = None
+
+    res = {}
+    for name, fn in (("forward_ms", fwd), ("forward_backward_ms", fwd_bwd)):
+        fn()  # warm-up
+        ts = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn()
+            ts.append((time.perf_counter() - t0) * 1e3)
+        res[name] = statistics.median(ts)
+        res[name + "_min"] = min(ts)
+    with torch.no_grad():
+        out = rasterize(*params, viewmat, intr, width, height, backend=backend)
+    res["visible"] = int(out.visible.sum())
+    res["mean_alpha"] = float(out.alpha.mean())
+    return res
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--quick", action="store_true", help="only 20k @ 320x240")
+    ap.add_argument("--no-reference", action="store_true", help="skip the pure-torch reference")
+    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "rasterizer.json"))
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    load_extension()
+    configs = [(20000, 320, 240)] + ([] if args.quick else [(100000, 640, 480)])
+    preload = os.environ.get("LD_PRELOAD", "")
+    allocator = "jemalloc" if "jemalloc" in preload else "glibc"
+    try:
+        load = os.getloadavg()
+    except OSError:
+        load = None
+    results = {"threads": args.threads, "allocator": allocator, "torch": torch.__version__,
+               "cpu": platform.processor() or platform.machine(),
+               "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+               "loadavg_before": load, "configs": []}
+    print(f"threads={args.threads} allocator={allocator} loadavg={load}")
+    print(f"{'scene':>18} {'backend':>7} {'fwd ms':>9} {'fwd+bwd ms':>11} {'visible':>8}")
+    for n, w, h in configs:
+        scene = room_scene(n, w, h)
+        entry = {"gaussians": n, "width": w, "height": h}
+        backends = ["cpp"] + ([] if args.no_reference else ["torch"])
+        for be in backends:
+            r = time_backend(scene, w, h, be, args.repeats if be == "cpp" else max(1, args.repeats // 2))
+            entry[be] = r
+            print(f"{f'{n // 1000}k @ {w}x{h}':>18} {be:>7} {r['forward_ms']:9.1f} "
+                  f"{r['forward_backward_ms']:11.1f} {r['visible']:8d}")
+        if "torch" in entry:
+            entry["speedup_forward"] = entry["torch"]["forward_ms"] / entry["cpp"]["forward_ms"]
+            entry["speedup_forward_backward"] = (entry["torch"]["forward_backward_ms"]
+                                                 / entry["cpp"]["forward_backward_ms"])
+            print(f"{'':>18} speed-up  {entry['speedup_forward']:8.1f}x "
+                  f"{entry['speedup_forward_backward']:10.1f}x")
+        results["configs"].append(entry)
+    try:
+        results["loadavg_after"] = os.getloadavg()
+    except OSError:
+        pass
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # keep results of other allocators/thread counts side by side
+    old = json.loads(out.read_text()) if out.is_file() else {}
+    if not isinstance(old, dict) or "runs" not in old:
+        old = {"runs": {}}
+    old["runs"][f"{allocator}_t{args.threads}"] = results
+    out.write_text(json.dumps(old, indent=2))
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,125 @@
+// Torch bindings of the CPU rasterizer kernels in raster_kernels.h (see there for the
+// compositing rules and the performance notes). Forward and backward take the projected
+// Gaussians (float32, contiguous, CPU) and the footprints (int32).
+#include <torch/extension.h>
+
+#include "raster_kernels.h"
+
+namespace {
+using namespace splat_raster;
+
+// ------------------------------------------------------------------ bindings
+void check_inputs(const torch::Tensor& means2d, const torch::Tensor& conics,
+                  const torch::Tensor& colors, const torch::Tensor& opac,
+                  const torch::Tensor& depths, const torch::Tensor& ranges) {
+  const int64_t n = means2d.size(0);
+  TORCH_CHECK(means2d.dim() == 2 && means2d.size(1) == 2, "means2d must be (N, 2)");
+  TORCH_CHECK(conics.dim() == 2 && conics.size(0) == n && conics.size(1) == 3, "conics (N, 3)");
+  TORCH_CHECK(colors.dim() == 2 && colors.size(0) == n && colors.size(1) == 3, "colors (N, 3)");
+  TORCH_CHECK(opac.dim() == 1 && opac.size(0) == n, "opacities (N,)");
+  TORCH_CHECK(depths.dim() == 1 && depths.size(0) == n, "depths (N,)");
+  TORCH_CHECK(ranges.dim() == 2 && ranges.size(0) == n && ranges.size(1) == 4, "ranges (N, 4)");
+  TORCH_CHECK(n < (int64_t(1) << 31), "too many Gaussians");
+  for (const auto* t : {&means2d, &conics, &colors, &opac, &depths}) {
+    TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == torch::kFloat32 &&
+                    t->is_contiguous(),
+                "float32 contiguous CPU tensors expected");
+  }
+  TORCH_CHECK(ranges.device().is_cpu() && ranges.scalar_type() == torch::kInt32 &&
+                  ranges.is_contiguous(),
+              "ranges must be int32 contiguous CPU");
+}
+
+#define DISPATCH_TILE(ts, ...)                                      \
+  switch (ts) {                                                     \
+    case 8: { constexpr int TS = 8; __VA_ARGS__; break; }           \
+    case 16: { constexpr int TS = 16; __VA_ARGS__; break; }         \
+    case 32: { constexpr int TS = 32; __VA_ARGS__; break; }         \
+    default: TORCH_CHECK(false, "tile_size must be 8, 16 or 32");   \
+  }
+
+// Returns rgb (H,W,3), depth (H,W), alpha (H,W), T_final (H,W), visible (N,) uint8,
+// tile_off (n_tiles+1,) int64, keys (M,) int64.
+std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tensor conics,
+                                             torch::Tensor colors, torch::Tensor opac,
+                                             torch::Tensor depths, torch::Tensor ranges,
+                                             torch::Tensor bg, int64_t width, int64_t height,
+                                             int64_t tile_size) {
+  check_inputs(means2d, conics, colors, opac, depths, ranges);
+  TORCH_CHECK(bg.numel() == 3 && bg.scalar_type() == torch::kFloat32 && bg.is_contiguous(),
+              "background must be 3 float32");
+  TORCH_CHECK(width > 0 && height > 0, "image size must be positive");
+  const int64_t n = means2d.size(0);
+  const int ts = int(tile_size);
+  const int64_t tiles_x = (width + ts - 1) / ts, tiles_y = (height + ts - 1) / ts;
+  const int64_t n_tiles = tiles_x * tiles_y;
+  const int32_t* rg = ranges.data_ptr<int32_t>();
+  const std::vector<int64_t> pair_off = pair_offsets(rg, n, ts);
+  auto i64 = torch::TensorOptions().dtype(torch::kInt64);
+  auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
+  torch::Tensor tile_off = torch::empty({n_tiles + 1}, i64);
+  torch::Tensor keys = torch::empty({pair_off[n]}, i64);
+  bin_gaussians(rg, depths.data_ptr<float>(), n, ts, tiles_x, tiles_y,
+                tile_off.data_ptr<int64_t>(), keys.data_ptr<int64_t>());
+  const std::vector<Packed> gs =
+      pack(n, means2d.data_ptr<float>(), conics.data_ptr<float>(), colors.data_ptr<float>(),
+           opac.data_ptr<float>(), depths.data_ptr<float>(), rg);
+  torch::Tensor rgb = torch::empty({height, width, 3}, f32);
+  torch::Tensor depth = torch::empty({height, width}, f32);
+  torch::Tensor alpha = torch::empty({height, width}, f32);
+  torch::Tensor tfin = torch::empty({height, width}, f32);
+  torch::Tensor visible = torch::zeros({n}, torch::TensorOptions().dtype(torch::kUInt8));
+  DISPATCH_TILE(ts, forward_tiles<TS>(
+      width, height, tiles_x, n_tiles, tile_off.data_ptr<int64_t>(), keys.data_ptr<int64_t>(),
+      gs.data(), bg.data_ptr<float>(), rgb.data_ptr<float>(), depth.data_ptr<float>(),
+      alpha.data_ptr<float>(), tfin.data_ptr<float>(), visible.data_ptr<uint8_t>()));
+  return {rgb, depth, alpha, tfin, visible, tile_off, keys};
+}
+
+// Returns grads w.r.t. means2d (N,2), conics (N,3), colors (N,3), opacities (N,), depths (N,).
+std::vector<torch::Tensor> rasterize_backward(
+    torch::Tensor means2d, torch::Tensor conics, torch::Tensor colors, torch::Tensor opac,
+    torch::Tensor depths, torch::Tensor ranges, torch::Tensor tile_off, torch::Tensor keys,
+    torch::Tensor out_rgb, torch::Tensor out_depth, torch::Tensor out_T, torch::Tensor g_rgb,
+    torch::Tensor g_depth, torch::Tensor g_alpha, int64_t width, int64_t height,
+    int64_t tile_size) {
+  check_inputs(means2d, conics, colors, opac, depths, ranges);
+  for (const auto* t : {&out_rgb, &out_depth, &out_T, &g_rgb, &g_depth, &g_alpha}) {
+    TORCH_CHECK(t->scalar_type() == torch::kFloat32 && t->is_contiguous(),
+                "float32 contiguous image tensors expected");
+  }
+  TORCH_CHECK(out_rgb.numel() == width * height * 3 && g_rgb.numel() == width * height * 3 &&
+                  out_depth.numel() == width * height && out_T.numel() == width * height &&
+                  g_depth.numel() == width * height && g_alpha.numel() == width * height,
+              "image tensors do not match the image size");
+  const int64_t n = means2d.size(0);
+  const int ts = int(tile_size);
+  const int64_t tiles_x = (width + ts - 1) / ts, tiles_y = (height + ts - 1) / ts;
+  const int64_t n_tiles = tiles_x * tiles_y;
+  TORCH_CHECK(tile_off.numel() == n_tiles + 1, "tile offsets do not match the image size");
+  const int32_t* rg = ranges.data_ptr<int32_t>();
+  const std::vector<int64_t> pair_off = pair_offsets(rg, n, ts);
+  TORCH_CHECK(keys.numel() == pair_off[n], "binning does not match the ranges");
+  const std::vector<Packed> gs =
+      pack(n, means2d.data_ptr<float>(), conics.data_ptr<float>(), colors.data_ptr<float>(),
+           opac.data_ptr<float>(), depths.data_ptr<float>(), rg);
+  auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
+  torch::Tensor pair_grad = torch::empty({pair_off[n], kNumGrad}, f32);
+  DISPATCH_TILE(ts, backward_tiles<TS>(
+      width, height, tiles_x, n_tiles, tile_off.data_ptr<int64_t>(), keys.data_ptr<int64_t>(),
+      pair_off.data(), gs.data(), out_rgb.data_ptr<float>(), out_depth.data_ptr<float>(),
+      out_T.data_ptr<float>(), g_rgb.data_ptr<float>(), g_depth.data_ptr<float>(),
+      g_alpha.data_ptr<float>(), pair_grad.data_ptr<float>()));
+  torch::Tensor grads = torch::empty({n, kNumGrad}, f32);
+  reduce_pairs(n, pair_off.data(), pair_grad.data_ptr<float>(), grads.data_ptr<float>());
+  return {grads.narrow(1, 0, 2), grads.narrow(1, 2, 3), grads.narrow(1, 6, 3),
+          grads.select(1, 5), grads.select(1, 9)};
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.doc() = "splat_slam_ros CPU Gaussian rasterizer (tile-based, OpenMP)";
+  m.def("forward", &rasterize_forward, "rasterize forward");
+  m.def("backward", &rasterize_backward, "rasterize backward");
+}

@@ -1,0 +1,373 @@
+// Tile-based CPU rasterizer kernels for 3D Gaussian splatting (paper §3.2, "Rendering"):
+// forward compositing of colour, depth and alpha, the covisibility flag of the
+// supplementary, and a hand-written backward. No torch dependency (raster.cpp binds it);
+// projection (EWA) happens in torch.
+//
+// Rules (identical to reference.py, which is the ground truth):
+//  * Gaussian g touches pixel (x, y) only inside its footprint ranges[g] (inclusive);
+//  * per tile, Gaussians are composited front to back by float32 depth, ties by index;
+//  * alpha = min(0.99, o * exp(max(-12, power))), ignored below 1/255;
+//  * a pixel stops at the first Gaussian that would take T below 1e-4 (not composited);
+//  * visible[g]: g composited at some pixel while T was still >= 0.5.
+//
+// Performance notes. The inner loops run over one tile row (TS pixels) and must
+// auto-vectorise; check with -fopt-info-vec (GCC):
+//  * build with -fno-trapping-math, else GCC will not if-convert the loop bodies;
+//  * no compound conditions, no early exits, float masks instead of branches; the
+//    footprint test is computed inline (a precomputed mask array broke vectorisation);
+//  * sums are kept per lane and reduced once per Gaussian (float reductions do not
+//    vectorise without -ffast-math, which we avoid);
+//  * exp() is exp_neg() (plain arithmetic) on the exponent clamped to >= -12;
+//  * each Gaussian only visits the tile rows its footprint reaches.
+// The backward recomputes the forward front to back with the same expressions (exact
+// transmittance, no division chain); the "everything behind" sums come from the
+// forward outputs minus a running prefix, folded into one scalar per pixel (R below).
+#pragma once
+
+#include <algorithm>
+#include <cstdint>
+#include <cstring>
+#include <vector>
+
+namespace splat_raster {
+
+constexpr float kAlphaMin = 1.0f / 255.0f;
+constexpr float kAlphaMax = 0.99f;
+constexpr float kTMin = 1e-4f;
+constexpr float kPowerMin = -12.0f;
+constexpr float kVisibleT = 0.5f;
+
+// exp(x) for x in [-12, ~0]: Cody-Waite range reduction + degree-7 Taylor polynomial
+// (relative error ~1e-7). Written without calls or branches so GCC vectorises it.
+inline float exp_neg(float x) {
+  const float t = x * 1.44269504088896341f;
+  const float nf = (t + 12582912.0f) - 12582912.0f;  // round to nearest integer
+  const float r = (x - nf * 0.693359375f) + nf * 2.12194440e-4f;
+  float p = 1.0f / 5040.0f;
+  p = p * r + 1.0f / 720.0f;
+  p = p * r + 1.0f / 120.0f;
+  p = p * r + 1.0f / 24.0f;
+  p = p * r + 1.0f / 6.0f;
+  p = p * r + 0.5f;
+  p = p * r + 1.0f;
+  p = p * r + 1.0f;
+  const int32_t bits = (static_cast<int32_t>(nf) + 127) << 23;
+  float scale;
+  std::memcpy(&scale, &bits, sizeof(float));
+  return p * scale;
+}
+
+struct GaussianTiles {
+  int32_t tx0, tx1, ty0, ty1;
+};
+
+inline GaussianTiles tiles_of(const int32_t* r, int ts) {
+  return {r[0] / ts, r[1] / ts, r[2] / ts, r[3] / ts};
+}
+
+inline bool has_footprint(const int32_t* r) { return r[0] <= r[1] && r[2] <= r[3]; }
+
+inline std::vector<int64_t> pair_offsets(const int32_t* ranges, int64_t n, int ts) {
+  std::vector<int64_t> off(n + 1, 0);
+  for (int64_t g = 0; g < n; ++g) {
+    const int32_t* r = ranges + 4 * g;
+    int64_t c = 0;
+    if (has_footprint(r)) {
+      const GaussianTiles t = tiles_of(r, ts);
+      c = int64_t(t.tx1 - t.tx0 + 1) * (t.ty1 - t.ty0 + 1);
+    }
+    off[g + 1] = off[g] + c;
+  }
+  return off;
+}
+
+// Per-tile lists of keys (float32 depth bits << 32 | gaussian index), sorted.
+inline void bin_gaussians(const int32_t* ranges, const float* depths, int64_t n, int ts,
+                          int64_t tiles_x, int64_t tiles_y, int64_t* tile_off, int64_t* keys) {
+  const int64_t n_tiles = tiles_x * tiles_y;
+  std::vector<int64_t> cursor(n_tiles + 1, 0);
+  for (int64_t g = 0; g < n; ++g) {
+    const int32_t* r = ranges + 4 * g;
+    if (!has_footprint(r)) continue;
+    const GaussianTiles t = tiles_of(r, ts);
+    for (int32_t ty = t.ty0; ty <= t.ty1; ++ty)
+      for (int32_t tx = t.tx0; tx <= t.tx1; ++tx) ++cursor[ty * tiles_x + tx + 1];
+  }
+  for (int64_t i = 0; i < n_tiles; ++i) cursor[i + 1] += cursor[i];
+  std::memcpy(tile_off, cursor.data(), sizeof(int64_t) * (n_tiles + 1));
+  for (int64_t g = 0; g < n; ++g) {
+    const int32_t* r = ranges + 4 * g;
+    if (!has_footprint(r)) continue;
+    uint32_t dbits;
+    std::memcpy(&dbits, depths + g, sizeof(float));  // depth > near > 0: bits are monotonic
+    const int64_t key = (int64_t(dbits) << 32) | int64_t(g);
+    const GaussianTiles t = tiles_of(r, ts);
+    for (int32_t ty = t.ty0; ty <= t.ty1; ++ty)
+      for (int32_t tx = t.tx0; tx <= t.tx1; ++tx) keys[cursor[ty * tiles_x + tx]++] = key;
+  }
+#pragma omp parallel for schedule(dynamic, 8)
+  for (int64_t i = 0; i < n_tiles; ++i) std::sort(keys + tile_off[i], keys + tile_off[i + 1]);
+}
+
+// One cache line per Gaussian: the per-tile lists visit Gaussians in depth order.
+struct alignas(64) Packed {
+  float mx, my, ca, cb, cc, op, c0, c1, c2, d;
+  int32_t x0, x1, y0, y1;  // footprint (inclusive)
+  int32_t pad[2];
+};
+
+inline std::vector<Packed> pack(int64_t n, const float* means2d, const float* conics,
+                                const float* colors, const float* opac, const float* depths,
+                                const int32_t* ranges) {
+  std::vector<Packed> out(n);
+#pragma omp parallel for schedule(static)
+  for (int64_t g = 0; g < n; ++g) {
+    Packed& p = out[g];
+    p.mx = means2d[2 * g];
+    p.my = means2d[2 * g + 1];
+    p.ca = conics[3 * g];
+    p.cb = conics[3 * g + 1];
+    p.cc = conics[3 * g + 2];
+    p.op = opac[g];
+    p.c0 = colors[3 * g];
+    p.c1 = colors[3 * g + 1];
+    p.c2 = colors[3 * g + 2];
+    p.d = depths[g];
+    p.x0 = ranges[4 * g];
+    p.x1 = ranges[4 * g + 1];
+    p.y0 = ranges[4 * g + 2];
+    p.y1 = ranges[4 * g + 3];
+    p.pad[0] = p.pad[1] = 0;
+  }
+  return out;
+}
+
+inline int64_t key_gaussian(int64_t key) { return key & 0xffffffffLL; }
+
+// ------------------------------------------------------------------ forward
+template <int TS>
+void forward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_tiles,
+                   const int64_t* tile_off, const int64_t* keys, const Packed* gs,
+                   const float* bg, float* out_rgb, float* out_depth, float* out_alpha,
+                   float* out_T, uint8_t* visible) {
+  constexpr int P = TS * TS;
+#pragma omp parallel for schedule(dynamic, 1)
+  for (int64_t tile = 0; tile < n_tiles; ++tile) {
+    const int64_t tx0 = (tile % tiles_x) * TS, ty0 = (tile / tiles_x) * TS;
+    const int tw = int(std::min<int64_t>(TS, width - tx0));
+    const int th = int(std::min<int64_t>(TS, height - ty0));
+    alignas(64) float T[P], C0[P], C1[P], C2[P], D[P], act[P];
+    alignas(64) float px[TS];
+    alignas(64) int32_t stop_l[TS], vis_l[TS];
+    for (int i = 0; i < P; ++i) {
+      T[i] = 1.f;
+      C0[i] = C1[i] = C2[i] = D[i] = 0.f;
+      act[i] = ((i % TS) < tw && (i / TS) < th) ? 1.f : 0.f;
+    }
+    for (int x = 0; x < TS; ++x) px[x] = float(tx0 + x);
+    int n_active = tw * th;
+    const int64_t k_end = tile_off[tile + 1];
+    for (int64_t k = tile_off[tile]; k < k_end && n_active > 0; ++k) {
+      const int64_t g = key_gaussian(keys[k]);
+      if (k + 1 < k_end) __builtin_prefetch(gs + key_gaussian(keys[k + 1]));
+      const Packed q = gs[g];
+      const int ya = int(std::max<int64_t>(q.y0, ty0) - ty0);
+      const int yb = int(std::min<int64_t>(q.y1, ty0 + TS - 1) - ty0);
+      for (int x = 0; x < TS; ++x) stop_l[x] = vis_l[x] = 0;
+      for (int y = ya; y <= yb; ++y) {
+        const float dy = float(ty0 + y) - q.my;
+        const float qy = q.cc * dy * dy, by = q.cb * dy;
+        float* Tr = T + y * TS;
+        float* Ar = act + y * TS;
+        float* R0 = C0 + y * TS;
+        float* R1 = C1 + y * TS;
+        float* R2 = C2 + y * TS;
+        float* Dr = D + y * TS;
+        for (int x = 0; x < TS; ++x) {
+          const float dx = px[x] - q.mx;
+          float pw = -0.5f * (q.ca * dx * dx + qy) - by * dx;
+          pw = pw < kPowerMin ? kPowerMin : pw;
+          float al = q.op * exp_neg(pw);
+          al = al > kAlphaMax ? kAlphaMax : al;
+          const int32_t xi = int32_t(tx0) + x;
+          const float inx = (xi >= q.x0) & (xi <= q.x1) ? 1.f : 0.f;
+          const float m = (al >= kAlphaMin ? 1.f : 0.f) * inx * Ar[x];
+          al *= m;
+          const float Tb = Tr[x];
+          const float Tn = Tb * (1.f - al);
+          const int32_t stop = Tn < kTMin;
+          const float keep = stop ? 0.f : 1.f;
+          const float w = al * keep * Tb;
+          Tr[x] = stop ? Tb : Tn;
+          Ar[x] *= keep;
+          R0[x] += w * q.c0;
+          R1[x] += w * q.c1;
+          R2[x] += w * q.c2;
+          Dr[x] += w * q.d;
+          stop_l[x] += stop;
+          vis_l[x] |= (w > 0.f) & (Tb >= kVisibleT);
+        }
+      }
+      int n_stop = 0, vis = 0;
+      for (int x = 0; x < TS; ++x) {
+        n_stop += stop_l[x];
+        vis |= vis_l[x];
+      }
+      if (vis) __atomic_store_n(visible + g, uint8_t(1), __ATOMIC_RELAXED);
+      n_active -= n_stop;
+    }
+    for (int y = 0; y < th; ++y)
+      for (int x = 0; x < tw; ++x) {
+        const int i = y * TS + x;
+        const int64_t o = (ty0 + y) * width + tx0 + x;
+        out_rgb[3 * o] = C0[i] + T[i] * bg[0];
+        out_rgb[3 * o + 1] = C1[i] + T[i] * bg[1];
+        out_rgb[3 * o + 2] = C2[i] + T[i] * bg[2];
+        out_depth[o] = D[i];
+        out_alpha[o] = 1.f - T[i];
+        out_T[o] = T[i];
+      }
+  }
+}
+
+// ------------------------------------------------------------------ backward
+constexpr int kNumGrad = 10;  // mx, my, conic a, b, c, opacity, colour 0..2, depth
+
+// Gradient slot of the (Gaussian g, tile) pair: pairs are numbered Gaussian-major.
+inline int64_t pair_slot(const int64_t* pair_off, const Packed& q, int64_t g, int64_t tile_tx,
+                         int64_t tile_ty, int ts) {
+  const int64_t gx0 = q.x0 / ts, gx1 = q.x1 / ts, gy0 = q.y0 / ts;
+  return pair_off[g] + (tile_ty - gy0) * (gx1 - gx0 + 1) + (tile_tx - gx0);
+}
+
+// d alpha_j:  dC/dalpha_j = T_j c_j - S_j / (1 - alpha_j), S_j = sum_{i>j} c_i w_i + T_N bg
+//             dA/dalpha_j = T_N / (1 - alpha_j)           (A = 1 - T_N)
+// With g = dL/d(rgb, depth, alpha) at the pixel and gc_j = g_rgb . c_j + g_D d_j:
+//   dL/dalpha_j = T_j gc_j - R_j / (1 - alpha_j),
+//   R_j = g_rgb . S_j + g_D S^D_j - g_A T_N = R_{j-1} - w_j gc_j,  R_{-1} = g . outputs - g_A T_N.
+template <int TS>
+void backward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_tiles,
+                    const int64_t* tile_off, const int64_t* keys, const int64_t* pair_off,
+                    const Packed* gs, const float* out_rgb, const float* out_depth,
+                    const float* out_T, const float* g_rgb, const float* g_depth,
+                    const float* g_alpha, float* pair_grad) {
+  constexpr int P = TS * TS;
+#pragma omp parallel for schedule(dynamic, 1)
+  for (int64_t tile = 0; tile < n_tiles; ++tile) {
+    const int64_t tile_tx = tile % tiles_x, tile_ty = tile / tiles_x;
+    const int64_t tx0 = tile_tx * TS, ty0 = tile_ty * TS;
+    const int tw = int(std::min<int64_t>(TS, width - tx0));
+    const int th = int(std::min<int64_t>(TS, height - ty0));
+    // T is set to 0 once a pixel stops (and for pixels outside the image): it then
+    // takes no further part, which replaces the forward's "active" mask.
+    alignas(64) float T[P], R[P], G0[P], G1[P], G2[P], GD[P];
+    alignas(64) float px[TS];
+    alignas(64) float acc[kNumGrad][TS];
+    alignas(64) int32_t stop_l[TS];
+    for (int i = 0; i < P; ++i) {
+      const int x = i % TS, y = i / TS;
+      if (x < tw && y < th) {
+        const int64_t o = (ty0 + y) * width + tx0 + x;
+        T[i] = 1.f;
+        G0[i] = g_rgb[3 * o];
+        G1[i] = g_rgb[3 * o + 1];
+        G2[i] = g_rgb[3 * o + 2];
+        GD[i] = g_depth[o];
+        R[i] = G0[i] * out_rgb[3 * o] + G1[i] * out_rgb[3 * o + 1] +
+               G2[i] * out_rgb[3 * o + 2] + GD[i] * out_depth[o] - g_alpha[o] * out_T[o];
+      } else {
+        T[i] = R[i] = G0[i] = G1[i] = G2[i] = GD[i] = 0.f;
+      }
+    }
+    for (int x = 0; x < TS; ++x) px[x] = float(tx0 + x);
+    int n_active = tw * th;
+    const int64_t k_end = tile_off[tile + 1];
+    int64_t k = tile_off[tile];
+    for (; k < k_end && n_active > 0; ++k) {
+      const int64_t g = key_gaussian(keys[k]);
+      if (k + 1 < k_end) __builtin_prefetch(gs + key_gaussian(keys[k + 1]));
+      const Packed q = gs[g];
+      const int ya = int(std::max<int64_t>(q.y0, ty0) - ty0);
+      const int yb = int(std::min<int64_t>(q.y1, ty0 + TS - 1) - ty0);
+      for (int j = 0; j < kNumGrad; ++j)
+        for (int x = 0; x < TS; ++x) acc[j][x] = 0.f;
+      for (int x = 0; x < TS; ++x) stop_l[x] = 0;
+      for (int y = ya; y <= yb; ++y) {
+        const float dy = float(ty0 + y) - q.my;
+        const float qy = q.cc * dy * dy, by = q.cb * dy;
+        float* Tr = T + y * TS;
+        float* Rr = R + y * TS;
+        const float* H0 = G0 + y * TS;
+        const float* H1 = G1 + y * TS;
+        const float* H2 = G2 + y * TS;
+        const float* HD = GD + y * TS;
+        for (int x = 0; x < TS; ++x) {
+          // forward recomputation (same expressions as forward_tiles)
+          const float dx = px[x] - q.mx;
+          float pw = -0.5f * (q.ca * dx * dx + qy) - by * dx;
+          pw = pw < kPowerMin ? kPowerMin : pw;
+          const float G = exp_neg(pw);
+          const float raw = q.op * G;
+          float al = raw > kAlphaMax ? kAlphaMax : raw;
+          const int32_t xi = int32_t(tx0) + x;
+          const float inx = (xi >= q.x0) & (xi <= q.x1) ? 1.f : 0.f;
+          const float m = (al >= kAlphaMin ? 1.f : 0.f) * inx;
+          al *= m;
+          const float Tb = Tr[x];
+          const float Tn = Tb * (1.f - al);
+          const int32_t stop = Tn < kTMin;
+          const float keep = stop ? 0.f : 1.f;
+          const float a = al * keep;  // composited alpha, 0 if not composited
+          const float w = a * Tb;
+          Tr[x] = stop ? 0.f : Tn;
+          stop_l[x] += stop & (Tb > 0.f);
+          // gradients
+          const float gc = H0[x] * q.c0 + H1[x] * q.c1 + H2[x] * q.c2 + HD[x] * q.d;
+          const float Rn = Rr[x] - w * gc;
+          Rr[x] = Rn;
+          const float live = m * keep * (raw <= kAlphaMax ? 1.f : 0.f);  // d alpha / d raw
+          const float dal = (Tb * gc - Rn / (1.f - a)) * live;
+          const float gp = dal * q.op * G;  // dL/dpower
+          acc[0][x] += gp * (q.ca * dx + q.cb * dy);
+          acc[1][x] += gp * (q.cb * dx + q.cc * dy);
+          acc[2][x] -= 0.5f * gp * dx * dx;
+          acc[3][x] -= gp * dx * dy;
+          acc[4][x] -= 0.5f * gp * dy * dy;
+          acc[5][x] += dal * G;
+          acc[6][x] += w * H0[x];
+          acc[7][x] += w * H1[x];
+          acc[8][x] += w * H2[x];
+          acc[9][x] += w * HD[x];
+        }
+      }
+      int n_stop = 0;
+      for (int x = 0; x < TS; ++x) n_stop += stop_l[x];
+      n_active -= n_stop;
+      float* dst = pair_grad + kNumGrad * pair_slot(pair_off, q, g, tile_tx, tile_ty, TS);
+      for (int j = 0; j < kNumGrad; ++j) {
+        float s = 0.f;
+        for (int x = 0; x < TS; ++x) s += acc[j][x];
+        dst[j] = s;
+      }
+    }
+    for (; k < k_end; ++k) {  // Gaussians behind the point where all pixels stopped
+      const int64_t g = key_gaussian(keys[k]);
+      float* dst = pair_grad + kNumGrad * pair_slot(pair_off, gs[g], g, tile_tx, tile_ty, TS);
+      for (int j = 0; j < kNumGrad; ++j) dst[j] = 0.f;
+    }
+  }
+}
+
+// Deterministic reduction: each Gaussian sums its own (Gaussian-major) pair slots.
+inline void reduce_pairs(int64_t n, const int64_t* pair_off, const float* pair_grad,
+                         float* grads) {
+#pragma omp parallel for schedule(static)
+  for (int64_t g = 0; g < n; ++g) {
+    float s[kNumGrad] = {0.f};
+    for (int64_t p = pair_off[g]; p < pair_off[g + 1]; ++p)
+      for (int j = 0; j < kNumGrad; ++j) s[j] += pair_grad[kNumGrad * p + j];
+    for (int j = 0; j < kNumGrad; ++j) grads[kNumGrad * g + j] = s[j];
+  }
+}
+
+}  // namespace splat_raster
