@@ -212,6 +212,43 @@ def microbench(threads_list, reps=10):
     return out
 
 
+def bench_dspo_window(n=25, w=80, h=60, reps=3):
+    """Cost of one DSPO call (tracker hook) on an n-keyframe window at w x h: the multi-view
+    high/low split (each keyframe vs its 8 nearest window keyframes) + 2 GN steps of Eq. 2.
+    Scene: a slanted plane seen by a camera moving sideways; mono = exact affine."""
+    from types import SimpleNamespace
+    from splat_slam_ros.dense_ba import reproject
+    from splat_slam_ros.dspo import DspoPrior
+    fx = 0.8 * w
+    intr = torch.tensor([fx, fx, w / 2 - 0.5, h / 2 - 0.5])
+    poses = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
+    poses[:, 0, 3] = torch.arange(n) * 0.04
+    v, u = torch.meshgrid(torch.arange(h, dtype=torch.float32),
+                          torch.arange(w, dtype=torch.float32), indexing="ij")
+    disp = (0.5 + 0.1 * (u - w / 2) / w + 0.05 * (v - h / 2) / h).expand(n, h, w).contiguous()
+    ii = torch.tensor([i for i in range(n) for j in range(n) if i != j and abs(i - j) <= 2])
+    jj = torch.tensor([j for i in range(n) for j in range(n) if i != j and abs(i - j) <= 2])
+    target, _ = reproject(poses, disp, intr, ii, jj)
+    weight = torch.ones_like(target)
+
+    class Mono(MonoDepthModel):
+        def predict(self, image):
+            return np.ones(image.shape[:2], np.float32)
+
+    cfg = SlamConfig()
+    prior = DspoPrior(cfg, None, Mono())
+    prior._mono_ba = {k: (disp[k] - 0.1) / 2.0 for k in range(n)}   # mono cached per keyframe
+    st = SimpleNamespace(kf_ids=list(range(n)), poses=poses, disps=disp * 1.01, intr=intr,
+                         ii=ii, jj=jj, target=target, weight=weight, images={}, fixed=2)
+    prior(st)
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        prior(st)
+    return {"keyframes": n, "edges": len(ii), "size": [w, h],
+            "ms_per_call": 1e3 * (time.perf_counter() - t0) / reps,
+            "keyframes_used": int(prior.last_info.used.sum())}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--frames", type=int, default=60)
@@ -266,6 +303,11 @@ def main(argv=None):
     results["micro"] = microbench([1, 2])
     for th, res in results["micro"].items():
         print(f"  torch {th}: " + ", ".join(f"{k[:-3]} {v:.2f}" for k, v in res.items()))
+    results["dspo_window"] = bench_dspo_window()
+    d = results["dspo_window"]
+    print(f"\nDSPO hook, {d['keyframes']} keyframes / {d['edges']} edges at "
+          f"{d['size'][0]}x{d['size'][1]}: {d['ms_per_call']:.0f} ms per call "
+          f"(torch threads {torch.get_num_threads()})")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=2))

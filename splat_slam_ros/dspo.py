@@ -166,6 +166,7 @@ class DspoPrior:
         self._mono_full: Dict[int, np.ndarray] = {}
         self.last_info: Optional[DspoInfo] = None
         self.calls = 0
+        self.iters = 1
 
     # -- mono depth per keyframe ------------------------------------------------
     def _mono_for(self, kf_id: int, image: Optional[np.ndarray], h: int, w: int, device):
@@ -214,9 +215,12 @@ class DspoPrior:
         huber = None
         if getattr(self.tc, "robust_huber_px", 0) > 0:
             huber = self.tc.robust_huber_px / self.tc.ba_downsample
+        # one Gauss-Newton step per call: the tracker alternates Eq. 1 and Eq. 2 across its
+        # successive local BAs, which is where the alternation of the paper happens
         d, info = dspo_step(st.poses, st.disps, st.intr, st.ii, st.jj, st.target, st.weight,
                             mono, low, self.tc.dspo_alpha1, self.tc.dspo_alpha2,
-                            self.tc.dspo_mono_thresh, active=active, huber=huber)
+                            self.tc.dspo_mono_thresh, active=active, huber=huber,
+                            iters=self.iters)
         self.last_info = info
         self.calls += 1
         return d
