@@ -233,6 +233,7 @@ class Player:
         t_start = time.monotonic()
         last_report = t_start
         lost_acks = 0
+        self.event("start", frames=total, mode=a.mode)
         for t_ns, group in frames(self.reader, self.topics, self.roles["image"]):
             if a.max_frames and n >= a.max_frames:
                 break

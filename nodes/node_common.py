@@ -154,8 +154,12 @@ class SplatNode:
 
     def warn_throttled(self, key: str, text: str, error: bool = True) -> None:
         suffix = self.throttle(key)
-        if suffix is not None:
-            (self.log.error if error else self.log.warning)(text + suffix)
+        if suffix is None:
+            return
+        if error:
+            self.log.error(text + suffix)
+        else:
+            self.log.warning(text + suffix)
 
     def subscribe(self, msg_type, topic: str, qos_profile, callback: Callable, what: str):
         """Raw subscription: deserialise here so that garbage bytes are a logged error, not a
@@ -270,6 +274,12 @@ class Worker:
                 self.owner.log.fatal(f"stopping: exit status {self.fatal_rc}")
                 rclpy.try_shutdown()
                 break
+            except ValueError as e:          # bad input (ConversionError, MapError, ...)
+                if not rclpy.ok():
+                    break
+                self.owner.warn_throttled(f"work:{type(e).__name__}",
+                                          f"dropped input ({getattr(fn, '__name__', 'task')}): "
+                                          f"{type(e).__name__}: {e}")
             except Exception as e:
                 if not rclpy.ok():
                     break

@@ -1,0 +1,524 @@
+"""splat-slam-launch: start the Splat-SLAM ROS 2 node graph (``launch`` is not on PyPI).
+
+    splat-slam-launch --bag BAG_DIR --out DIR [--config FILE] [--mode lockstep|realtime]
+                      [--rate R] [--rerun FILE.rrd] [--set KEY=VALUE ...]
+    splat-slam-launch --out DIR [--config FILE] [--set ros.image_topic=/cam/image ...]
+
+Each node runs as its own process with the project's DDS profile (ros_env) and a prefix on
+every log line. With ``--bag`` the bag player feeds the graph; at the end of the bag the
+graph finalises itself (final global BA, final map refinement) and the outputs land in
+``--out``: trajectory_full.txt, trajectory_keyframes.txt, map.ply, renders/, metrics.json
+(ATE when the bag has ground truth, keyframe PSNR/SSIM, frames/s, per-node CPU and RSS).
+Without ``--bag`` the graph runs on live topics until Ctrl-C; the first Ctrl-C finalises and
+saves (when ``--out`` is given), a second one stops at once.
+
+Supervision: a node that dies is restarted (``--max-restarts``) when it can resume from its
+crash-safe store in ``OUT/state/<node>`` (depth, loop_closure, mapper); the tracker and the
+player cannot resume, so their death stops the graph with a non-zero exit status.
+
+End-of-stream / finalisation protocol (graph events on /splat/graph_events):
+  player  end_of_stream -> tracker finalize() (local BA), ``finalized`` {last_seq}
+  -> loop_closure (after applying the tracker's updates up to last_seq) finalize() (final
+     global BA), ``finalized`` {last_seq}
+  -> tracker applies those updates, writes the trajectories, ``saved``
+  -> depth (after both update streams) ``finalized`` {digest of the last ProxyDepth per kf}
+  -> mapper (after applying that digest) final_refine(), writes map.ply / renders /
+     mapper_metrics.json, ``saved``
+  -> launcher: metrics.json, summary, clean stop.
+"""
+from __future__ import annotations
+
+import argparse
+import ctypes
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Dict, List, Optional
+
+# Set once the whole graph runs end to end (./run.sh demo picks the graph then).
+GRAPH_AVAILABLE = False
+
+NODE_MODULES = {
+    "tracker": "splat_slam_nodes.tracker_node",
+    "depth": "splat_slam_nodes.depth_node",
+    "loop_closure": "splat_slam_nodes.loop_closure_node",
+    "mapper": "splat_slam_nodes.mapper_node",
+    "player": "splat_slam_nodes.bag_player",
+    "rerun": "splat_slam_nodes.rerun_logger",
+}
+RESUMABLE = ("depth", "loop_closure", "mapper")
+
+
+class LaunchError(Exception):
+    """User-facing error: ``error: ...``, exit 2."""
+
+
+# --------------------------------------------------------------------------- processes
+def _pdeathsig():
+    """Child side: die with the launcher (SIGTERM when the parent goes away)."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
+    except Exception:
+        pass
+
+
+class Child:
+    def __init__(self, name: str, args: List[str], env: Dict[str, str], out, prefix_width: int):
+        self.name = name
+        self.args = args
+        self.env = env
+        self.out = out
+        self.prefix = f"[{name}]".ljust(prefix_width + 2)
+        self.proc: Optional[subprocess.Popen] = None
+        self.restarts = 0
+        self.expected_exit = False
+        self.cpu_s_prev = 0.0            # CPU of earlier incarnations
+        self.cpu_s_last = 0.0            # CPU of the current one, last sample
+        self.peak_rss = 0
+        self.thread: Optional[threading.Thread] = None
+
+    def start(self) -> None:
+        self.proc = subprocess.Popen(self.args, env=self.env, stdout=subprocess.PIPE,
+                                     stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                     start_new_session=True, preexec_fn=_pdeathsig)
+        self.thread = threading.Thread(target=self._forward, args=(self.proc,), daemon=True)
+        self.thread.start()
+
+    def _forward(self, proc) -> None:
+        for line in iter(proc.stdout.readline, b""):
+            try:
+                self.out.write(f"{self.prefix} {line.decode(errors='replace').rstrip()}\n")
+                self.out.flush()
+            except ValueError:
+                break
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def sample(self) -> None:
+        """Peak RSS (VmHWM) and CPU time (utime + stime) of the current process (/proc)."""
+        if not self.alive():
+            return
+        st = _proc_status(self.proc.pid)
+        self.peak_rss = max(self.peak_rss, st.get("VmHWM", 0))
+        self.cpu_s_last = max(self.cpu_s_last, _proc_cpu(self.proc.pid))
+
+    def cpu_s(self) -> float:
+        return self.cpu_s_prev + self.cpu_s_last
+
+    def restarted(self) -> None:
+        self.cpu_s_prev += self.cpu_s_last
+        self.cpu_s_last = 0.0
+        self.restarts += 1
+
+    def signal(self, sig) -> None:
+        if self.alive():
+            try:
+                os.kill(self.proc.pid, sig)
+            except ProcessLookupError:
+                pass
+
+
+def _proc_status(pid: int) -> Dict[str, int]:
+    out = {}
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            k, _, v = line.partition(":")
+            if k in ("VmHWM", "VmRSS"):
+                out[k] = int(v.split()[0]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return out
+
+
+def _proc_cpu(pid: int) -> float:
+    try:
+        f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        tck = os.sysconf("SC_CLK_TCK")
+        return (int(f[11]) + int(f[12])) / tck          # utime + stime (fields 14, 15)
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+# --------------------------------------------------------------------------- launcher
+class Launcher:
+    def __init__(self, args, out=sys.stdout):
+        self.args = args
+        self.out = out
+        self.children: Dict[str, Child] = {}
+        self.events: List[dict] = []
+        self.stop_requested = 0
+        self.failed: Optional[str] = None
+        self.t0 = time.monotonic()
+        self.t_play = None
+        self.t_eos = None
+
+    # ------------------------------------------------------------ setup
+    def plan(self) -> None:
+        from splat_slam_ros.config import ConfigError, load_config
+        from splat_slam_ros.ros_env import RosEnvError, ros_environment
+        a = self.args
+        try:
+            self.overrides = _parse_sets(a.set)
+            self.cfg = load_config(a.config, self.overrides)
+        except ConfigError as e:
+            raise LaunchError(str(e)) from None
+        try:
+            self.env = ros_environment()
+        except RosEnvError as e:
+            raise LaunchError(str(e)) from None
+        self.env.setdefault("PYTHONUNBUFFERED", "1")
+        self.out_dir = Path(a.out).resolve() if a.out else None
+        if self.out_dir is not None:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            if (self.out_dir / "state").exists() and not a.resume:
+                import shutil
+                shutil.rmtree(self.out_dir / "state")
+        self.bag = None
+        if a.bag:
+            from .bag_player import BagReader, PlayerError
+            try:
+                self.bag = BagReader(a.bag)
+            except PlayerError as e:
+                raise LaunchError(str(e)) from None
+        tc = self.cfg.tracking
+        self.with_loop = bool(tc.loop_closure or tc.global_ba) and not a.no_loop_closure
+        self.with_mapping = not a.tracking_only
+        self.nodes = ["tracker"] + (["loop_closure"] if self.with_loop else []) + \
+            (["depth", "mapper"] if self.with_mapping else [])
+        if a.rerun:
+            import importlib.util
+            if importlib.util.find_spec("rerun") is None:
+                raise LaunchError("--rerun needs the optional rerun-sdk package "
+                                  "(pip install 'splat_slam_ros[viz]', about 790 MB)")
+
+    def _node_args(self, name: str) -> List[str]:
+        a = self.args
+        py = [sys.executable, "-m", NODE_MODULES[name]]
+        p = ["--ros-args", "-r", f"__node:={name}"]
+
+        def param(k, v):
+            p.extend(["-p", f"{k}:={_ros_value(v)}"])
+        if a.config:
+            param("config_file", str(Path(a.config).resolve()))
+        for k, v in self.overrides.items():
+            param(k, v)
+        if self.bag is not None:
+            param("use_sim_time", True)
+        if self.out_dir is not None:
+            param("node.output_dir", str(self.out_dir))
+            param("node.state_dir", str(self.out_dir / "state" / name))
+        param("node.loop_closure", self.with_loop)
+        param("node.mapping", self.with_mapping)
+        if name == "tracker":
+            if self.bag is not None:
+                roles = (self.bag.info.get("topics") or {})
+                if "ros.image_topic" not in self.overrides:
+                    param("ros.image_topic", roles.get("image", "/camera/image_raw"))
+                if "ros.camera_info_topic" not in self.overrides:
+                    param("ros.camera_info_topic", roles.get("camera_info", "/camera/camera_info"))
+                param("node.input_qos", "reliable")
+                param("node.max_queue", 0 if a.mode == "lockstep" else 2)
+        if name == "rerun":
+            param("node.rrd", str(Path(a.rerun).resolve()))
+        return py + p
+
+    def _player_args(self) -> List[str]:
+        a = self.args
+        acks = [n for n in ("loop_closure", "mapper") if n in self.nodes]
+        args = [sys.executable, "-m", NODE_MODULES["player"], str(Path(a.bag).resolve()),
+                "--mode", a.mode, "--rate", str(a.rate), "--wait-nodes", ",".join(self.nodes),
+                "--wait-acks", ",".join(acks), "--start-timeout", str(a.start_timeout)]
+        if a.max_frames:
+            args += ["--max-frames", str(a.max_frames)]
+        if "ros.image_topic" in self.overrides:
+            args += ["--out-image", str(self.overrides["ros.image_topic"])]
+        if "ros.camera_info_topic" in self.overrides:
+            args += ["--out-camera-info", str(self.overrides["ros.camera_info_topic"])]
+        return args
+
+    def start_all(self) -> None:
+        names = list(self.nodes) + (["rerun"] if self.args.rerun else []) + \
+            (["player"] if self.bag is not None else [])
+        w = max(len(n) for n in names)
+        for n in names:
+            args = self._player_args() if n == "player" else self._node_args(n)
+            c = Child(n, args, self.env, self.out, w)
+            self.children[n] = c
+        for n in names:
+            self.children[n].start()
+        self.say(f"started {', '.join(names)} (ROS_DOMAIN_ID={self.env.get('ROS_DOMAIN_ID', '0')})")
+
+    def say(self, text: str) -> None:
+        self.out.write(f"[launch] {text}\n")
+        self.out.flush()
+
+    # ------------------------------------------------------------ ROS side
+    def init_ros(self) -> None:
+        from splat_slam_ros.ros_env import apply_ros_environment
+        apply_ros_environment()
+        import rclpy
+        from std_msgs.msg import String
+
+        from .node_common import TOPICS, events_qos
+        rclpy.init(args=["splat_slam_launch"], signal_handler_options=_no_signal_handlers())
+        self.rclpy = rclpy
+        self.node = rclpy.create_node("launch", enable_rosout=False)
+        self.String = String
+        self.ev_pub = self.node.create_publisher(String, TOPICS["events"], events_qos())
+        self.node.create_subscription(String, TOPICS["events"], self._on_event, events_qos())
+
+    def _on_event(self, m) -> None:
+        try:
+            d = json.loads(m.data)
+        except ValueError:
+            return
+        if not isinstance(d, dict):
+            return
+        self.events.append(d)
+        ev, node = d.get("event"), d.get("node")
+        if node == "player" and ev == "start" and self.t_play is None:
+            self.t_play = time.monotonic()
+        if ev == "end_of_stream" and self.t_eos is None:
+            self.t_eos = time.monotonic()
+        if ev in ("finalized", "saved"):
+            self.say(f"{node} {ev}")
+
+    def has_event(self, node: str, event: str) -> Optional[dict]:
+        for d in reversed(self.events):
+            if d.get("node") == node and d.get("event") == event:
+                return d
+        return None
+
+    def publish_eos(self) -> None:
+        d = {"node": "launch", "event": "end_of_stream", "t": time.time(), "frames": -1}
+        self.ev_pub.publish(self.String(data=json.dumps(d)))
+
+    # ------------------------------------------------------------ main loop
+    def supervise(self) -> int:
+        a = self.args
+        last_sample = 0.0
+        eos_sent = False
+        while True:
+            self.rclpy.spin_once(self.node, timeout_sec=0.05)
+            now = time.monotonic()
+            if now - last_sample > 0.25:
+                last_sample = now
+                for c in self.children.values():
+                    c.sample()
+            if self.stop_requested >= 2 or (self.stop_requested == 1 and
+                                            (self.bag is not None or self.out_dir is None)):
+                self.say("stopping (interrupted)")
+                return 130
+            if self.stop_requested == 1 and not eos_sent:
+                self.say("finalising and saving (Ctrl-C again to stop at once)")
+                self.publish_eos()
+                eos_sent = True
+            for name, c in self.children.items():
+                if c.alive() or c.expected_exit:
+                    continue
+                rc = c.proc.returncode
+                if name == "player" and rc == 0:
+                    c.expected_exit = True
+                    continue
+                if name in RESUMABLE and self.out_dir is not None and c.restarts < a.max_restarts:
+                    c.restarted()
+                    self.say(f"{name} died (exit status {rc}); restarting it "
+                             f"({c.restarts}/{a.max_restarts}), it resumes from "
+                             f"{self.out_dir / 'state' / name}")
+                    c.start()
+                    continue
+                self.failed = f"{name} died unexpectedly (exit status {rc})"
+                self.say(self.failed)
+                return 1
+            if self.finished():
+                return 0
+            if self.t_eos is not None and now - self.t_eos > a.final_timeout:
+                self.failed = f"finalisation did not complete within {a.final_timeout:g} s"
+                self.say(self.failed)
+                return 1
+
+    def finished(self) -> bool:
+        if self.t_eos is None or self.out_dir is None:
+            return False
+        need = ["tracker"] + (["mapper"] if self.with_mapping else [])
+        return all(self.has_event(n, "saved") for n in need)
+
+    def stop_children(self) -> None:
+        for sig, wait in ((signal.SIGINT, 15.0), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+            live = [c for c in self.children.values() if c.alive()]
+            if not live:
+                break
+            for c in live:
+                c.expected_exit = True
+                c.sample()
+                c.signal(sig)
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < wait and any(c.alive() for c in live):
+                time.sleep(0.05)
+        for c in self.children.values():
+            if c.thread is not None:
+                c.thread.join(timeout=2)
+
+    # ------------------------------------------------------------ results
+    def node_stats(self) -> Dict[str, dict]:
+        out = {}
+        for n, c in self.children.items():
+            out[n] = {"cpu_s": round(c.cpu_s(), 2), "peak_rss_mb": round(c.peak_rss / 2**20, 1),
+                      "restarts": c.restarts}
+        return out
+
+    def write_metrics(self, end_wall: float) -> dict:
+        from splat_slam_ros.pipeline import _write_json
+        eos = self.has_event("player", "end_of_stream") or {}
+        mapper = (self.has_event("mapper", "saved") or {}).get("metrics", {})
+        trk = self.has_event("tracker", "saved") or {}
+        frames = int(eos.get("frames", trk.get("frames", 0)) or 0)
+        wall = end_wall - (self.t_play or self.t0)
+        m = {"mode": "graph", "dataset": (self.bag.info.get("name") if self.bag else "live"),
+             "player_mode": self.args.mode}
+        m.update(mapper)
+        m["frames"] = frames
+        m["frames_tracked"] = trk.get("frames")
+        m["frames_dropped"] = trk.get("dropped")
+        m["keyframes"] = trk.get("keyframes", 0)
+        m["wall_s"] = round(wall, 3)
+        m["wall_total_s"] = round(end_wall - self.t0, 3)
+        m["fps"] = round(frames / max(wall, 1e-9), 3)
+        m["nodes"] = self.node_stats()
+        m["peak_rss_mb_sum"] = round(sum(v["peak_rss_mb"] for v in m["nodes"].values()), 1)
+        if self.bag is not None and self.out_dir is not None:
+            try:
+                from splat_slam_ros.bagio import BagDataset
+                from splat_slam_ros.pipeline import evaluate_trajectories
+                ds = BagDataset(self.args.bag)
+                evaluate_trajectories(ds, self.out_dir, m)
+            except Exception as e:                   # no ground truth / evaluation missing
+                m["evaluation_error"] = f"{type(e).__name__}: {e}"
+        _write_json(self.out_dir / "metrics.json", m)
+        return m
+
+    def summary(self, m: dict) -> None:
+        self.say(f"frames {m['frames']}  keyframes {m['keyframes']}  wall {m['wall_s']:.1f} s  "
+                 f"{m['fps']:.2f} frames/s")
+        for k in ("ate_rmse_cm_full", "ate_rmse_cm_keyframes", "psnr", "ssim", "depth_l1_cm"):
+            if isinstance(m.get(k), (int, float)):
+                self.say(f"{k} {m[k]:.4f}")
+        self.say("per node: " + ", ".join(f"{n} cpu {v['cpu_s']:.1f} s rss {v['peak_rss_mb']:.0f} MB"
+                                          + (f" restarts {v['restarts']}" if v["restarts"] else "")
+                                          for n, v in m["nodes"].items()))
+        self.say(f"outputs in {self.out_dir}")
+
+
+def _no_signal_handlers():
+    try:
+        from rclpy.signals import SignalHandlerOptions
+        return SignalHandlerOptions.NO
+    except ImportError:  # pragma: no cover
+        return None
+
+
+def _ros_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (list, tuple)):
+        return "[" + ",".join(_ros_value(x) for x in v) + "]"
+    if isinstance(v, str):
+        return v if v else "''"
+    return str(v)
+
+
+def _parse_sets(items) -> Dict[str, object]:
+    import yaml
+
+    from splat_slam_ros.config import ConfigError
+    out = {}
+    for it in items or []:
+        if "=" not in it:
+            raise ConfigError(f"--set expects KEY=VALUE, got {it!r}")
+        k, v = it.split("=", 1)
+        out[k.strip()] = yaml.safe_load(v)
+    return out
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="splat-slam-launch", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--bag", help="rosbag2 (MCAP) to play; without it: live topics")
+    ap.add_argument("--out", help="output directory (outputs, crash-safe node state)")
+    ap.add_argument("--config", help="SLAM config YAML (config/*.yaml)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a config value / ROS parameter, e.g. --set "
+                         "ros.image_topic=/cam/image_raw")
+    ap.add_argument("--mode", choices=["lockstep", "realtime"], default="lockstep",
+                    help="bag playback: lockstep (no frame dropped, default) or realtime")
+    ap.add_argument("--rate", type=float, default=1.0, help="realtime playback speed factor")
+    ap.add_argument("--rerun", metavar="FILE.rrd", help="also log to a rerun .rrd file "
+                                                        "(needs rerun-sdk)")
+    ap.add_argument("--max-frames", type=int, default=0, help="play at most N frames")
+    ap.add_argument("--tracking-only", action="store_true", help="no depth / mapper nodes")
+    ap.add_argument("--no-loop-closure", action="store_true", help="no loop_closure node")
+    ap.add_argument("--max-restarts", type=int, default=3,
+                    help="restarts of a resumable node before giving up (default 3)")
+    ap.add_argument("--resume", action="store_true",
+                    help="keep OUT/state from an earlier run (default: start fresh)")
+    ap.add_argument("--start-timeout", type=float, default=180.0,
+                    help="seconds the player waits for the nodes to be ready")
+    ap.add_argument("--final-timeout", type=float, default=3600.0,
+                    help="seconds allowed for finalisation after the end of the bag")
+    return ap
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.bag and not args.out:
+        print("error: --bag needs --out (where the outputs go)", file=sys.stderr)
+        return 2
+    if args.rate <= 0:
+        print("error: --rate must be positive", file=sys.stderr)
+        return 2
+    L = Launcher(args)
+    try:
+        L.plan()
+    except LaunchError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+    def on_signal(signum, frame):
+        L.stop_requested += 1
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    rc = 1
+    try:
+        L.init_ros()
+        L.start_all()
+        rc = L.supervise()
+        end = time.monotonic()
+        if rc == 0 and L.out_dir is not None:
+            m = L.write_metrics(end)
+            L.stop_children()
+            m["nodes"] = L.node_stats()
+            from splat_slam_ros.pipeline import _write_json
+            _write_json(L.out_dir / "metrics.json", m)
+            L.summary(m)
+    finally:
+        L.stop_children()
+        try:
+            L.node.destroy_node()
+        except Exception:
+            pass
+        try:
+            L.rclpy.try_shutdown()
+        except Exception:
+            pass
+        for s, h in old.items():
+            signal.signal(s, h)
+    return rc
+
+
+if __name__ == "__main__":
+    sys.exit(main())
