@@ -74,6 +74,7 @@ class DepthConfig:
     upsample_disc: float = 0.1           # upsampling: a 2x2 BA cell spanning more than this
                                          # (relative disparity) is interpolated only if
                                          # continuous with its neighbours, else nearest
+    upsample_guided: bool = True         # at depth edges follow the image edges (colour-guided)
     fill_plane_tol: float = 0.02         # small holes filled only if their rim is planar to this
     mono_fit_space: str = "auto"         # scale/shift fit: auto (model's output kind) | depth
                                          # (paper §3.2) | disparity

@@ -251,16 +251,53 @@ def smooth_cells(disp: torch.Tensor, valid: torch.Tensor, disc: float = 0.1,
     return v4 & (close | (okx & oky))
 
 
+def _cell_coords(H: int, W: int, h: int, w: int, device):
+    ys = (torch.arange(H, device=device, dtype=torch.float32) + 0.5) * (h / H) - 0.5
+    xs = (torch.arange(W, device=device, dtype=torch.float32) + 0.5) * (w / W) - 0.5
+    y0 = ys.floor().long().clamp(0, max(h - 2, 0))
+    x0 = xs.floor().long().clamp(0, max(w - 2, 0))
+    return ys, xs, y0, x0
+
+
+@torch.no_grad()
+def corner_preference(image, h: int, w: int, sigma_color: float = 20.0,
+                      sigma_space: float = 0.5) -> torch.Tensor:
+    """For every pixel of ``image`` (H, W, 3), the order in which the 4 corners of its BA
+    cell explain it best: cost = |colour - mean colour of the corner's BA block|^2 /
+    sigma_color^2 + (distance to the corner in BA pixels)^2 / sigma_space^2. Returns (H, W)
+    uint8 with corner indices (00, 01, 10, 11 -> 0..3) packed 2 bits each, best first.
+    Depends on the image only, so it is computed once per keyframe."""
+    img = torch.as_tensor(np.asarray(image)).to(torch.float32)
+    H, W = img.shape[:2]
+    dev = img.device
+    blocks = torch.nn.functional.adaptive_avg_pool2d(img.permute(2, 0, 1)[None], (h, w))[0]
+    ys, xs, y0, x0 = _cell_coords(H, W, h, w, dev)
+    costs = []
+    for cy, cx in ((0, 0), (0, 1), (1, 0), (1, 1)):
+        yk = (y0 + cy).clamp(max=h - 1)
+        xk = (x0 + cx).clamp(max=w - 1)
+        col = blocks.index_select(1, yk).index_select(2, xk).permute(1, 2, 0)   # (H, W, 3)
+        c = ((img - col) ** 2).sum(-1) / sigma_color ** 2
+        sp = ((ys - yk)[:, None] ** 2 + (xs - xk)[None, :] ** 2) / sigma_space ** 2
+        costs.append(c + sp)
+    order = torch.stack(costs, -1).argsort(-1)                                  # (H, W, 4)
+    packed = order[..., 0] | (order[..., 1] << 2) | (order[..., 2] << 4) | (order[..., 3] << 6)
+    return packed.to(torch.uint8)
+
+
 @torch.no_grad()
 def upsample_disparity(disp: torch.Tensor, valid: torch.Tensor, out_hw: Tuple[int, int],
-                       disc: float = 0.1) -> Tuple[torch.Tensor, torch.Tensor]:
+                       disc: float = 0.1, guide: Optional[torch.Tensor] = None
+                       ) -> Tuple[torch.Tensor, torch.Tensor]:
     """Disparity (h, w) + validity -> (H, W) disparity + validity, pixel-centre aligned.
 
     Bilinear in disparity inside BA cells that :func:`smooth_cells` accepts (the outer half
-    BA pixel at the image border is extrapolated linearly from the border cell); elsewhere
-    the nearest BA pixel when valid; else invalid. A cell across a depth discontinuity is
-    never interpolated, so no in-between ("flying") depth appears: the edge becomes a step
-    half-way between BA pixel centres.
+    BA pixel at the image border is extrapolated linearly from the border cell). Elsewhere
+    (cells across a depth edge or touching invalid pixels) one corner value is copied:
+    without ``guide`` the nearest BA pixel; with ``guide`` (:func:`corner_preference` of the
+    keyframe image) the corner whose colour and position explain the pixel best - the depth
+    edge then follows the image edge instead of the BA grid. The pixel is invalid when that
+    corner is. No in-between ("flying") depth is ever produced across an edge.
     """
     h, w = disp.shape
     H, W = out_hw
@@ -271,16 +308,13 @@ def upsample_disparity(disp: torch.Tensor, valid: torch.Tensor, out_hw: Tuple[in
     def take(a, yi, xi):                            # separable gather: rows, then columns
         return a.index_select(0, yi).index_select(1, xi)
 
-    ys = (torch.arange(H, device=dev, dtype=torch.float32) + 0.5) * (h / H) - 0.5
-    xs = (torch.arange(W, device=dev, dtype=torch.float32) + 0.5) * (w / W) - 0.5
+    ys, xs, y0, x0 = _cell_coords(H, W, h, w, dev)
     yn = ys.round().long().clamp(0, h - 1)
     xn = xs.round().long().clamp(0, w - 1)
     near = take(d, yn, xn)
     near_ok = take(vf, yn, xn).bool()
     if h < 2 or w < 2:
         return torch.where(near_ok, near, torch.zeros_like(near)), near_ok
-    y0 = ys.floor().long().clamp(0, h - 2)
-    x0 = xs.floor().long().clamp(0, w - 2)
     y1, x1 = y0 + 1, x0 + 1
     ay = (ys - y0).clamp(-0.5, 1.5)[:, None]
     ax = (xs - x0).clamp(-0.5, 1.5)[None, :]
@@ -290,6 +324,11 @@ def upsample_disparity(disp: torch.Tensor, valid: torch.Tensor, out_hw: Tuple[in
     smooth = take(smooth_cells(disp, valid, disc).to(torch.uint8), y0, x0).bool()
     bil = (d00 * (1 - ax) + d01 * ax) * (1 - ay) + (d10 * (1 - ax) + d11 * ax) * ay
     smooth &= bil > 0                               # extrapolation must stay in front
+    if guide is not None:
+        best = (guide.to(dev) & 3).long()[..., None]                      # best corner
+        corners = torch.stack([d00, d01, d10, d11], -1)
+        near = corners.gather(-1, best)[..., 0]
+        near_ok = near > 0
     out = torch.where(smooth, bil, near)
     ok = smooth | near_ok
     return torch.where(ok, out, torch.zeros_like(out)), ok
@@ -469,6 +508,7 @@ class _KfState:
     pose: np.ndarray                 # 4x4 float64 c2w
     disparity: np.ndarray            # (h, w) float32
     mono: Optional[np.ndarray]       # (H, W) float32 relative depth or None
+    guide: Optional[torch.Tensor] = None   # (H, W) uint8 corner preference (upsampling)
     result: Optional[ProxyDepthResult] = None
     n_views: int = 0                 # views used when ``result`` was computed
 
@@ -621,9 +661,16 @@ class ProxyDepthEstimator:
         if mono is not None and mono.shape != (H, W):
             import cv2
             mono = cv2.resize(mono, (W, H), interpolation=cv2.INTER_LINEAR)
+        guide = None
+        img = np.asarray(kf.image) if kf.image is not None else None
+        if self.dc.upsample_guided and img is not None and img.ndim == 3:
+            if img.shape[:2] != (H, W):
+                import cv2
+                img = cv2.resize(img, (W, H), interpolation=cv2.INTER_AREA)
+            guide = corner_preference(img, disp.shape[0], disp.shape[1])
         old = self._kfs.pop(int(kf.kf_id), None)
         self._kfs[int(kf.kf_id)] = _KfState(int(kf.kf_id), np.asarray(kf.pose, np.float64).copy(),
-                                            disp.copy(), mono,
+                                            disp.copy(), mono, guide,
                                             old.result if old is not None else None)
         # keep insertion order == kf id order for neighbour lookups
         if len(self._kfs) > 1 and list(self._kfs)[-2] > int(kf.kf_id):
@@ -659,7 +706,8 @@ class ProxyDepthEstimator:
         for k in ids:
             i = index[k]
             st = self._kfs[k]
-            dup, vup = upsample_disparity(disp[i], valid_ba[i], (H, W), self.dc.upsample_disc)
+            dup, vup = upsample_disparity(disp[i], valid_ba[i], (H, W), self.dc.upsample_disc,
+                                          st.guide)
             mv_depth = _disp_to_depth(dup)
             mono = None if st.mono is None else torch.from_numpy(st.mono).to(dev)
             fit = None

@@ -186,6 +186,27 @@ def test_upsample_exact_on_planes_no_bleeding_at_edges():
     assert not ok2.numpy()[84:156, 84:156].any() and ok2.numpy()[:80].all()
 
 
+def test_guided_upsampling_puts_the_edge_on_the_image_edge():
+    """A depth edge at x = 130 (inside the BA cell 123.5..131.5): unguided, the step lands
+    half-way between BA centres (x = 128); colour-guided, on the image edge."""
+    from splat_slam_ros.proxy_depth import corner_preference
+    H, W = 240, 320
+    xs = np.arange(W)
+    true_disp = np.where(xs < 130, 0.5, 0.2)[None, :].repeat(H, 0).astype(np.float32)
+    img = np.where(xs[None, :, None] < 130, 200, 40).repeat(H, 0).astype(np.uint8)
+    img = np.broadcast_to(img, (H, W, 3)).copy()
+    # BA disparity: each cell's majority surface
+    ba = torch.from_numpy(np.where(np.arange(40) * 8 + 4 < 130, 0.5, 0.2)[None, :]
+                          .repeat(30, 0).astype(np.float32))
+    valid = torch.ones_like(ba, dtype=torch.bool)
+    plain, _ = upsample_disparity(ba, valid, (H, W))
+    guided, ok = upsample_disparity(ba, valid, (H, W), guide=corner_preference(img, 30, 40))
+    assert ok.all()
+    wrong = ~np.isclose(plain.numpy(), true_disp, rtol=1e-5)
+    assert list(np.nonzero(wrong.any(axis=0))[0]) == [128, 129]
+    np.testing.assert_allclose(guided.numpy(), true_disp, rtol=1e-5)
+
+
 # ------------------------------------------------------------ scale / shift
 def test_fit_scale_shift_recovers_affine():
     g = torch.Generator().manual_seed(0)
