@@ -234,6 +234,15 @@ class PoseInterpolator:
         i, _ = self._bracket(t)
         return self.t[i + 1] - self.t[i]
 
+    def longest_gap_free(self, max_gap: float = GAP_WARN_S) -> Tuple[float, float]:
+        """(start, end) seconds after the first stamp of the longest stretch whose rows are at
+        most ``max_gap`` apart."""
+        big = np.nonzero(np.diff(self.t) > max_gap)[0]
+        starts = np.concatenate([[0], big + 1])
+        ends = np.concatenate([big, [len(self.t) - 1]])
+        k = int(np.argmax(self.t[ends] - self.t[starts]))
+        return float(self.t[starts[k]] - self.t[0]), float(self.t[ends[k]] - self.t[0])
+
     def positions_between(self, t0: float, t1: float, rate: float = 200.0) -> np.ndarray:
         """Camera positions densely covering [t0, t1] (resampled + original rows)."""
         n = max(2, int(math.ceil((t1 - t0) * rate)) + 1)
@@ -511,9 +520,9 @@ def tex_granite(rng, S):
 
 def tex_whiteboard(rng, S):
     img = np.ones((S, S, 3), np.float32) * _color(rng, sat=(0, 0.05), val=(0.82, 0.95))
-    img *= 1 + 0.02 * _fbm(rng, S)[..., None]
+    img *= 1 + 0.03 * _fbm(rng, S)[..., None]   # smudges: a realistic low-texture surface
     img = np.ascontiguousarray(img)
-    for _ in range(int(rng.integers(8, 20))):   # handwriting-like strokes
+    for _ in range(int(rng.integers(16, 32))):  # handwriting-like strokes
         col = tuple(float(c) for c in _color(rng, sat=(0.5, 0.9), val=(0.15, 0.5)))
         p = rng.uniform(0, S, 2)
         pts = [p.copy()]
@@ -1259,9 +1268,11 @@ def plan_sequence(trajectory, frames: int, size="640x480", *, fps: float = 30.0,
     gaps = interp.gap_at(stamps)
     n_gap = int((gaps > GAP_WARN_S).sum())
     if n_gap and warn:
+        a, b = interp.longest_gap_free()
         print(f"warning: {n_gap} of {frames} frames fall in ground-truth gaps longer than "
               f"{GAP_WARN_S:g} s (longest {gaps.max():.2f} s); their poses are interpolated "
-              "linearly across the gap", file=sys.stderr)
+              f"linearly across the gap. The longest gap-free stretch is {a:.1f}-{b:.1f} s "
+              f"(--start {a:.1f}, at most {int((b - a) * fps) + 1} frames)", file=sys.stderr)
     # every position the camera passes through, exposure windows included, stays clear of boxes
     dense = interp.positions_between(max(stamps[0] - 1.0 / fps, interp.t_start), stamps[-1])
     scene = build_scene(poses, seed=seed, textures=textures, up=up, fmt=fmt_used,
