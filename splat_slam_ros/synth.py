@@ -27,7 +27,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Tuple, Union
+from typing import Dict, List, Optional, Tuple, Union
 
 import cv2
 import numpy as np
@@ -935,10 +935,11 @@ def _camera_rays(scene: Scene, K: Intrinsics, device=None) -> torch.Tensor:
     if K.has_distortion:
         pts = np.stack([u, v], -1).reshape(-1, 1, 2)
         D = np.asarray(K.distortion, np.float64)
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
         if K.distortion_model == "equidistant":
-            xy = cv2.fisheye.undistortPoints(pts, K.K, D[:4])
+            xy = cv2.fisheye.undistortPoints(pts, K.K, D[:4], criteria=crit)
         else:
-            xy = cv2.undistortPoints(pts, K.K, D)
+            xy = cv2.undistortPoints(pts, K.K, D, criteria=crit)
         xy = xy.reshape(K.height, K.width, 2)
         x, y = xy[..., 0], xy[..., 1]
     else:

@@ -224,6 +224,38 @@ def test_depth_generic_view_lies_on_room_planes_and_box():
     assert 0.05 < box_px.mean() < 0.9           # the box occludes part of the view
 
 
+@pytest.mark.parametrize("model,dist", [("plumb_bob", [-0.25, 0.08, 0.001, -0.001, 0.0]),
+                                        ("equidistant", [0.05, -0.02, 0.01, 0.0])])
+def test_distorted_camera(model, dist):
+    """Distorted intrinsics: each pixel's 3D point projects back onto it with OpenCV's model,
+    and a fronto-parallel wall still has constant z-depth."""
+    scene = synth.make_scene([-2, -2.5, -1.2], [3, 2.5, 1.5], seed=0)
+    K = Intrinsics(60.0, 60.0, 31.5, 23.5, 64, 48, model, dist)
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)
+    T[:3, 3] = [0.4, 0.2, 0.1]
+    rgb, depth = synth.render_frame(scene, T, K)
+    Kp = Intrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
+    rgb_p, _ = synth.render_frame(scene, T, Kp)
+    assert np.abs(rgb.astype(float) - rgb_p).mean() > 2      # distortion changes the image
+    # pixels seeing the x = 3 wall: constant z-depth; 3D points reproject onto their pixels
+    v, u = np.mgrid[8:40, 8:56]
+    z = depth[v, u]
+    assert np.allclose(z, 2.6, atol=1e-5)
+    pts = np.stack([u, v], -1).reshape(-1, 1, 2).astype(np.float64)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    if model == "equidistant":
+        xy = cv2.fisheye.undistortPoints(pts, K.K, np.array(dist), criteria=crit).reshape(-1, 2)
+        X = np.concatenate([xy, np.ones((len(xy), 1))], 1) * z.reshape(-1, 1)
+        uv = cv2.fisheye.projectPoints(X.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K.K,
+                                       np.array(dist))[0]
+    else:
+        xy = cv2.undistortPoints(pts, K.K, np.array(dist), criteria=crit).reshape(-1, 2)
+        X = np.concatenate([xy, np.ones((len(xy), 1))], 1) * z.reshape(-1, 1)
+        uv = cv2.projectPoints(X, np.zeros(3), np.zeros(3), K.K, np.array(dist))[0]
+    assert np.abs(uv.reshape(-1, 2) - pts.reshape(-1, 2)).max() < 1e-3
+
+
 # ------------------------------------------------------ photometric consistency
 def _warp_error(rgbA, dA, rgbB, dB, TA, TB, K):
     """Project frame A's pixels into B with A's depth and the GT poses; return the median

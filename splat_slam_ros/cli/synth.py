@@ -18,7 +18,7 @@ examples:
   splat-slam-synth --trajectory ../shared/data/trajectories/freiburg1_xyz-groundtruth.txt \\
       --frames 300 --size 640x480 --out synth/fr1_xyz
   splat-slam-synth --trajectory ../shared/data/trajectories/fr2_desk_groundtruth.txt \\
-      --frames 600 --start 20 --realism realistic --out synth/fr2_desk_real
+      --frames 1500 --start 47 --realism realistic --out synth/fr2_desk_real
   splat-slam-synth --trajectory builtin --frames 90 --size 320x240 --noise 3 --out synth/tiny
 """
 
