@@ -130,7 +130,8 @@ def dspo_step(poses: torch.Tensor, disps: torch.Tensor, intr, ii: torch.Tensor,
         # flow-optimal value of the high pixels and their weight after eliminating d^h
         dstar = torch.where(Hn > 0, dn + gn / Hn.clamp_min(1e-30), dn)
         wh = alpha1 * Hn / (Hn + alpha1)
-        wts = torch.where(lo, torch.full_like(dn, alpha2), torch.where(hi, wh, torch.zeros_like(dn)))
+        wts = torch.where(lo, torch.full_like(dn, alpha2),
+                          torch.where(hi, wh, torch.zeros_like(dn)))
         y = torch.where(lo, dn, dstar)
         a, b, ok = _weighted_affine(mn, y, wts)
         ok = ok & use

@@ -10,10 +10,12 @@ image). The mapper needs a depth map at the tracking resolution that it can trus
    and its depth is ``<= 3x`` the median valid depth. Done at BA resolution (the disparity
    carries no finer information), batched over (target, view) pairs.
 2. Upsampling (:func:`upsample_disparity`) to the tracking resolution: bilinear in
-   disparity (exact for planes) where the 4 surrounding BA pixels are all valid AND within
-   ``1 + upsample_disc`` of each other; otherwise the nearest BA pixel (if valid). Across a
-   depth discontinuity no intermediate ("flying") depth is ever produced: the edge becomes
-   a step located half-way between BA pixel centres.
+   disparity (exact for planes) inside a 2x2 BA cell whose 4 pixels are valid and either
+   within ``1 + upsample_disc`` of each other or continuous with the neighbouring cells
+   (steep planes, creases: :func:`smooth_cells`); otherwise one corner's value is copied:
+   the corner that best explains the pixel's colour (``depth.upsample_guided``, the depth
+   edge then follows the image edge) or the nearest one, and the pixel is empty when that
+   corner is. Across a depth discontinuity no intermediate ("flying") depth is produced.
 3. Fill (:func:`compose_proxy_depth`):
    - with a mono model: invalid pixels take the mono depth mapped by a least-squares
      scale/shift fitted on the valid pixels (Eq. 3, in depth as §3.2 says, or in disparity
@@ -30,8 +32,8 @@ small holes, both interpolations of multi-view depth), 2 mono.
 from __future__ import annotations
 
 from collections import OrderedDict
-from dataclasses import dataclass, field
-from typing import Dict, Iterable, List, Optional, Sequence, Tuple
+from dataclasses import dataclass
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -262,27 +264,32 @@ def _cell_coords(H: int, W: int, h: int, w: int, device):
 @torch.no_grad()
 def corner_preference(image, h: int, w: int, sigma_color: float = 20.0,
                       sigma_space: float = 0.5) -> torch.Tensor:
-    """For every pixel of ``image`` (H, W, 3), the order in which the 4 corners of its BA
-    cell explain it best: cost = |colour - mean colour of the corner's BA block|^2 /
-    sigma_color^2 + (distance to the corner in BA pixels)^2 / sigma_space^2. Returns (H, W)
-    uint8 with corner indices (00, 01, 10, 11 -> 0..3) packed 2 bits each, best first.
-    Depends on the image only, so it is computed once per keyframe."""
+    """For every pixel of ``image`` (H, W, 3), which of the 4 corners of its BA cell
+    (00, 01, 10, 11 -> 0..3) explains it best: minimum of |colour - mean colour of the
+    corner's BA block|^2 / sigma_color^2 + (distance to the corner in BA pixels)^2 /
+    sigma_space^2. Returns (H, W) uint8. Depends on the image only: computed once per
+    keyframe and reused whenever its depth is recomputed."""
     img = torch.as_tensor(np.asarray(image)).to(torch.float32)
     H, W = img.shape[:2]
     dev = img.device
     blocks = torch.nn.functional.adaptive_avg_pool2d(img.permute(2, 0, 1)[None], (h, w))[0]
     ys, xs, y0, x0 = _cell_coords(H, W, h, w, dev)
-    costs = []
-    for cy, cx in ((0, 0), (0, 1), (1, 0), (1, 1)):
+    img = img.permute(2, 0, 1)                                                  # (3, H, W)
+    best = None
+    for n, (cy, cx) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
         yk = (y0 + cy).clamp(max=h - 1)
         xk = (x0 + cx).clamp(max=w - 1)
-        col = blocks.index_select(1, yk).index_select(2, xk).permute(1, 2, 0)   # (H, W, 3)
-        c = ((img - col) ** 2).sum(-1) / sigma_color ** 2
-        sp = ((ys - yk)[:, None] ** 2 + (xs - xk)[None, :] ** 2) / sigma_space ** 2
-        costs.append(c + sp)
-    order = torch.stack(costs, -1).argsort(-1)                                  # (H, W, 4)
-    packed = order[..., 0] | (order[..., 1] << 2) | (order[..., 2] << 4) | (order[..., 3] << 6)
-    return packed.to(torch.uint8)
+        col = blocks.index_select(1, yk).index_select(2, xk)                    # (3, H, W)
+        c = ((img - col) ** 2).sum(0) * (1.0 / sigma_color ** 2)
+        c += ((ys - yk) ** 2 / sigma_space ** 2)[:, None]
+        c += ((xs - xk) ** 2 / sigma_space ** 2)[None, :]
+        if best is None:
+            best, arg = c, torch.zeros(H, W, dtype=torch.uint8, device=dev)
+        else:
+            better = c < best
+            best = torch.minimum(best, c)
+            arg = arg.masked_fill(better, n)
+    return arg
 
 
 @torch.no_grad()
@@ -325,7 +332,7 @@ def upsample_disparity(disp: torch.Tensor, valid: torch.Tensor, out_hw: Tuple[in
     bil = (d00 * (1 - ax) + d01 * ax) * (1 - ay) + (d10 * (1 - ax) + d11 * ax) * ay
     smooth &= bil > 0                               # extrapolation must stay in front
     if guide is not None:
-        best = (guide.to(dev) & 3).long()[..., None]                      # best corner
+        best = guide.to(dev).long()[..., None]                            # best corner
         corners = torch.stack([d00, d01, d10, d11], -1)
         near = corners.gather(-1, best)[..., 0]
         near_ok = near > 0

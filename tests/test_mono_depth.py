@@ -199,3 +199,34 @@ def test_unsupported_suffix(tmp_path):
     p.write_bytes(b"x")
     with pytest.raises(MonoDepthError, match="unsupported"):
         load_mono_depth(p)
+
+
+def test_proxy_depth_estimator_runs_the_configured_model(models):
+    """depth.mono_model -> ProxyDepthEstimator loads the ONNX file and fills holes with it."""
+    from splat_slam_ros.config import SlamConfig
+    from splat_slam_ros.proxy_depth import SOURCE_MONO, ProxyDepthEstimator
+    from splat_slam_ros.types import Intrinsics, KeyframeData
+    p = models["dynamic"]
+    write_sidecar(p, output="depth", resize="dynamic", size_multiple=8)
+    cfg = SlamConfig()
+    cfg.depth.mono_model = str(p)
+    cfg.depth.mono_provider = "cpu"
+    intr = Intrinsics(100.0, 100.0, 79.5, 59.5, 160, 120)
+    est = ProxyDepthEstimator(cfg, intr)
+    # depth ramp 1..2 m along x (identical views: consistent), image red ramp -> mono ramp
+    x = (np.arange(20) + 0.5) / 20
+    disp = np.broadcast_to(1.0 / (1.0 + x), (15, 20)).astype(np.float32)
+    img = np.zeros((120, 160, 3), np.uint8)
+    img[..., 0] = np.linspace(0, 255, 160).astype(np.uint8)[None, :]
+    holed = disp.copy()
+    holed[5:10, 5:12] = 0                                  # no multi-view depth here
+    res = None
+    for k in range(3):
+        kf = KeyframeData(k, k, 0.1 * k, np.eye(4), img, intr, holed if k == 2 else disp,
+                          np.ones_like(disp))
+        res = est.add_keyframe(kf)
+    hole = res.source == SOURCE_MONO
+    assert hole.sum() > 40 * 35 * 0.8 and np.isfinite(res.mono_scale) and res.mono_scale > 0
+    true = 1.0 + (np.arange(160) + 0.5) / 160
+    err = np.abs(res.depth - true[None, :])[hole]
+    assert np.median(err) < 0.02
