@@ -539,10 +539,19 @@ class ProxyDepthEstimator:
         self.last_seq = 0
         self.mono = mono_model
         self.mono_kind = getattr(mono_model, "kind", "depth")
+        self._mono_path = None
         if self.mono is None and self.dc.mono_model:
-            from .mono_depth import load_mono_depth
-            self.mono = load_mono_depth(self.dc.mono_model, self.dc.mono_provider)
-            self.mono_kind = self.mono.kind
+            # the file and its sidecar are checked now; the network itself is loaded the
+            # first time a keyframe arrives without ``mono_depth`` (the tracker may already
+            # have run it for DSPO and passed the result along)
+            from pathlib import Path
+
+            from .mono_depth import MonoDepthError, read_sidecar
+            p = Path(self.dc.mono_model).expanduser()
+            if not p.is_file():
+                raise MonoDepthError(f"mono depth model not found: {p}")
+            self.mono_kind = read_sidecar(p).output
+            self._mono_path = p
         fs = (self.dc.mono_fit_space or "auto").lower()
         if fs not in ("auto", "depth", "disparity"):
             raise ProxyDepthError(f"depth.mono_fit_space must be auto, depth or disparity, "
@@ -660,8 +669,11 @@ class ProxyDepthEstimator:
         mono = None
         if kf.mono_depth is not None:
             mono = np.asarray(kf.mono_depth, np.float32)
-        elif self.mono is not None:
+        elif self.mono is not None or self._mono_path is not None:
             import time
+            if self.mono is None:
+                from .mono_depth import load_mono_depth
+                self.mono = load_mono_depth(self._mono_path, self.dc.mono_provider)
             t0 = time.perf_counter()
             mono = self.mono.predict(np.asarray(kf.image))
             self.timings["mono_ms"] += 1e3 * (time.perf_counter() - t0)

@@ -230,3 +230,19 @@ def test_proxy_depth_estimator_runs_the_configured_model(models):
     true = 1.0 + (np.arange(160) + 0.5) / 160
     err = np.abs(res.depth - true[None, :])[hole]
     assert np.median(err) < 0.02
+
+
+def test_estimator_checks_model_file_at_start_and_loads_lazily(models, tmp_path):
+    from splat_slam_ros.config import SlamConfig
+    from splat_slam_ros.proxy_depth import ProxyDepthEstimator
+    from splat_slam_ros.types import Intrinsics
+    intr = Intrinsics(100.0, 100.0, 79.5, 59.5, 160, 120)
+    cfg = SlamConfig()
+    cfg.depth.mono_model = str(tmp_path / "missing.onnx")
+    with pytest.raises(MonoDepthError, match="not found"):
+        ProxyDepthEstimator(cfg, intr)
+    p = models["static"]
+    write_sidecar(p, output="disparity")
+    cfg.depth.mono_model = str(p)
+    est = ProxyDepthEstimator(cfg, intr)
+    assert est.mono is None and est.fit_space == "disparity"     # sidecar read, not loaded
