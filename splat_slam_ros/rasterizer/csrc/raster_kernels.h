@@ -157,14 +157,14 @@ void forward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_til
     const int tw = int(std::min<int64_t>(TS, width - tx0));
     const int th = int(std::min<int64_t>(TS, height - ty0));
     alignas(64) float T[P], C0[P], C1[P], C2[P], D[P], act[P];
-    alignas(64) float px[TS];
-    alignas(64) int32_t stop_l[TS], vis_l[TS];
+    alignas(64) float PX[P], PY[P];
     for (int i = 0; i < P; ++i) {
+      PX[i] = float(tx0 + i % TS);
+      PY[i] = float(ty0 + i / TS);
       T[i] = 1.f;
       C0[i] = C1[i] = C2[i] = D[i] = 0.f;
       act[i] = ((i % TS) < tw && (i / TS) < th) ? 1.f : 0.f;
     }
-    for (int x = 0; x < TS; ++x) px[x] = float(tx0 + x);
     int n_active = tw * th;
     const int64_t k_end = tile_off[tile + 1];
     for (int64_t k = tile_off[tile]; k < k_end && n_active > 0; ++k) {
@@ -173,45 +173,31 @@ void forward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_til
       const Packed q = gs[g];
       const int ya = int(std::max<int64_t>(q.y0, ty0) - ty0);
       const int yb = int(std::min<int64_t>(q.y1, ty0 + TS - 1) - ty0);
-      for (int x = 0; x < TS; ++x) stop_l[x] = vis_l[x] = 0;
-      for (int y = ya; y <= yb; ++y) {
-        const float dy = float(ty0 + y) - q.my;
-        const float qy = q.cc * dy * dy, by = q.cb * dy;
-        float* Tr = T + y * TS;
-        float* Ar = act + y * TS;
-        float* R0 = C0 + y * TS;
-        float* R1 = C1 + y * TS;
-        float* R2 = C2 + y * TS;
-        float* Dr = D + y * TS;
-        for (int x = 0; x < TS; ++x) {
-          const float dx = px[x] - q.mx;
-          float pw = -0.5f * (q.ca * dx * dx + qy) - by * dx;
-          pw = pw < kPowerMin ? kPowerMin : pw;
-          float al = q.op * exp_neg(pw);
-          al = al > kAlphaMax ? kAlphaMax : al;
-          const int32_t xi = int32_t(tx0) + x;
-          const float inx = (xi >= q.x0) & (xi <= q.x1) ? 1.f : 0.f;
-          const float m = (al >= kAlphaMin ? 1.f : 0.f) * inx * Ar[x];
-          al *= m;
-          const float Tb = Tr[x];
-          const float Tn = Tb * (1.f - al);
-          const int32_t stop = Tn < kTMin;
-          const float keep = stop ? 0.f : 1.f;
-          const float w = al * keep * Tb;
-          Tr[x] = stop ? Tb : Tn;
-          Ar[x] *= keep;
-          R0[x] += w * q.c0;
-          R1[x] += w * q.c1;
-          R2[x] += w * q.c2;
-          Dr[x] += w * q.d;
-          stop_l[x] += stop;
-          vis_l[x] |= (w > 0.f) & (Tb >= kVisibleT);
-        }
-      }
+      // one flat loop over the rows the footprint reaches (rows are contiguous)
+      const float fx0 = float(q.x0), fx1 = float(q.x1);
       int n_stop = 0, vis = 0;
-      for (int x = 0; x < TS; ++x) {
-        n_stop += stop_l[x];
-        vis |= vis_l[x];
+      for (int i = ya * TS; i < (yb + 1) * TS; ++i) {
+        const float dx = PX[i] - q.mx, dy = PY[i] - q.my;
+        float pw = -0.5f * (q.ca * dx * dx + q.cc * dy * dy) - (q.cb * dy) * dx;  // as in backward
+        pw = pw < kPowerMin ? kPowerMin : pw;
+        float al = q.op * exp_neg(pw);
+        al = al > kAlphaMax ? kAlphaMax : al;
+        const float inx = (PX[i] >= fx0) & (PX[i] <= fx1) ? 1.f : 0.f;
+        const float m = (al >= kAlphaMin ? 1.f : 0.f) * inx * act[i];
+        al *= m;
+        const float Tb = T[i];
+        const float Tn = Tb * (1.f - al);
+        const int32_t stop = Tn < kTMin;
+        const float keep = stop ? 0.f : 1.f;
+        const float w = al * keep * Tb;
+        T[i] = stop ? Tb : Tn;
+        act[i] *= keep;
+        C0[i] += w * q.c0;
+        C1[i] += w * q.c1;
+        C2[i] += w * q.c2;
+        D[i] += w * q.d;
+        n_stop += stop;
+        vis |= (w > 0.f) & (Tb >= kVisibleT);
       }
       if (vis) __atomic_store_n(visible + g, uint8_t(1), __ATOMIC_RELAXED);
       n_active -= n_stop;
@@ -260,12 +246,13 @@ void backward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_ti
     const int th = int(std::min<int64_t>(TS, height - ty0));
     // T is set to 0 once a pixel stops (and for pixels outside the image): it then
     // takes no further part, which replaces the forward's "active" mask.
-    alignas(64) float T[P], R[P], G0[P], G1[P], G2[P], GD[P];
-    alignas(64) float px[TS];
+    alignas(64) float T[P], R[P], G0[P], G1[P], G2[P], GD[P], PX[P], PY[P];
     alignas(64) float acc[kNumGrad][TS];
     alignas(64) int32_t stop_l[TS];
     for (int i = 0; i < P; ++i) {
       const int x = i % TS, y = i / TS;
+      PX[i] = float(tx0 + x);
+      PY[i] = float(ty0 + y);
       if (x < tw && y < th) {
         const int64_t o = (ty0 + y) * width + tx0 + x;
         T[i] = 1.f;
@@ -279,7 +266,6 @@ void backward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_ti
         T[i] = R[i] = G0[i] = G1[i] = G2[i] = GD[i] = 0.f;
       }
     }
-    for (int x = 0; x < TS; ++x) px[x] = float(tx0 + x);
     int n_active = tw * th;
     const int64_t k_end = tile_off[tile + 1];
     int64_t k = tile_off[tile];
@@ -292,9 +278,10 @@ void backward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_ti
       for (int j = 0; j < kNumGrad; ++j)
         for (int x = 0; x < TS; ++x) acc[j][x] = 0.f;
       for (int x = 0; x < TS; ++x) stop_l[x] = 0;
+      const float fx0 = float(q.x0), fx1 = float(q.x1);
       for (int y = ya; y <= yb; ++y) {
-        const float dy = float(ty0 + y) - q.my;
-        const float qy = q.cc * dy * dy, by = q.cb * dy;
+        const float* PXr = PX + y * TS;
+        const float* PYr = PY + y * TS;
         float* Tr = T + y * TS;
         float* Rr = R + y * TS;
         const float* H0 = G0 + y * TS;
@@ -303,14 +290,15 @@ void backward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_ti
         const float* HD = GD + y * TS;
         for (int x = 0; x < TS; ++x) {
           // forward recomputation (same expressions as forward_tiles)
-          const float dx = px[x] - q.mx;
-          float pw = -0.5f * (q.ca * dx * dx + qy) - by * dx;
+          // per-pixel dy (not a row constant) so that this is the forward's expression
+          // exactly, with the same FMA contractions: identical alpha, identical decisions
+          const float dx = PXr[x] - q.mx, dy = PYr[x] - q.my;
+          float pw = -0.5f * (q.ca * dx * dx + q.cc * dy * dy) - (q.cb * dy) * dx;
           pw = pw < kPowerMin ? kPowerMin : pw;
           const float G = exp_neg(pw);
           const float raw = q.op * G;
           float al = raw > kAlphaMax ? kAlphaMax : raw;
-          const int32_t xi = int32_t(tx0) + x;
-          const float inx = (xi >= q.x0) & (xi <= q.x1) ? 1.f : 0.f;
+          const float inx = (PXr[x] >= fx0) & (PXr[x] <= fx1) ? 1.f : 0.f;
           const float m = (al >= kAlphaMin ? 1.f : 0.f) * inx;
           al *= m;
           const float Tb = Tr[x];
@@ -328,11 +316,12 @@ void backward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_ti
           const float live = m * keep * (raw <= kAlphaMax ? 1.f : 0.f);  // d alpha / d raw
           const float dal = (Tb * gc - Rn / (1.f - a)) * live;
           const float gp = dal * q.op * G;  // dL/dpower
-          acc[0][x] += gp * (q.ca * dx + q.cb * dy);
-          acc[1][x] += gp * (q.cb * dx + q.cc * dy);
-          acc[2][x] -= 0.5f * gp * dx * dx;
-          acc[3][x] -= gp * dx * dy;
-          acc[4][x] -= 0.5f * gp * dy * dy;
+          const float gx = gp * dx, gy = gp * dy;
+          acc[0][x] += gx;
+          acc[1][x] += gy;
+          acc[2][x] += gx * dx;
+          acc[3][x] += gx * dy;
+          acc[4][x] += gy * dy;
           acc[5][x] += dal * G;
           acc[6][x] += w * H0[x];
           acc[7][x] += w * H1[x];
@@ -343,12 +332,21 @@ void backward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_ti
       int n_stop = 0;
       for (int x = 0; x < TS; ++x) n_stop += stop_l[x];
       n_active -= n_stop;
-      float* dst = pair_grad + kNumGrad * pair_slot(pair_off, q, g, tile_tx, tile_ty, TS);
+      float sum[kNumGrad];
       for (int j = 0; j < kNumGrad; ++j) {
         float s = 0.f;
         for (int x = 0; x < TS; ++x) s += acc[j][x];
-        dst[j] = s;
+        sum[j] = s;
       }
+      // sums of gp dx, gp dy, gp dx^2, gp dx dy, gp dy^2 -> d/d(mean, conic); power =
+      // -0.5 (a dx^2 + c dy^2) - b dx dy, d power / d mean = (a dx + b dy, b dx + c dy)
+      float* dst = pair_grad + kNumGrad * pair_slot(pair_off, q, g, tile_tx, tile_ty, TS);
+      dst[0] = q.ca * sum[0] + q.cb * sum[1];
+      dst[1] = q.cb * sum[0] + q.cc * sum[1];
+      dst[2] = -0.5f * sum[2];
+      dst[3] = -sum[3];
+      dst[4] = -0.5f * sum[4];
+      for (int j = 5; j < kNumGrad; ++j) dst[j] = sum[j];
     }
     for (; k < k_end; ++k) {  // Gaussians behind the point where all pixels stopped
       const int64_t g = key_gaussian(keys[k]);
