@@ -48,6 +48,7 @@ from .proxy_depth import multiview_filter, sample_at_grid
 from .types import Intrinsics
 
 FLOW_SCALE = 1000.0
+DSPO_NEIGHBORS = 4        # nearest window keyframes used (besides edges) for the high/low split
 
 
 @dataclass
@@ -81,7 +82,7 @@ def _weighted_affine(x, y, w):
 def dspo_step(poses: torch.Tensor, disps: torch.Tensor, intr, ii: torch.Tensor,
               jj: torch.Tensor, target: torch.Tensor, weight: torch.Tensor,
               mono_disp: torch.Tensor, low: torch.Tensor, alpha1: float = 0.01,
-              alpha2: float = 0.1, mono_thresh: float = 0.1, min_low_frac: float = 0.3,
+              alpha2: float = 0.1, mono_thresh: float = 0.1, min_low_frac: float = 0.2,
               active: Optional[torch.Tensor] = None, iters: int = 2,
               huber: Optional[float] = None,
               normal_equations=disparity_normal_equations) -> Tuple[torch.Tensor, DspoInfo]:
@@ -150,8 +151,8 @@ class DspoPrior:
 
     Runs the mono model once per keyframe (while the tracker still holds its image), keeps
     ``1/D^mono`` on the BA grid, classifies high/low-error pixels with the multi-view filter
-    over the window (each keyframe against its ``depth.mv_neighbors`` nearest window
-    keyframes) and applies :func:`dspo_step`.
+    over the window (each keyframe against the keyframes it has flow edges with and its 4
+    nearest window keyframes) and applies one Gauss-Newton step of :func:`dspo_step`.
     """
 
     def __init__(self, cfg: SlamConfig, intrinsics: Intrinsics, mono_model=None):
@@ -200,13 +201,18 @@ class DspoPrior:
             return None
         mono = torch.stack([mo if mo is not None else torch.zeros(h, w, device=dev)
                             for mo in monos]).to(st.disps.dtype)
-        # high / low error split: Eq. 4-5 over the window (nearest mv_neighbors by position)
-        k = max(1, min(int(self.dc.mv_neighbors), N - 1))
+        # high / low error split: Eq. 4-5 of each keyframe against the keyframes it shares
+        # flow edges with plus its DSPO_NEIGHBORS nearest window keyframes (the newest
+        # keyframe has few edges yet), which keeps the cost well below all pairs
+        k = max(1, min(DSPO_NEIGHBORS, N - 1))
         idx = torch.arange(N, device=dev)
         dist = (idx[:, None] - idx[None, :]).abs().to(torch.float32) + idx[None, :] * 1e-3
         dist.fill_diagonal_(float("inf"))
         nb = dist.topk(k, dim=1, largest=False).indices
-        pairs = torch.stack([idx[:, None].expand(N, k).reshape(-1), nb.reshape(-1)], -1)
+        pairs = torch.cat([torch.stack([idx[:, None].expand(N, k).reshape(-1), nb.reshape(-1)],
+                                       -1), torch.stack([st.ii, st.jj], -1).to(dev)])
+        pairs = torch.unique(pairs, dim=0)
+        pairs = pairs[pairs[:, 0] != pairs[:, 1]]
         depth = torch.where(st.disps > 0, 1.0 / st.disps.clamp_min(1e-12),
                             torch.zeros_like(st.disps))
         low, _ = multiview_filter(depth, st.poses, st.intr, self.dc.mv_eta,
