@@ -25,8 +25,8 @@ the flow is unreliable (small ``H``) the disparity follows the fitted mono prior
 is strong the flow still dominates. ``theta, gamma`` start from the least-squares fit of
 Eq. 3 on ``d^l``, which also gates each keyframe: a keyframe whose mono depth does not fit
 its reliable disparities (mean residual > ``dspo_mono_thresh`` x mean disparity), with a
-non-positive scale, or with too few reliable pixels is left to plain DBA (as the
-reference implementation does).
+non-positive scale, or with fewer than 20 % reliable pixels (the reference: 50 % of the
+image; the newest keyframe of a window has few views yet) is left to plain DBA.
 
 Units: the flow term is taken as in :mod:`dense_ba` (confidence weights) divided by
 ``FLOW_SCALE`` = 1000 and disparities are normalised by the window's mean disparity. This
