@@ -514,7 +514,7 @@ class _KfState:
     kf_id: int
     pose: np.ndarray                 # 4x4 float64 c2w
     disparity: np.ndarray            # (h, w) float32
-    mono: Optional[np.ndarray]       # (H, W) float32 relative depth or None
+    mono: Optional[np.ndarray]       # (H, W) float16 relative depth (0 = none) or None
     guide: Optional[torch.Tensor] = None   # (H, W) uint8 corner preference (upsampling)
     result: Optional[ProxyDepthResult] = None
     n_views: int = 0                 # views used when ``result`` was computed
@@ -523,8 +523,9 @@ class _KfState:
 class ProxyDepthEstimator:
     """Stateful proxy depth for the depth node and the in-process pipeline.
 
-    Keeps the pose, BA disparity and mono depth of each keyframe (up to
-    ``tracking.keyframe_buffer``); the other views of keyframe i in Eq. 5 are the
+    Keeps the pose, BA disparity, mono depth (float16), colour guide and last result of
+    each keyframe (up to ``tracking.keyframe_buffer``; about 0.6 MB per keyframe at
+    320x240 with a mono model); the other views of keyframe i in Eq. 5 are the
     ``depth.mv_neighbors`` stored keyframes nearest to i in keyframe id.
     """
 
@@ -680,6 +681,8 @@ class ProxyDepthEstimator:
         if mono is not None and mono.shape != (H, W):
             import cv2
             mono = cv2.resize(mono, (W, H), interpolation=cv2.INTER_LINEAR)
+        if mono is not None:       # kept for recomputations; relative depth: 1e-3 is plenty
+            mono = np.where(np.isfinite(mono) & (mono > 0), mono, 0).astype(np.float16)
         guide = None
         img = np.asarray(kf.image) if kf.image is not None else None
         if self.dc.upsample_guided and img is not None and img.ndim == 3:
@@ -728,7 +731,7 @@ class ProxyDepthEstimator:
             dup, vup = upsample_disparity(disp[i], valid_ba[i], (H, W), self.dc.upsample_disc,
                                           st.guide)
             mv_depth = _disp_to_depth(dup)
-            mono = None if st.mono is None else torch.from_numpy(st.mono).to(dev)
+            mono = None if st.mono is None else torch.from_numpy(st.mono).to(dev).float()
             fit = None
             if mono is not None:   # Eq. 3 at BA resolution (multi-view depth not interpolated)
                 fit = fit_mono(sample_at_grid(mono, h, w), depth_ba[i], valid_ba[i],
