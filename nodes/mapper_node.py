@@ -132,10 +132,11 @@ class MapperNode(SplatNode):
         if self._handled(h):
             return
         kf = msg_to_keyframe(msg)
-        self.seen_new[h] = None
         if kf.kf_id in self.offered or kf.kf_id in self.pending_kf:
             return
-        self.pending_kf[kf.kf_id] = kf
+        # marked handled only once mapped: a pending keyframe is not in the snapshot, so a
+        # restarted mapper must take its replay again
+        self.pending_kf[kf.kf_id] = (kf, h)
         self._try_map()
 
     def _depth(self, msg, h: str) -> None:
@@ -143,17 +144,18 @@ class MapperNode(SplatNode):
         if self._handled(h):
             return
         pd = msg_to_proxy_depth(msg)
-        self.seen_new[h] = None
         k = pd.kf_id
         if self.mapper is not None and k in self.mapper.keyframes:
             # Map deformation (§3.2): the keyframe's Gaussians follow its new pose and depth
             self.mapper.apply_update(k, pd.pose, pd.depth, pd.source > 0)
             self.last_update_seq = max(self.last_update_seq, int(pd.update_seq))
+            self.seen_new[h] = None
             self._status()
         elif k in self.offered:
-            return                                  # consumed but not mapped (redundant view)
+            self.seen_new[h] = None                 # consumed but not mapped (redundant view)
         else:
-            self.pending_depth[k] = pd
+            old = self.pending_depth.get(k)
+            self.pending_depth[k] = (pd, (old[1] if old else []) + [h])
             self._try_map()
         self._check_final()
 
@@ -161,8 +163,10 @@ class MapperNode(SplatNode):
         for k in sorted(self.pending_kf):
             if k not in self.pending_depth:
                 continue
-            kf = self.pending_kf.pop(k)
-            pd = self.pending_depth.pop(k)
+            kf, h_kf = self.pending_kf.pop(k)
+            pd, h_pd = self.pending_depth.pop(k)
+            for h in [h_kf] + h_pd:
+                self.seen_new[h] = None             # in the snapshot taken by _map
             self._map(kf, pd)
         self._check_final()
 
