@@ -305,6 +305,7 @@ def main(argv=None):
     results["micro"] = microbench([1, 2])
     for th, res in results["micro"].items():
         print(f"  torch {th}: " + ", ".join(f"{k[:-3]} {v:.2f}" for k, v in res.items()))
+    torch.set_num_threads(args.threads)
     results["dspo_window"] = bench_dspo_window()
     d = results["dspo_window"]
     print(f"\nDSPO hook, {d['keyframes']} keyframes / {d['edges']} edges at "
