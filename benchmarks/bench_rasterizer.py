@@ -3,11 +3,13 @@
 
 Prints a table and writes benchmarks/results/rasterizer.json. Scenes: Gaussians initialised
 like the mapper does from a keyframe (pixels unprojected onto the surfaces of a box room with
-a few objects, flattened along the surface normal, sized to the pixel spacing), plus 30 %
+a table-sized box, flattened along the surface normal, sized to the pixel spacing), plus 23 %
 extra Gaussians from nearby "other keyframes" so several layers overlap along each ray.
 
-    python benchmarks/bench_rasterizer.py [--threads 2] [--repeats 5] [--quick]
-    LD_PRELOAD=/usr/lib/x86_64-linux-gnu/libjemalloc.so.2 python benchmarks/bench_rasterizer.py
+    python benchmarks/bench_rasterizer.py [--threads 2] [--repeats 5] [--quick] [--also-jemalloc]
+
+Times are wall-clock medians (ms) and, in brackets, the CPU time of all threads; the load
+average is recorded because other processes on the machine slow both down.
 
 The forward+backward loss is L1 on rgb + 0.1 * L1 on depth (as in mapping).
 """
@@ -19,6 +21,7 @@ import math
 import os
 import platform
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -28,6 +31,8 @@ import torch
 from splat_slam_ros.geometry import matrix_to_quat
 from splat_slam_ros.rasterizer import rasterize
 from splat_slam_ros.rasterizer.kernel import load_extension
+
+JEMALLOC = ("/usr/lib/x86_64-linux-gnu/libjemalloc.so.2", "/usr/lib/aarch64-linux-gnu/libjemalloc.so.2")
 
 
 def room_scene(n: int, width: int, height: int, seed: int = 0):
@@ -102,13 +107,15 @@ def time_backend(scene, width, height, backend, repeats):
     res = {}
     for name, fn in (("forward_ms", fwd), ("forward_backward_ms", fwd_bwd)):
         fn()  # warm-up
-        ts = []
+        ts, cpu = [], []
         for _ in range(repeats):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             fn()
             ts.append((time.perf_counter() - t0) * 1e3)
+            cpu.append((time.process_time() - c0) * 1e3)
         res[name] = statistics.median(ts)
         res[name + "_min"] = min(ts)
+        res[name + "_cpu"] = statistics.median(cpu)  # CPU time of all threads
     with torch.no_grad():
         out = rasterize(*params, viewmat, intr, width, height, backend=backend)
     res["visible"] = int(out.visible.sum())
@@ -122,6 +129,8 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--quick", action="store_true", help="only 20k @ 320x240")
     ap.add_argument("--no-reference", action="store_true", help="skip the pure-torch reference")
+    ap.add_argument("--also-jemalloc", action="store_true",
+                    help="afterwards run again in a subprocess with LD_PRELOAD=libjemalloc.so.2")
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "rasterizer.json"))
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -138,7 +147,7 @@ def main(argv=None):
                "cpu_capability": torch.backends.cpu.get_cpu_capability(),
                "loadavg_before": load, "configs": []}
     print(f"threads={args.threads} allocator={allocator} loadavg={load}")
-    print(f"{'scene':>18} {'backend':>7} {'fwd ms':>9} {'fwd+bwd ms':>11} {'visible':>8}")
+    print(f"{'scene':>18} {'backend':>7} {'fwd ms':>9} {'fwd+bwd ms':>11} {'(cpu ms)':>9} {'visible':>8}")
     for n, w, h in configs:
         scene = room_scene(n, w, h)
         entry = {"gaussians": n, "width": w, "height": h}
@@ -147,7 +156,8 @@ def main(argv=None):
             r = time_backend(scene, w, h, be, args.repeats if be == "cpp" else max(1, args.repeats // 2))
             entry[be] = r
             print(f"{f'{n // 1000}k @ {w}x{h}':>18} {be:>7} {r['forward_ms']:9.1f} "
-                  f"{r['forward_backward_ms']:11.1f} {r['visible']:8d}")
+                  f"{r['forward_backward_ms']:11.1f} {r['forward_backward_ms_cpu']:9.1f} "
+                  f"{r['visible']:8d}")
         if "torch" in entry:
             entry["speedup_forward"] = entry["torch"]["forward_ms"] / entry["cpp"]["forward_ms"]
             entry["speedup_forward_backward"] = (entry["torch"]["forward_backward_ms"]
@@ -168,6 +178,14 @@ def main(argv=None):
     old["runs"][f"{allocator}_t{args.threads}"] = results
     out.write_text(json.dumps(old, indent=2))
     print(f"wrote {out}")
+    if args.also_jemalloc and allocator != "jemalloc":
+        lib = next((p for p in JEMALLOC if Path(p).is_file()), None)
+        if lib is None:
+            print("jemalloc not found (apt-get install libjemalloc2); skipped")
+            return 0
+        env = dict(os.environ, LD_PRELOAD=lib, MALLOC_CONF="dirty_decay_ms:-1,muzzy_decay_ms:-1")
+        argv2 = [a for a in (argv if argv is not None else sys.argv[1:]) if a != "--also-jemalloc"]
+        return subprocess.call([sys.executable, __file__, *argv2], env=env)
     return 0
 
 

@@ -81,7 +81,7 @@ def _render_chunk(px, py, pix_valid, idx, slot_valid, means2d, conics, colors, o
 
 def rasterize_reference(means2d, conics, colors, opacities, depths, ranges, width: int,
                         height: int, background: torch.Tensor, tile_size: int = 16,
-                        max_elems: int = 1 << 22, checkpoint_above: int = 1 << 27):
+                        max_elems: int = 1 << 22, checkpoint_above: int = 1 << 25):
     """Rasterize projected Gaussians. Returns (rgb (H,W,3), depth, alpha, visible (N,)).
 
     ``max_elems`` bounds each chunk (tiles x Gaussians x pixels); when autograd is recording

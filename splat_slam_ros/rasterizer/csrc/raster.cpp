@@ -59,7 +59,7 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
   auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
   torch::Tensor tile_off = torch::empty({n_tiles + 1}, i64);
   torch::Tensor keys = torch::empty({pair_off[n]}, i64);
-  bin_gaussians(rg, depths.data_ptr<float>(), n, ts, tiles_x, tiles_y,
+  bin_gaussians(rg, depths.data_ptr<float>(), n, ts, tiles_x, tiles_y, pair_off.data(),
                 tile_off.data_ptr<int64_t>(), keys.data_ptr<int64_t>());
   const std::vector<Packed> gs =
       pack(n, means2d.data_ptr<float>(), conics.data_ptr<float>(), colors.data_ptr<float>(),
@@ -97,21 +97,25 @@ std::vector<torch::Tensor> rasterize_backward(
   const int64_t tiles_x = (width + ts - 1) / ts, tiles_y = (height + ts - 1) / ts;
   const int64_t n_tiles = tiles_x * tiles_y;
   TORCH_CHECK(tile_off.numel() == n_tiles + 1, "tile offsets do not match the image size");
+  TORCH_CHECK(keys.scalar_type() == torch::kInt64 && keys.is_contiguous() &&
+                  tile_off.scalar_type() == torch::kInt64 && tile_off.is_contiguous() &&
+                  tile_off.data_ptr<int64_t>()[n_tiles] == keys.numel(),
+              "binning does not match");
   const int32_t* rg = ranges.data_ptr<int32_t>();
-  const std::vector<int64_t> pair_off = pair_offsets(rg, n, ts);
-  TORCH_CHECK(keys.numel() == pair_off[n], "binning does not match the ranges");
+  const int64_t m = keys.numel();
   const std::vector<Packed> gs =
       pack(n, means2d.data_ptr<float>(), conics.data_ptr<float>(), colors.data_ptr<float>(),
            opac.data_ptr<float>(), depths.data_ptr<float>(), rg);
   auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
-  torch::Tensor pair_grad = torch::empty({pair_off[n], kNumGrad}, f32);
+  torch::Tensor pair_grad = torch::empty({m, kNumGrad}, f32);
   DISPATCH_TILE(ts, backward_tiles<TS>(
       width, height, tiles_x, n_tiles, tile_off.data_ptr<int64_t>(), keys.data_ptr<int64_t>(),
-      pair_off.data(), gs.data(), out_rgb.data_ptr<float>(), out_depth.data_ptr<float>(),
+      gs.data(), out_rgb.data_ptr<float>(), out_depth.data_ptr<float>(),
       out_T.data_ptr<float>(), g_rgb.data_ptr<float>(), g_depth.data_ptr<float>(),
       g_alpha.data_ptr<float>(), pair_grad.data_ptr<float>()));
   torch::Tensor grads = torch::empty({n, kNumGrad}, f32);
-  reduce_pairs(n, pair_off.data(), pair_grad.data_ptr<float>(), grads.data_ptr<float>());
+  reduce_pairs(n, m, keys.data_ptr<int64_t>(), pair_grad.data_ptr<float>(),
+               grads.data_ptr<float>());
   return {grads.narrow(1, 0, 2), grads.narrow(1, 2, 3), grads.narrow(1, 6, 3),
           grads.select(1, 5), grads.select(1, 9)};
 }

@@ -29,6 +29,10 @@
 #include <cstring>
 #include <vector>
 
+#ifdef _OPENMP
+#include <omp.h>
+#endif
+
 namespace splat_raster {
 
 constexpr float kAlphaMin = 1.0f / 255.0f;
@@ -81,20 +85,38 @@ inline std::vector<int64_t> pair_offsets(const int32_t* ranges, int64_t n, int t
   return off;
 }
 
-// Per-tile lists of keys (float32 depth bits << 32 | gaussian index), sorted.
+inline int thread_id() {
+#ifdef _OPENMP
+  return omp_get_thread_num();
+#else
+  return 0;
+#endif
+}
+inline int thread_count() {
+#ifdef _OPENMP
+  return omp_get_num_threads();
+#else
+  return 1;
+#endif
+}
+inline int max_threads() {
+#ifdef _OPENMP
+  return omp_get_max_threads();
+#else
+  return 1;
+#endif
+}
+
+// Per-tile lists of keys (float32 depth bits << 32 | gaussian index), each sorted: the
+// Gaussians of a tile front to back, ties by index. Parallel counting sort by tile
+// (stable), then a sort inside each tile. pair_off: Gaussian-major pair offsets (N + 1).
 inline void bin_gaussians(const int32_t* ranges, const float* depths, int64_t n, int ts,
-                          int64_t tiles_x, int64_t tiles_y, int64_t* tile_off, int64_t* keys) {
-  const int64_t n_tiles = tiles_x * tiles_y;
-  std::vector<int64_t> cursor(n_tiles + 1, 0);
-  for (int64_t g = 0; g < n; ++g) {
-    const int32_t* r = ranges + 4 * g;
-    if (!has_footprint(r)) continue;
-    const GaussianTiles t = tiles_of(r, ts);
-    for (int32_t ty = t.ty0; ty <= t.ty1; ++ty)
-      for (int32_t tx = t.tx0; tx <= t.tx1; ++tx) ++cursor[ty * tiles_x + tx + 1];
-  }
-  for (int64_t i = 0; i < n_tiles; ++i) cursor[i + 1] += cursor[i];
-  std::memcpy(tile_off, cursor.data(), sizeof(int64_t) * (n_tiles + 1));
+                          int64_t tiles_x, int64_t tiles_y, const int64_t* pair_off,
+                          int64_t* tile_off, int64_t* keys) {
+  const int64_t n_tiles = tiles_x * tiles_y, m = pair_off[n];
+  std::vector<int32_t> pair_tile(m);
+  std::vector<int64_t> pair_key(m);
+#pragma omp parallel for schedule(static)
   for (int64_t g = 0; g < n; ++g) {
     const int32_t* r = ranges + 4 * g;
     if (!has_footprint(r)) continue;
@@ -102,8 +124,36 @@ inline void bin_gaussians(const int32_t* ranges, const float* depths, int64_t n,
     std::memcpy(&dbits, depths + g, sizeof(float));  // depth > near > 0: bits are monotonic
     const int64_t key = (int64_t(dbits) << 32) | int64_t(g);
     const GaussianTiles t = tiles_of(r, ts);
+    int64_t p = pair_off[g];
     for (int32_t ty = t.ty0; ty <= t.ty1; ++ty)
-      for (int32_t tx = t.tx0; tx <= t.tx1; ++tx) keys[cursor[ty * tiles_x + tx]++] = key;
+      for (int32_t tx = t.tx0; tx <= t.tx1; ++tx, ++p) {
+        pair_tile[p] = int32_t(ty * tiles_x + tx);
+        pair_key[p] = key;
+      }
+  }
+  const int max_t = max_threads();
+  std::vector<int64_t> hist(size_t(max_t) * n_tiles, 0);  // [thread][tile]
+#pragma omp parallel
+  {
+    const int t = thread_id(), nt = thread_count();
+    const int64_t p0 = m * t / nt, p1 = m * (t + 1) / nt;
+    int64_t* h = hist.data() + size_t(t) * n_tiles;
+    for (int64_t p = p0; p < p1; ++p) ++h[pair_tile[p]];
+#pragma omp barrier
+#pragma omp single
+    {
+      int64_t off = 0;
+      for (int64_t tile = 0; tile < n_tiles; ++tile) {
+        tile_off[tile] = off;
+        for (int u = 0; u < nt; ++u) {
+          const int64_t c = hist[size_t(u) * n_tiles + tile];
+          hist[size_t(u) * n_tiles + tile] = off;
+          off += c;
+        }
+      }
+      tile_off[n_tiles] = off;
+    }
+    for (int64_t p = p0; p < p1; ++p) keys[h[pair_tile[p]]++] = pair_key[p];
   }
 #pragma omp parallel for schedule(dynamic, 8)
   for (int64_t i = 0; i < n_tiles; ++i) std::sort(keys + tile_off[i], keys + tile_off[i + 1]);
@@ -219,13 +269,6 @@ void forward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_til
 // ------------------------------------------------------------------ backward
 constexpr int kNumGrad = 10;  // mx, my, conic a, b, c, opacity, colour 0..2, depth
 
-// Gradient slot of the (Gaussian g, tile) pair: pairs are numbered Gaussian-major.
-inline int64_t pair_slot(const int64_t* pair_off, const Packed& q, int64_t g, int64_t tile_tx,
-                         int64_t tile_ty, int ts) {
-  const int64_t gx0 = q.x0 / ts, gx1 = q.x1 / ts, gy0 = q.y0 / ts;
-  return pair_off[g] + (tile_ty - gy0) * (gx1 - gx0 + 1) + (tile_tx - gx0);
-}
-
 // d alpha_j:  dC/dalpha_j = T_j c_j - S_j / (1 - alpha_j), S_j = sum_{i>j} c_i w_i + T_N bg
 //             dA/dalpha_j = T_N / (1 - alpha_j)           (A = 1 - T_N)
 // With g = dL/d(rgb, depth, alpha) at the pixel and gc_j = g_rgb . c_j + g_D d_j:
@@ -233,8 +276,7 @@ inline int64_t pair_slot(const int64_t* pair_off, const Packed& q, int64_t g, in
 //   R_j = g_rgb . S_j + g_D S^D_j - g_A T_N = R_{j-1} - w_j gc_j,  R_{-1} = g . outputs - g_A T_N.
 template <int TS>
 void backward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_tiles,
-                    const int64_t* tile_off, const int64_t* keys, const int64_t* pair_off,
-                    const Packed* gs, const float* out_rgb, const float* out_depth,
+                    const int64_t* tile_off, const int64_t* keys, const Packed* gs, const float* out_rgb, const float* out_depth,
                     const float* out_T, const float* g_rgb, const float* g_depth,
                     const float* g_alpha, float* pair_grad) {
   constexpr int P = TS * TS;
@@ -340,7 +382,7 @@ void backward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_ti
       }
       // sums of gp dx, gp dy, gp dx^2, gp dx dy, gp dy^2 -> d/d(mean, conic); power =
       // -0.5 (a dx^2 + c dy^2) - b dx dy, d power / d mean = (a dx + b dy, b dx + c dy)
-      float* dst = pair_grad + kNumGrad * pair_slot(pair_off, q, g, tile_tx, tile_ty, TS);
+      float* dst = pair_grad + kNumGrad * k;  // written in list order: sequential
       dst[0] = q.ca * sum[0] + q.cb * sum[1];
       dst[1] = q.cb * sum[0] + q.cc * sum[1];
       dst[2] = -0.5f * sum[2];
@@ -348,23 +390,25 @@ void backward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_ti
       dst[4] = -0.5f * sum[4];
       for (int j = 5; j < kNumGrad; ++j) dst[j] = sum[j];
     }
-    for (; k < k_end; ++k) {  // Gaussians behind the point where all pixels stopped
-      const int64_t g = key_gaussian(keys[k]);
-      float* dst = pair_grad + kNumGrad * pair_slot(pair_off, gs[g], g, tile_tx, tile_ty, TS);
-      for (int j = 0; j < kNumGrad; ++j) dst[j] = 0.f;
-    }
+    // Gaussians behind the point where all pixels stopped
+    for (int64_t j = kNumGrad * k; j < kNumGrad * k_end; ++j) pair_grad[j] = 0.f;
   }
 }
 
-// Deterministic reduction: each Gaussian sums its own (Gaussian-major) pair slots.
-inline void reduce_pairs(int64_t n, const int64_t* pair_off, const float* pair_grad,
+// Deterministic reduction of the per-(tile, Gaussian) gradients: every thread owns a range
+// of Gaussians and scans the whole (tile-major) list, adding in list order.
+inline void reduce_pairs(int64_t n, int64_t m, const int64_t* keys, const float* pair_grad,
                          float* grads) {
-#pragma omp parallel for schedule(static)
-  for (int64_t g = 0; g < n; ++g) {
-    float s[kNumGrad] = {0.f};
-    for (int64_t p = pair_off[g]; p < pair_off[g + 1]; ++p)
-      for (int j = 0; j < kNumGrad; ++j) s[j] += pair_grad[kNumGrad * p + j];
-    for (int j = 0; j < kNumGrad; ++j) grads[kNumGrad * g + j] = s[j];
+#pragma omp parallel
+  {
+    const int t = thread_id(), nt = thread_count();
+    const int64_t g0 = n * t / nt, g1 = n * (t + 1) / nt;
+    for (int64_t j = kNumGrad * g0; j < kNumGrad * g1; ++j) grads[j] = 0.f;
+    for (int64_t k = 0; k < m; ++k) {
+      const int64_t g = key_gaussian(keys[k]);
+      if (g < g0 || g >= g1) continue;
+      for (int j = 0; j < kNumGrad; ++j) grads[kNumGrad * g + j] += pair_grad[kNumGrad * k + j];
+    }
   }
 }
 
