@@ -32,26 +32,49 @@ class CameraConfig:
 class TrackingConfig:
     device: str = "cpu"                  # "cpu", "cuda" or "auto"
     ba_downsample: int = 8               # BA resolution = tracking image / this (paper: 1/8)
+    # flow front end (classical stand-in for the paper's learned flow, see flow_frontend.py)
     flow_method: str = "dis_medium"      # OpenCV DIS preset: dis_ultrafast | dis_fast | dis_medium
-    fb_consistency_px: float = 1.0       # forward-backward error scale for confidences (px at BA res)
-    motion_filter_thresh: float = 4.0    # frame skipped if mean flow (px, tracking res) below this
-    keyframe_thresh: float = 4.0         # tau: new keyframe if mean flow above this
+    flow_downsample: int = 2             # DIS runs at tracking image / this (must divide ba_downsample)
+    fb_consistency_px: float = 1.0       # forward-backward error scale for confidences (tracking px)
+    photo_sigma: float = 30.0            # photometric residual scale for confidences (grey levels)
+    texture_grad: float = 1.0            # gradient (grey/px) at which a cell counts as textured
+    flow_spread_px: float = 1.5          # flow spread inside a BA cell that halves its weight
+    # motion filter / keyframes; flow thresholds in BA-grid pixels, as in the reference
+    motion_filter_thresh: float = 4.0    # keyframe candidate if mean flow to the last keyframe above
+    keyframe_thresh: float = 4.0         # tau: candidate dropped if its BA-induced flow stays below
     warmup: int = 8                      # keyframes collected before initialisation
-    frontend_window: int = 25
+    init_iters: int = 15                 # BA iterations of the initialisation
+    frontend_window: int = 25            # keyframes in the local BA window
     frontend_radius: int = 1
     frontend_max_factors: int = 75
+    frontend_thresh: float = 16.0        # proximity edges: induced mean flow below (BA px)
+    frontend_new_edges: int = 3          # proximity edge pairs added per new keyframe
+    frontend_nms: int = 1
     max_edge_age: int = 50
     ba_iters: int = 4
-    robust_huber_px: float = 2.0
+    pose_iters: int = 4                  # pose-only iterations per frame
+    robust_huber_px: float = 2.0         # Huber threshold on the reprojection error (tracking px)
+    lost_min_valid: float = 0.12         # lost if fewer BA cells than this have a usable flow
+    lost_rms: float = 1.0                # lost if the frame's pose fit leaves this rms (BA px)
+    reloc_keyframes: int = 4             # recent keyframes tried when the last one fails
+    filler_iters: int = 3                # pose-only iterations per non-keyframe at the end
+    event_pose_thresh: float = 1e-4      # report a keyframe if it moved more (scene units / rad)
+    event_disp_thresh: float = 1e-3      # ... or its mean relative disparity change exceeds this
     # loop closure (paper 3.1 "Loop Closure")
     loop_closure: bool = True
     loop_window: int = 25
-    loop_flow_thresh: float = 25.0       # tau_loop (px)
+    loop_flow_thresh: float = 25.0       # tau_loop (BA px, flow induced by the current estimate)
     loop_time_gap: int = 20              # tau_t (keyframes)
     loop_nms: int = 12
+    loop_max_edges: int = 4              # loop edge pairs accepted per step
+    loop_ba_iters: int = 6
     # online global BA (paper 3.1 "Global BA")
     global_ba: bool = True
     global_ba_every: int = 20            # keyframes
+    global_ba_iters: int = 4
+    global_ba_radius: int = 2            # temporal neighbours connected in the global graph
+    global_ba_thresh: float = 12.0       # spatial edges: induced mean flow below (BA px)
+    global_ba_max_edges: int = 6         # spatial edge pairs per keyframe at most
     final_ba_iters: tuple = (7, 12)
     keyframe_buffer: int = 512
     # DSPO (paper Eq. 2); only active when a mono depth model is configured

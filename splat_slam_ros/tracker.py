@@ -1,0 +1,712 @@
+"""The tracker of Splat-SLAM (paper Sec. 3.1): flow front end + local dense BA over keyframes.
+
+Per input frame: the image is prepared (undistort/crop/resize), dense flow from
+the last keyframe is predicted (``FlowPredictor``, OpenCV DIS by default), the
+frame pose is estimated against the keyframe's disparity (pose-only Gauss-Newton
+on Eq. 1) and the motion filter decides whether it becomes a keyframe. A new
+keyframe gets flow edges to its predecessor and to nearby window keyframes
+(factor graph), then the window runs dense BA (Eq. 1, optionally alternated
+with DSPO through the ``depth_prior`` hook). Every change to an already
+published keyframe is reported as an :class:`UpdateEvent`.
+
+Loop closure and global BA live in :mod:`loop_closure` (their own node in the
+ROS graph); their events come back through :meth:`Tracker.apply_update`.
+:func:`track_sequence` runs tracker + loop closer over a frame iterable.
+"""
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Any, Callable, Dict, Iterable, List, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from .config import SlamConfig
+from .dense_ba import (bundle_adjust, induced_flow_distance, intr_tensor, pose_only_refine,
+                       reproject)
+from .factor_graph import FactorGraph, proximity_pairs
+from .flow_frontend import (ImagePreprocessor, compose_flows, image_is_degenerate,
+                            make_flow_predictor, predict_both)
+from .geometry import pixel_grid, pose_from_tq, pose_to_tq, se3_exp, se3_inverse, se3_log
+from .motion_filter import MotionFilter
+from .trajectory_filler import FrameRecord, fill_trajectory
+from .types import Frame, Intrinsics, KeyframeData, UpdateEvent
+
+log = logging.getLogger(__name__)
+
+
+class TrackingError(ValueError):
+    """A user-facing tracking configuration/input mistake."""
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise TrackingError(f"tracking.device={name} but CUDA is not available")
+    try:
+        return torch.device(name)
+    except RuntimeError:
+        raise TrackingError(f"tracking.device={name!r} is not a torch device "
+                            "(use cpu, cuda or auto)") from None
+
+
+def orthonormalize(T: torch.Tensor) -> torch.Tensor:
+    """Project the rotation part back onto SO(3) (rounding must not compound)."""
+    return pose_from_tq(pose_to_tq(T))
+
+
+@dataclass
+class TrackStep:
+    """What :meth:`Tracker.track` returns for one input frame."""
+    frame_index: int
+    timestamp: float
+    is_keyframe: bool
+    kf_id: Optional[int]
+    pose: np.ndarray                         # 4x4 camera-to-world, current estimate
+    events: List[UpdateEvent] = field(default_factory=list)
+    keyframe: Optional[KeyframeData] = None  # the newest keyframe published this step
+    lost: bool = False
+    # every keyframe published this step (usually 0 or 1; the end of the warm-up
+    # publishes all warm-up keyframes at once) - consumers should iterate this
+    keyframes: List[KeyframeData] = field(default_factory=list)
+    initialized: bool = True
+    info: Dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class BAState:
+    """What the optional ``depth_prior`` hook (DSPO, Eq. 2) sees after each local BA.
+
+    The hook returns new disparities (N, h, w) for ``kf_ids`` or None. Edges
+    are ``ii -> jj`` (indices into ``kf_ids``) with ``target``/``weight`` as
+    in :func:`dense_ba.ba_step`; ``images`` maps kf ids to tracking-resolution
+    RGB images (for a mono depth network).
+    """
+    kf_ids: List[int]
+    poses: torch.Tensor
+    disps: torch.Tensor
+    intr: torch.Tensor
+    ii: torch.Tensor
+    jj: torch.Tensor
+    target: torch.Tensor
+    weight: torch.Tensor
+    images: Dict[int, np.ndarray]
+    fixed: int
+
+
+@dataclass
+class TrackingResult:
+    timestamps: np.ndarray            # full trajectory
+    poses: np.ndarray                 # (N, 4, 4) camera-to-world
+    kf_timestamps: np.ndarray
+    kf_poses: np.ndarray
+    kf_ids: List[int]
+    events: List[UpdateEvent]
+    timings: Dict[str, float]
+    n_frames: int
+    n_keyframes: int
+    n_lost: int
+    wall_s: float
+
+
+class Tracker:
+    """Frame-by-frame tracker. ``Tracker(cfg, intrinsics)``; see module docstring."""
+
+    owns_loop_closure = False
+
+    def __init__(self, cfg: SlamConfig, intrinsics: Intrinsics, flow_predictor=None,
+                 depth_prior: Optional[Callable[[BAState], Optional[torch.Tensor]]] = None,
+                 seq_start: int = 0):
+        self.cfg = cfg
+        tc = self.tc = cfg.tracking
+        self.device = resolve_device(tc.device)
+        cam = cfg.camera
+        self.pre = ImagePreprocessor(intrinsics, tc.ba_downsample, cam.width, cam.height,
+                                     cam.crop, cam.undistort)
+        self.intrinsics = self.pre.intrinsics
+        self.ba_intrinsics = self.pre.ba_intrinsics
+        self.intr = intr_tensor(self.ba_intrinsics, torch.float32, self.device)
+        self.h, self.w = self.ba_intrinsics.height, self.ba_intrinsics.width
+        self.flow = flow_predictor if flow_predictor is not None else make_flow_predictor(tc)
+        self.motion = MotionFilter(tc.motion_filter_thresh, min_valid_frac=tc.lost_min_valid)
+        self.graph = FactorGraph(self.h, self.w, self.device)
+        self.grid = pixel_grid(self.h, self.w, device=self.device)
+        self.huber = tc.robust_huber_px / tc.ba_downsample if tc.robust_huber_px > 0 else None
+        # keyframe store (all keyframes: pose + disparity; images only while needed)
+        self.poses: Dict[int, torch.Tensor] = {}
+        self.disps: Dict[int, torch.Tensor] = {}
+        self.conf: Dict[int, torch.Tensor] = {}
+        self.prep: Dict[int, Any] = {}
+        self.images: Dict[int, np.ndarray] = {}
+        self.kf_meta: Dict[int, Tuple[int, float]] = {}
+        self.window: List[int] = []
+        self.published: set = set()
+        self.records: List[FrameRecord] = []
+        self.initialized = False
+        self.next_kf = 0
+        self._seq = itertools.count(seq_start)
+        self.last_pose = torch.eye(4, dtype=torch.float64, device=self.device)
+        self.velocity = torch.eye(4, dtype=torch.float64, device=self.device)
+        self.lost_count = 0
+        self.n_lost = 0
+        self._last_flow = None          # (ref kf, flow ref -> previous frame): DIS init
+        self.timings: Dict[str, float] = defaultdict(float)
+        self.depth_prior = depth_prior if depth_prior is not None else self._default_prior(
+            intrinsics)
+
+    # ------------------------------------------------------------ helpers
+    def _default_prior(self, intrinsics):
+        if not (self.cfg.depth.mono_model and self.tc.dspo):
+            return None
+        try:
+            from . import dspo  # noqa: WPS433 (optional stage, written separately)
+            return dspo.make_depth_prior(self.cfg, self.intrinsics)
+        except (ImportError, AttributeError) as e:
+            log.warning("DSPO requested (depth.mono_model set) but unavailable (%s); "
+                        "using plain DBA", e)
+            return None
+
+    def next_seq(self) -> int:
+        return next(self._seq)
+
+    def _flows(self, a, b, init_ab=None, init_ba=None):
+        """Flows a -> b and b -> a with weights; ``init_*`` (BA-grid flows expected
+        from the current estimate) are passed to predictors that accept them."""
+        t0 = time.perf_counter()
+        if init_ab is not None and hasattr(self.flow, "predict_pair"):
+            out = self.flow.predict_pair(a, b, init_ij=init_ab.cpu(),
+                                         init_ji=None if init_ba is None else init_ba.cpu())
+        else:
+            out = predict_both(self.flow, a, b)
+        self.timings["flow"] += time.perf_counter() - t0
+        return tuple(x.to(self.device) for x in out)
+
+    def _induced(self, T_a, d_a, T_b) -> torch.Tensor:
+        """Flow (h, w, 2) that keyframe a's disparity and the poses induce a -> b."""
+        P = torch.stack([T_a, T_b])
+        uv, _ = reproject(P, d_a[None], self.intr, torch.tensor([0], device=self.device),
+                          torch.tensor([1], device=self.device))
+        return uv[0] - self.grid
+
+    def _stack(self, ids):
+        return (torch.stack([self.poses[k] for k in ids]),
+                torch.stack([self.disps[k] for k in ids]))
+
+    def _record(self, frame: Frame, **kw) -> FrameRecord:
+        r = FrameRecord(frame.index, float(frame.timestamp), **kw)
+        self.records.append(r)
+        return r
+
+    def _store_flow(self, f, w):
+        return f.detach().to("cpu", torch.float16), w.detach().to("cpu", torch.float16)
+
+    def _keyframe_data(self, kid: int) -> KeyframeData:
+        fi, ts = self.kf_meta[kid]
+        return KeyframeData(kf_id=kid, frame_index=fi, timestamp=ts,
+                            pose=self.poses[kid].cpu().numpy().copy(),
+                            image=self.images[kid], intrinsics=self.intrinsics,
+                            disparity=self.disps[kid].cpu().numpy().astype(np.float32),
+                            confidence=self.conf[kid].cpu().numpy().astype(np.float32))
+
+    def _new_kf_id(self) -> int:
+        k = self.next_kf
+        self.next_kf += 1
+        return k
+
+    # ------------------------------------------------------------ public
+    def track(self, frame: Frame) -> TrackStep:
+        t0 = time.perf_counter()
+        try:
+            img = self.pre(frame.image)
+        except ValueError as e:
+            raise TrackingError(str(e)) from None
+        if image_is_degenerate(img):
+            step = self._lost(frame, "degenerate image (black/uniform)")
+        else:
+            prep = self.flow.prepare(img)
+            if not self.initialized:
+                step = self._warmup(frame, img, prep)
+            else:
+                step = self._track(frame, img, prep)
+        self.timings["track"] += time.perf_counter() - t0
+        self.timings["frames"] += 1
+        return step
+
+    def _lost(self, frame: Frame, why: str) -> TrackStep:
+        self.lost_count += 1
+        self.n_lost += 1
+        self.velocity = torch.eye(4, dtype=torch.float64, device=self.device)
+        if self.lost_count == 1 or self.lost_count % 30 == 0:
+            log.warning("frame %d: tracking lost (%s)%s", frame.index, why,
+                        "" if self.lost_count == 1 else f", {self.lost_count} frames so far")
+        self._record(frame, lost=True)
+        return TrackStep(frame.index, float(frame.timestamp), False, None,
+                         self.last_pose.cpu().numpy().copy(), lost=True,
+                         initialized=self.initialized, info={"why": why})
+
+    # ------------------------------------------------------------ warm-up
+    def _add_keyframe(self, frame, img, prep, pose, disp) -> int:
+        kid = self._new_kf_id()
+        self.poses[kid] = orthonormalize(pose.to(self.device, torch.float64))
+        self.disps[kid] = disp.to(self.device, torch.float32)
+        self.conf[kid] = torch.ones(self.h, self.w, device=self.device)
+        self.prep[kid] = prep
+        self.images[kid] = img
+        self.kf_meta[kid] = (frame.index, float(frame.timestamp))
+        self.window.append(kid)
+        return kid
+
+    def _warmup(self, frame, img, prep) -> TrackStep:
+        eye = torch.eye(4, dtype=torch.float64, device=self.device)
+        ones = torch.ones(self.h, self.w, device=self.device)
+        if not self.window:
+            kid = self._add_keyframe(frame, img, prep, eye, ones)
+            self._record(frame, kf_id=kid)
+            return TrackStep(frame.index, float(frame.timestamp), False, None,
+                             eye.cpu().numpy(), initialized=False)
+        ref = self.window[-1]
+        init = self._last_flow[1] if self._last_flow is not None and \
+            self._last_flow[0] == ref else None
+        f, w, fb, wb = self._flows(self.prep[ref], prep, init)
+        fc = self.motion.check(f, w)
+        if not fc.ok:
+            self._last_flow = None
+            if self.lost_count > 10:       # the first frames were bad: restart the warm-up
+                log.warning("frame %d: restarting initialisation", frame.index)
+                self._reset()
+                return self._warmup(frame, img, prep)
+            return self._lost(frame, f"low flow confidence ({fc.valid_frac:.2f})")
+        self.lost_count = 0
+        self._last_flow = (ref, f)
+        info = {"mean_flow": fc.mean_flow, "valid": fc.valid_frac}
+        if not self.motion.is_candidate(fc):
+            self._record(frame, ref_kf=ref, flow=self._store_flow(f, w)[0],
+                         weight=self._store_flow(f, w)[1])
+            return TrackStep(frame.index, float(frame.timestamp), False, None,
+                             eye.cpu().numpy(), initialized=False, info=info)
+        kid = self._add_keyframe(frame, img, prep, eye, ones)
+        self.conf[kid] = wb.mean(-1)
+        self.graph.add(ref, kid, f, w)
+        self.graph.add(kid, ref, fb, wb)
+        self._record(frame, kf_id=kid)
+        if len(self.window) < max(self.tc.warmup, 2):
+            return TrackStep(frame.index, float(frame.timestamp), False, None,
+                             eye.cpu().numpy(), initialized=False, info=info)
+        return self._initialize(frame, info)
+
+    def _reset(self) -> None:
+        for k in list(self.poses):
+            for d in (self.poses, self.disps, self.conf, self.prep, self.images, self.kf_meta):
+                d.pop(k, None)
+        self.graph = FactorGraph(self.h, self.w, self.device)
+        self.window = []
+        self.lost_count = 0
+        self.motion = MotionFilter(self.tc.motion_filter_thresh,
+                                   min_valid_frac=self.tc.lost_min_valid)
+
+    def _initialize(self, frame, info) -> TrackStep:
+        ids = list(self.window)
+        # extra edges k -> k-2 (and back) for a stiffer warm-up graph
+        for a, m, b in zip(ids[:-2], ids[1:-1], ids[2:]):
+            init = compose_flows(self.graph.flow(a, m), self.graph.flow(m, b))
+            f, w, fb, wb = self._flows(self.prep[a], self.prep[b], init)
+            self.graph.add(a, b, f, w, kind="init")
+            self.graph.add(b, a, fb, wb, kind="init")
+        poses, disps = self._stack(ids)
+        ii, jj, tgt, wgt, pairs = self.graph.gather(ids)
+        t0 = time.perf_counter()
+        n = self.tc.init_iters
+        poses, disps, infos = bundle_adjust(poses, disps, self.intr, ii, jj, tgt, wgt,
+                                            iters=n, fixed=1, huber=self.huber)
+        # Monocular scale is arbitrary: normalise the mean disparity to 1.
+        s = float(disps.mean())
+        disps = disps / s
+        poses = poses.clone()
+        poses[:, :3, 3] *= s
+        poses, disps, infos2 = bundle_adjust(poses, disps, self.intr, ii, jj, tgt, wgt,
+                                             iters=self.tc.ba_iters, fixed=2, huber=self.huber)
+        self.timings["ba"] += time.perf_counter() - t0
+        log.info("initialised from %d keyframes: reprojection rms %.3f -> %.3f BA px",
+                 len(ids), infos[0].rms, infos2[-1].rms)
+        for n_, k in enumerate(ids):
+            self.poses[k] = poses[n_]
+            self.disps[k] = disps[n_]
+        self.initialized = True
+        self.last_pose = poses[-1].clone()
+        self.velocity = torch.eye(4, dtype=torch.float64, device=self.device)
+        kds = []
+        for k in ids:
+            kds.append(self._keyframe_data(k))
+            self.published.add(k)
+        self._trim_window()
+        kid = ids[-1]
+        return TrackStep(frame.index, float(frame.timestamp), True, kid,
+                         self.poses[kid].cpu().numpy().copy(), keyframe=kds[-1], keyframes=kds,
+                         info={**info, "ba_rms": infos2[-1].rms})
+
+    # ------------------------------------------------------------ tracking
+    def _try_reference(self, ref, prep, use_last: bool = True):
+        # DIS is initialised with the previous frame's measured flow to the same
+        # keyframe (temporal propagation; image-based, so a wrong disparity
+        # cannot corrupt it)
+        init = self._last_flow[1] if use_last and self._last_flow is not None and \
+            self._last_flow[0] == ref else None
+        f, w, fb, wb = self._flows(self.prep[ref], prep, init)
+        return (f, w, fb, wb), self.motion.check(f, w)
+
+    def _fit_pose(self, ref, f, w, inits):
+        """Pose-only fit of the frame against the flow ref -> frame; best of ``inits``."""
+        best = None
+        t0 = time.perf_counter()
+        for T0 in inits:
+            T, info = pose_only_refine(self.poses[ref], self.disps[ref], T0, self.intr,
+                                       self.grid + f, w, iters=self.tc.pose_iters,
+                                       huber=self.huber)
+            if info is not None and np.isfinite(info.rms) and (best is None or
+                                                                info.rms < best[1].rms):
+                best = (T, info)
+            if best is not None and best[1].rms < 0.5 * self.tc.lost_rms:
+                break
+        self.timings["pose"] += time.perf_counter() - t0
+        return best if best is not None else (inits[0], None)
+
+    def _track(self, frame, img, prep) -> TrackStep:
+        tc = self.tc
+        ref = self.window[-1]
+        was_lost = self.lost_count > 0
+        pred = self.last_pose @ self.velocity
+        flows, fc = self._try_reference(ref, prep, not was_lost)
+        if not fc.ok:
+            self._last_flow = None
+            # relocalise against the other recent keyframes
+            for k in reversed(self.window[-1 - tc.reloc_keyframes:-1]):
+                flows_k, fc_k = self._try_reference(k, prep, False)
+                if fc_k.ok:
+                    ref, flows, fc = k, flows_k, fc_k
+                    break
+        if not fc.ok:
+            return self._lost(frame, f"low flow confidence ({fc.valid_frac:.2f} valid)")
+        f, w, fb, wb = flows
+        T_ref = self.poses[ref]
+        inits = [T_ref.clone()] if was_lost else [pred, self.last_pose.clone(), T_ref.clone()]
+        T, pinfo = self._fit_pose(ref, f, w, inits)
+        if pinfo is None or not np.isfinite(pinfo.rms) or pinfo.rms > tc.lost_rms:
+            return self._lost(frame, f"pose did not fit the flow (rms "
+                                     f"{getattr(pinfo, 'rms', float('nan')):.2f} BA px)")
+        if was_lost:
+            log.info("frame %d: tracking recovered against keyframe %d after %d lost frames",
+                     frame.index, ref, self.lost_count)
+        self.lost_count = 0
+        self._last_flow = (ref, f)
+        info = {"mean_flow": fc.mean_flow, "valid": fc.valid_frac, "pose_rms": pinfo.rms}
+        if self.motion.is_candidate(fc) and ref == self.window[-1]:
+            return self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, info)
+        self._set_pose(T)
+        sf, sw = self._store_flow(f, w)
+        self._record(frame, ref_kf=ref, rel_pose=(se3_inverse(T_ref) @ T).cpu().numpy(),
+                     ref_scale=float(self.disps[ref].mean()), flow=sf, weight=sw,
+                     online_pose=T.cpu().numpy())
+        return TrackStep(frame.index, float(frame.timestamp), False, None,
+                         T.cpu().numpy().copy(), info=info)
+
+    def _set_pose(self, T):
+        T = orthonormalize(T)
+        # constant-velocity model in the tangent space (exp keeps it a rigid motion)
+        self.velocity = se3_exp(se3_log(se3_inverse(self.last_pose) @ T))
+        self.last_pose = T.clone()
+
+    def _init_disparity(self, ref, T_ref, T_new, fb, wb) -> torch.Tensor:
+        """Disparity of a new keyframe from the reference's via the flow new -> ref."""
+        d_ref = self.disps[ref]
+        h, w = self.h, self.w
+        coords = self.grid + fb
+        gxy = torch.stack([2 * coords[..., 0] / (w - 1) - 1, 2 * coords[..., 1] / (h - 1) - 1],
+                          -1)
+        d = torch.nn.functional.grid_sample(d_ref[None, None], gxy[None], mode="bilinear",
+                                            padding_mode="border", align_corners=True)[0, 0]
+        fx, fy, cx, cy = self.intr
+        q = torch.stack([(coords[..., 0] - cx) / fx, (coords[..., 1] - cy) / fy,
+                         torch.ones_like(d)], -1)
+        G = (se3_inverse(T_new) @ T_ref).to(torch.float32)
+        X = q @ G[:3, :3].T + G[:3, 3] * d[..., None]               # homogeneous (scale d)
+        z = X[..., 2] / d.clamp_min(1e-6)                            # metric depth in new
+        inside = (coords[..., 0] >= 0) & (coords[..., 0] <= w - 1) & (coords[..., 1] >= 0) & \
+            (coords[..., 1] <= h - 1)
+        valid = inside & (z > 1e-3) & (wb.mean(-1) > 0.05)
+        out = torch.where(valid, 1.0 / z.clamp_min(1e-3), torch.zeros_like(z))
+        fill = float(out[valid].median()) if bool(valid.any()) else float(d_ref.median())
+        return torch.where(valid, out, torch.full_like(out, fill)).clamp(1e-3, 1e3)
+
+    def _add_proximity_edges(self, kid: int) -> None:
+        tc = self.tc
+        if tc.frontend_new_edges <= 0 or len(self.window) < 3:
+            return
+        ids = list(self.window)
+        poses, disps = self._stack(ids)
+        cands = proximity_pairs(ids, poses, disps, self.intr, [kid], tc.frontend_thresh,
+                                tc.frontend_new_edges, exclude=self.graph.pairs(),
+                                min_gap=1, nms=tc.frontend_nms)
+        pos = {k: n for n, k in enumerate(ids)}
+        for a, b, _ in cands:
+            ia = torch.tensor([pos[a], pos[b]], device=self.device)
+            ib = torch.tensor([pos[b], pos[a]], device=self.device)
+            uv, _valid = reproject(poses, disps, self.intr, ia, ib)
+            init = uv - self.grid
+            f, w, fb, wb = self._flows(self.prep[a], self.prep[b], init[0], init[1])
+            fc = self.motion.check(f, w)
+            if fc.valid_frac < 0.5 * max(self.motion._typical or 0.0, tc.lost_min_valid):
+                continue
+            self.graph.add(a, b, f, w, kind="proximity")
+            self.graph.add(b, a, fb, wb, kind="proximity")
+
+    def _trim_window(self) -> None:
+        tc = self.tc
+        while len(self.window) > tc.frontend_window:
+            old = self.window.pop(0)
+            self.prep.pop(old, None)
+            self.images.pop(old, None)
+        self.graph.prune(self.window, tc.max_edge_age, tc.frontend_max_factors,
+                         protect=self.window[-2:])
+        for k in list(self.images):
+            if k in self.published:
+                self.images.pop(k, None)
+
+    def _snapshot(self, ids):
+        return {k: (self.poses[k].clone(), self.disps[k].clone()) for k in ids
+                if k in self.published}
+
+    def _events(self, reason: str, before) -> List[UpdateEvent]:
+        tc = self.tc
+        ids = []
+        for k, (P0, D0) in before.items():
+            if k not in self.poses:
+                continue
+            P1, D1 = self.poses[k], self.disps[k]
+            dxi = se3_log(se3_inverse(P0) @ P1)
+            scale = 1.0 / max(float(D1.mean()), 1e-6)
+            moved = float(dxi[:3].norm()) > tc.event_pose_thresh * scale or \
+                float(dxi[3:].norm()) > tc.event_pose_thresh
+            ddisp = float((D1 - D0).abs().mean()) / max(float(D0.abs().mean()), 1e-9)
+            if moved or ddisp > tc.event_disp_thresh:
+                ids.append(k)
+        if not ids:
+            return []
+        return [UpdateEvent(seq=self.next_seq(), reason=reason, kf_ids=ids,
+                            poses=np.stack([self.poses[k].cpu().numpy() for k in ids]),
+                            disparities=np.stack([self.disps[k].cpu().numpy()
+                                                  for k in ids]).astype(np.float32))]
+
+    def _local_ba(self, iters: int):
+        ids = list(self.window)
+        poses, disps = self._stack(ids)
+        ii, jj, tgt, wgt, pairs = self.graph.gather(ids)
+        if len(pairs) == 0:
+            return None
+        fixed = min(2, len(ids) - 1)
+        t0 = time.perf_counter()
+        poses, disps, infos = bundle_adjust(poses, disps, self.intr, ii, jj, tgt, wgt,
+                                            iters=iters, fixed=fixed, huber=self.huber)
+        self.timings["ba"] += time.perf_counter() - t0
+        if self.depth_prior is not None:
+            t0 = time.perf_counter()
+            st = BAState(ids, poses, disps, self.intr, ii, jj, tgt, wgt,
+                         {k: self.images[k] for k in ids if k in self.images}, fixed)
+            out = self.depth_prior(st)
+            if out is not None:
+                disps = out.to(disps)
+            self.timings["dspo"] += time.perf_counter() - t0
+        for n, k in enumerate(ids):
+            self.poses[k] = poses[n]
+            self.disps[k] = disps[n]
+        self.graph.age_edges(pairs)
+        return infos[-1]
+
+    def _new_keyframe(self, frame, img, prep, ref, T, f, w, fb, wb, info) -> TrackStep:
+        tc = self.tc
+        before = self._snapshot(self.window)
+        kid = self._add_keyframe(frame, img, prep, T, self._init_disparity(
+            ref, self.poses[ref], T, fb, wb))
+        self.conf[kid] = wb.mean(-1)
+        self.graph.add(ref, kid, f, w)
+        self.graph.add(kid, ref, fb, wb)
+        self._add_proximity_edges(kid)
+        self._trim_window()
+        binfo = self._local_ba(tc.ba_iters)
+        events = self._events("local_ba", before)
+        T_new = self.poses[kid]
+        # keyframe threshold tau on the flow induced by the optimised estimate
+        ids = [ref, kid]
+        P, D = self._stack(ids)
+        i0 = torch.tensor([0, 1], device=self.device)
+        i1 = torch.tensor([1, 0], device=self.device)
+        dist = float(induced_flow_distance(P, D, self.intr, i0, i1).mean())
+        info = {**info, "kf_dist": dist, "ba_rms": binfo.rms if binfo else float("nan")}
+        if dist < tc.keyframe_thresh and len(self.window) > 3:
+            self._drop_keyframe(kid)
+            self._set_pose(T_new)
+            sf, sw = self._store_flow(f, w)
+            T_ref = self.poses[ref]
+            self._record(frame, ref_kf=ref, rel_pose=(se3_inverse(T_ref) @ T_new).cpu().numpy(),
+                         ref_scale=float(self.disps[ref].mean()), flow=sf, weight=sw,
+                         online_pose=T_new.cpu().numpy())
+            return TrackStep(frame.index, float(frame.timestamp), False, None,
+                             T_new.cpu().numpy().copy(), events=events, info=info)
+        self._set_pose(T_new)
+        self._record(frame, kf_id=kid)
+        kd = self._keyframe_data(kid)
+        self.published.add(kid)
+        self.images.pop(kid, None)
+        return TrackStep(frame.index, float(frame.timestamp), True, kid,
+                         T_new.cpu().numpy().copy(), events=events, keyframe=kd,
+                         keyframes=[kd], info=info)
+
+    def _drop_keyframe(self, kid: int) -> None:
+        self.graph.remove_node(kid)
+        self.window.remove(kid)
+        for d in (self.poses, self.disps, self.conf, self.prep, self.images, self.kf_meta):
+            d.pop(kid, None)
+        self.next_kf = kid          # ids stay contiguous
+
+    # ------------------------------------------------------------ updates
+    def apply_update(self, ev: UpdateEvent) -> None:
+        """Apply pose/disparity changes made elsewhere (loop closure, global BA).
+
+        Keyframes newer than the newest one in the event (the event was computed
+        on an older snapshot) are moved rigidly with that keyframe's correction,
+        as is the current frame pose.
+        """
+        ids = [int(k) for k in ev.kf_ids]
+        known = [k for k in ids if k in self.poses]
+        if not known:
+            return
+        newest = max(known)
+        corr = None
+        for n, k in enumerate(ids):
+            if k not in self.poses:
+                continue
+            T_new = torch.as_tensor(np.asarray(ev.poses[n]), dtype=torch.float64,
+                                    device=self.device)
+            if k == newest:
+                corr = T_new @ se3_inverse(self.poses[k])
+            self.poses[k] = T_new
+            if ev.disparities is not None:
+                self.disps[k] = torch.as_tensor(np.asarray(ev.disparities[n]),
+                                                dtype=torch.float32, device=self.device)
+        later = [k for k in self.poses if k > newest and k not in ids]
+        if corr is not None:
+            corr = orthonormalize(corr)
+            for k in later:
+                self.poses[k] = corr @ self.poses[k]
+            # the current frame hangs off the newest keyframe
+            self.last_pose = corr @ self.last_pose
+
+    def finalize(self) -> List[UpdateEvent]:
+        """End of input: one more local BA round on the window (loop closure /
+        global BA finalisation is the loop closer's ``finalize``)."""
+        if not self.initialized or len(self.window) < 2:
+            return []
+        before = self._snapshot(self.window)
+        self._local_ba(self.tc.ba_iters)
+        return self._events("local_ba", before)
+
+    # ------------------------------------------------------------ outputs
+    def trajectory_keyframes(self) -> Tuple[np.ndarray, np.ndarray]:
+        ids = sorted(k for k in self.poses if k in self.published)
+        if not ids:
+            return np.zeros(0), np.zeros((0, 4, 4))
+        return (np.array([self.kf_meta[k][1] for k in ids]),
+                np.stack([self.poses[k].cpu().numpy() for k in ids]))
+
+    def keyframe_ids(self) -> List[int]:
+        return sorted(k for k in self.poses if k in self.published)
+
+    def trajectory_full(self) -> Tuple[np.ndarray, np.ndarray]:
+        """(timestamps, poses) of every input frame (non-keyframes filled)."""
+        t0 = time.perf_counter()
+        if self.initialized:
+            kp = {k: self.poses[k].cpu() for k in self.published}
+            kd = {k: self.disps[k].cpu() for k in self.published}
+        else:    # never initialised (static camera): everything at the first keyframe
+            kp = {k: self.poses[k].cpu() for k in self.window[:1]}
+            kd = {}
+        ts, poses = fill_trajectory(self.records, kp, kd, self.intr.cpu(),
+                                    iters=self.tc.filler_iters, huber=self.huber)
+        self.timings["filler"] += time.perf_counter() - t0
+        return ts, poses
+
+
+# ----------------------------------------------------------------- driver
+def track_sequence(frames: Iterable[Frame], cfg: SlamConfig, intrinsics: Intrinsics,
+                   progress: bool = True, loop_closure: Optional[bool] = None,
+                   total: Optional[int] = None) -> TrackingResult:
+    """Track a whole sequence in-process: tracker + loop closer (loop closure and
+    online/final global BA when enabled in ``cfg.tracking``). The loop closer's
+    events are applied to the tracker, the tracker's to the loop closer, exactly
+    as the ROS nodes exchange them."""
+    t_start = time.perf_counter()
+    tracker = Tracker(cfg, intrinsics)
+    tc = cfg.tracking
+    use_loop = (tc.loop_closure or tc.global_ba) if loop_closure is None else loop_closure
+    closer = None
+    if use_loop:
+        from .loop_closure import LoopCloser
+        closer = LoopCloser(cfg, intrinsics, seq_start=1_000_000_000)
+    events: List[UpdateEvent] = []
+    timings: Dict[str, float] = defaultdict(float)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        if total is None and hasattr(frames, "__len__"):
+            total = len(frames)  # type: ignore[arg-type]
+        bar = tqdm(total=total, unit="frame", desc="tracking", dynamic_ncols=True)
+    n = 0
+    for frame in frames:
+        step = tracker.track(frame)
+        n += 1
+        events.extend(step.events)
+        if closer is not None:
+            t0 = time.perf_counter()
+            for ev in step.events:
+                closer.apply_update(ev)
+            for kd in step.keyframes:
+                closer.add_keyframe(kd)
+            if step.keyframes:
+                lev = closer.step()
+                for ev in lev:
+                    tracker.apply_update(ev)
+                events.extend(lev)
+            timings["loop_closure"] += time.perf_counter() - t0
+        if bar is not None:
+            bar.update(1)
+            el = time.perf_counter() - t_start
+            bar.set_postfix(fps=f"{n / max(el, 1e-9):.1f}", kf=len(tracker.published),
+                            lost=tracker.n_lost, refresh=False)
+    fin = tracker.finalize()
+    events.extend(fin)
+    if closer is not None:
+        t0 = time.perf_counter()
+        for ev in fin:
+            closer.apply_update(ev)
+        lev = closer.finalize()
+        for ev in lev:
+            tracker.apply_update(ev)
+        events.extend(lev)
+        timings["loop_closure"] += time.perf_counter() - t0
+    if bar is not None:
+        bar.close()
+    ts, poses = tracker.trajectory_full()
+    kts, kposes = tracker.trajectory_keyframes()
+    wall = time.perf_counter() - t_start
+    timings.update({k: v for k, v in tracker.timings.items()})
+    if closer is not None:
+        for k, v in closer.timings.items():
+            timings["loop_" + k] = v
+    timings["wall"] = wall
+    timings["fps"] = n / max(wall, 1e-9)
+    return TrackingResult(ts, poses, kts, kposes, tracker.keyframe_ids(), events, dict(timings),
+                          n, len(tracker.published), tracker.n_lost, wall)

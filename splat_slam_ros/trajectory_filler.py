@@ -1,0 +1,101 @@
+"""Full trajectory: poses of the non-keyframes (paper Sec. 3.1 / reference "trajectory filler").
+
+Every tracked frame remembers its reference keyframe, the flow from that
+keyframe into it (BA grid, stored as float16) and its pose relative to the
+keyframe when it was tracked. At the end (or whenever asked) each frame's pose
+is initialised from the keyframe's *current* pose (after local BA, loop
+closure and global BA) - or, for frames without a usable flow (lost frames),
+by interpolation between the neighbouring keyframes in time - and refined by
+a short pose-only Gauss-Newton against its flow with the keyframe's current
+disparity (the target-pose block of Eq. 1).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+import torch
+
+from .dense_ba import pose_only_refine
+from .geometry import pixel_grid, se3_exp, se3_inverse, se3_log
+
+
+@dataclass
+class FrameRecord:
+    index: int
+    timestamp: float
+    kf_id: Optional[int] = None              # set when the frame is a keyframe
+    ref_kf: Optional[int] = None             # reference keyframe of a non-keyframe
+    rel_pose: Optional[np.ndarray] = None    # T_ref^-1 T_frame when tracked (None: unknown)
+    ref_scale: float = 1.0                   # mean disparity of the reference when tracked
+    flow: Optional[torch.Tensor] = None      # (h, w, 2) float16, ref -> frame, BA pixels
+    weight: Optional[torch.Tensor] = None    # (h, w, 2) float16
+    lost: bool = False
+    online_pose: Optional[np.ndarray] = None
+
+
+def se3_interpolate(T0: torch.Tensor, T1: torch.Tensor, a: float) -> torch.Tensor:
+    """Geodesic interpolation T0 exp(a log(T0^-1 T1)) of camera-to-world poses."""
+    return T0 @ se3_exp(a * se3_log(se3_inverse(T0) @ T1))
+
+
+def interpolate_from_keyframes(ts: float, kf_ts: np.ndarray, kf_poses: torch.Tensor
+                               ) -> torch.Tensor:
+    """Pose at time ``ts`` from keyframes sorted by time (clamped at the ends)."""
+    n = len(kf_ts)
+    k = int(np.searchsorted(kf_ts, ts))
+    if k <= 0:
+        return kf_poses[0].clone()
+    if k >= n:
+        return kf_poses[-1].clone()
+    t0, t1 = kf_ts[k - 1], kf_ts[k]
+    a = 0.0 if t1 <= t0 else float((ts - t0) / (t1 - t0))
+    return se3_interpolate(kf_poses[k - 1], kf_poses[k], a)
+
+
+def fill_trajectory(records: List[FrameRecord], kf_poses: Dict[int, torch.Tensor],
+                    kf_disps: Dict[int, torch.Tensor], intr, iters: int = 3,
+                    huber: Optional[float] = None) -> Tuple[np.ndarray, np.ndarray]:
+    """Timestamps (N,) and camera-to-world poses (N, 4, 4) of every recorded frame
+    that can be placed (frames before the first keyframe pose exist are skipped)."""
+    known = sorted(k for k in kf_poses)
+    if not known:
+        return np.zeros(0), np.zeros((0, 4, 4))
+    by_id = {r.kf_id: r for r in records if r.kf_id is not None}
+    kf_ts = np.array([by_id[k].timestamp if k in by_id else np.nan for k in known])
+    order = np.argsort(kf_ts)
+    kf_ts = kf_ts[order]
+    stack = torch.stack([kf_poses[known[o]].to(torch.float64).cpu() for o in order])
+    ts_out, poses_out = [], []
+    grid = None
+    for r in records:
+        if r.kf_id is not None:
+            if r.kf_id in kf_poses:
+                ts_out.append(r.timestamp)
+                poses_out.append(kf_poses[r.kf_id].to(torch.float64).cpu().numpy())
+            continue
+        T = None
+        usable = (not r.lost and r.ref_kf is not None and r.ref_kf in kf_poses
+                  and r.ref_kf in kf_disps and r.flow is not None)
+        if usable:
+            Tref = kf_poses[r.ref_kf].to(torch.float64).cpu()
+            disp = kf_disps[r.ref_kf].float().cpu()
+            if r.rel_pose is not None:
+                rel = torch.as_tensor(r.rel_pose, dtype=torch.float64).clone()
+                s_now = float(disp.mean())
+                if s_now > 0 and r.ref_scale > 0:
+                    rel[:3, 3] *= r.ref_scale / s_now      # follow a disparity rescale
+                T = Tref @ rel
+            else:
+                T = interpolate_from_keyframes(r.timestamp, kf_ts, stack)
+            if grid is None or grid.shape[:2] != disp.shape:
+                grid = pixel_grid(*disp.shape)
+            T, info = pose_only_refine(Tref, disp, T, intr, grid + r.flow.float(),
+                                       r.weight.float(), iters=iters + (0 if r.rel_pose is not None
+                                                                        else 3), huber=huber)
+        if T is None:
+            T = interpolate_from_keyframes(r.timestamp, kf_ts, stack)
+        ts_out.append(r.timestamp)
+        poses_out.append(T.numpy())
+    return np.asarray(ts_out, dtype=np.float64), np.asarray(poses_out, dtype=np.float64)
