@@ -128,6 +128,29 @@ class MappingConfig:
     lr_rotations: float = 0.001
     lr_exposure: float = 0.01
     render_every: int = 1                # publish / save a render every N keyframes
+    # views per iteration: the window (Eq. 8 sums over it; 0 = all) + random older keyframes
+    window_views_per_iter: int = 0
+    random_views_per_iter: int = 2       # MonoGS practice against forgetting (not in Eq. 8)
+    # pruning / densification (supplementary "Pruning and Densification", MonoGS / 3DGS)
+    prune_recent_kfs: int = 3            # visibility pruning looks at Gaussians of the last N KFs
+    prune_covis_min: int = 3             # ... and removes those seen by fewer other window KFs
+    prune_min_age: int = 50              # opacity pruning spares Gaussians younger (iterations)
+    prune_max_screen_px: float = 0.0     # remove if 2D radius exceeds this (0 = off)
+    prune_max_scale_frac: float = 0.1    # remove if largest scale > frac x scene extent
+    densify_grad_thresh: float = 0.0002  # mean view-space (NDC) positional gradient
+    percent_dense: float = 0.01          # clone below / split above this x scene extent
+    scene_extent: float = 0.0            # metres; 0 = from keyframe centres and depth
+    keyframe_every: int = 0              # map_sequence only: map every k-th frame (0 = window rules)
+    seed: int = 0
+
+    @classmethod
+    def fast(cls, **overrides) -> "MappingConfig":
+        """Few iterations everywhere: for tests and quick CPU looks (not for quality)."""
+        base = dict(iters_per_keyframe=15, iters_first=150, final_refine_iters=30,
+                    random_views_per_iter=1, window_views_per_iter=3, prune_every=50,
+                    densify_every=50, prune_min_age=25)
+        base.update(overrides)
+        return cls(**base)
 
 
 @dataclass

@@ -119,6 +119,8 @@ class KeyframeWindow:
             j = self._most_redundant(poses)
             self.window.remove(j)
             removed.append(j)
+        for j in removed:              # visible sets are only needed inside the window
+            self.forget(j)
         return removed
 
     def _most_redundant(self, poses: Dict[int, np.ndarray]) -> int:

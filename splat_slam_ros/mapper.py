@@ -95,6 +95,8 @@ class Mapper:
         self.iteration = 0
         self.n_deformations = 0
         self.n_deformed_gaussians = 0
+        self.counts = {"cloned": 0, "split": 0, "pruned_opacity": 0, "pruned_size": 0,
+                       "pruned_visibility": 0}
         self.last_ms = 0.0
         self.last_loss = float("nan")
         self._scene_depth = 0.0
@@ -114,14 +116,21 @@ class Mapper:
 
     @torch.no_grad()
     def render(self, pose, width: Optional[int] = None, height: Optional[int] = None,
-               kf_id: Optional[int] = None) -> Tuple[np.ndarray, np.ndarray]:
+               kf_id: Optional[int] = None,
+               intrinsics: Optional[Sequence[float]] = None) -> Tuple[np.ndarray, np.ndarray]:
         """Render (rgb uint8 HxWx3, depth float32 HxW metres) at a camera-to-world pose.
 
-        ``width``/``height`` rescale the intrinsics; ``kf_id`` applies that keyframe's
-        learned exposure (a * C + b)."""
+        ``width``/``height`` rescale the mapper's intrinsics unless ``intrinsics``
+        (fx, fy, cx, cy) for that size are given; ``kf_id`` applies that keyframe's learned
+        exposure (a * C + b)."""
         W, H = int(width or self.W), int(height or self.H)
         intr = self.intr
-        if (W, H) != (self.W, self.H):
+        if intrinsics is not None:
+            intr = tuple(float(x) for x in intrinsics)
+            if len(intr) != 4 or intr[0] <= 0 or intr[1] <= 0:
+                raise MapError(f"render intrinsics must be (fx, fy, cx, cy) with positive "
+                               f"focal lengths, got {intrinsics}")
+        elif (W, H) != (self.W, self.H):
             k = self.K.scaled(W / self.W, H / self.H)
             intr = (k.fx, k.fy, k.cx, k.cy)
         pose = np.asarray(pose, dtype=np.float64)
@@ -410,6 +419,8 @@ class Mapper:
             rm = torch.zeros(len(g), dtype=torch.bool, device=g.device)
             rm[split] = True
             g.remove(rm)
+        self.counts["cloned"] += len(clone)
+        self.counts["split"] += len(split)
         return len(clone), len(split)
 
     @torch.no_grad()
@@ -420,13 +431,17 @@ class Mapper:
             return 0
         m = self.mcfg
         old = (self.iteration - g.born) >= m.prune_min_age
-        rm = (g.opacities() < m.prune_opacity) & old
+        low = (g.opacities() < m.prune_opacity) & old
+        big = torch.zeros_like(low)
         if m.prune_max_screen_px > 0:
-            rm |= g.max_radii > m.prune_max_screen_px
+            big |= g.max_radii > m.prune_max_screen_px
         if m.prune_max_scale_frac > 0:
-            rm |= g.scales().max(1).values > m.prune_max_scale_frac * self.scene_extent()
+            big |= g.scales().max(1).values > m.prune_max_scale_frac * self.scene_extent()
+        rm = low | big
         if bool(rm.all()):
             return 0                   # never wipe the map
+        self.counts["pruned_opacity"] += int(low.sum())
+        self.counts["pruned_size"] += int((big & ~low).sum())
         return g.remove(rm)
 
     @torch.no_grad()
@@ -444,7 +459,9 @@ class Mapper:
             if vis is None or vis.numel() == 0:
                 continue
             count += (torch.isin(g.uid, vis) & (g.kf_id != j)).long()
-        return g.remove(cand & (count < m.prune_covis_min))
+        n = g.remove(cand & (count < m.prune_covis_min))
+        self.counts["pruned_visibility"] += n
+        return n
 
     # ============================================================ deformation
     @torch.no_grad()
@@ -498,7 +515,8 @@ class Mapper:
                 "window": list(self.window.window),
                 "map_mb": round(self.map.nbytes() / 2 ** 20, 4),
                 "last_ms": round(self.last_ms, 2), "deformations": self.n_deformations,
-                "deformed_gaussians": self.n_deformed_gaussians, "iterations": self.iteration}
+                "deformed_gaussians": self.n_deformed_gaussians, "iterations": self.iteration,
+                **self.counts}
 
     def keyframe_trajectory(self) -> Tuple[np.ndarray, np.ndarray]:
         """(timestamps, camera-to-world poses) of the mapped keyframes, by kf id."""
