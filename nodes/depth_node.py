@@ -32,6 +32,7 @@ class DepthNode(SplatNode):
         from . import qos as Q
         n = self.node
         self.pub = n.create_publisher(ProxyDepth, TOPICS["proxy_depth"], Q.proxy_depth_qos())
+        import splat_slam_ros.proxy_depth  # noqa: F401  (torch before 'ready')
         self.est = None
         self.kf_stamp: Dict[int, float] = {}
         self.pending: Dict[int, tuple] = {}       # updates for keyframes not received yet

@@ -27,6 +27,11 @@ class LoopClosureNode(SplatNode):
         n = self.node
         self.pub = n.create_publisher(PoseGraphUpdate, TOPICS["updates"], Q.pose_graph_qos())
         self.pub_ack = n.create_publisher(FrameAck, TOPICS["ack"], Q.ack_qos())
+        try:
+            import splat_slam_ros.loop_closure  # noqa: F401  (torch before 'ready')
+        except ImportError as e:
+            self.log.fatal(f"the loop closure stage is not available: {e}")
+            raise SystemExit(3)
         self.loop = None
         self.kf_ids: Dict[int, float] = {}
         self.seen: Dict[str, None] = {}

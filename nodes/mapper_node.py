@@ -53,6 +53,7 @@ class MapperNode(SplatNode):
         self.pub_status = n.create_publisher(MapperStatus, TOPICS["status"], Q.status_qos())
         self.pub_ack = n.create_publisher(FrameAck, TOPICS["ack"], Q.ack_qos())
         self.MapperStatus = MapperStatus
+        import splat_slam_ros.mapper  # noqa: F401  (torch + rasterizer before 'ready')
         self.mapper = None
         self.intr = None
         self.pending_kf: Dict[int, object] = {}    # kf_id -> KeyframeData waiting for depth
@@ -64,6 +65,7 @@ class MapperNode(SplatNode):
         self.digest: Optional[dict] = None
         self.saved = False
         self.n_mapped_since_snap = 0
+        self.dirty = set()                          # keyframes whose depth changed since
         self.store = None
         if self.state_dir is not None:
             from splat_slam_ros.keyframe_store import KeyframeStore
@@ -98,7 +100,8 @@ class MapperNode(SplatNode):
             i = meta["intrinsics"]
             self.intr = Intrinsics(i[0], i[1], i[2], i[3], int(i[4]), int(i[5]))
             self.mapper = restore_mapper(self.store.get("map"), meta["map"], self.cfg, self.intr,
-                                         lambda k: self.store.get(f"kf{k}_image")["image"])
+                                         lambda k: self.store.get(f"kf{k}_image")["image"],
+                                         lambda k: self.store.get(f"kf{k}_mdepth"))
         n = len(self.mapper.keyframes) if self.mapper is not None else 0
         self.log.info(f"resumed from {self.state_dir}: {n} mapped keyframes, "
                       f"{len(self.offered)} keyframes consumed")
@@ -106,14 +109,18 @@ class MapperNode(SplatNode):
     def _snapshot(self) -> None:
         if self.store is None or self.mapper is None:
             return
-        from splat_slam_ros.keyframe_store import mapper_state
+        from splat_slam_ros.keyframe_store import keyframe_depth, mapper_state
         arrays, meta = mapper_state(self.mapper)
+        staged = {f"kf{k}_mdepth": self.store.stage(f"kf{k}_mdepth",
+                                                     **keyframe_depth(self.mapper, k))
+                  for k in sorted(self.dirty) if k in self.mapper.keyframes}
+        self.dirty.clear()
         self.seen.update(self.seen_new)
         self.seen_new = {}
         if len(self.seen) > 2 * SEEN_KEEP:
             self.seen = dict.fromkeys(list(self.seen)[-SEEN_KEEP:])
         i = self.intr
-        staged = {"map": self.store.stage("map", **arrays)}
+        staged["map"] = self.store.stage("map", **arrays)
         self.store.commit(staged, {"map": meta, "seen": list(self.seen),
                                    "offered": {str(k): v for k, v in self.offered.items()},
                                    "intrinsics": [i.fx, i.fy, i.cx, i.cy, i.width, i.height],
@@ -148,6 +155,7 @@ class MapperNode(SplatNode):
         if self.mapper is not None and k in self.mapper.keyframes:
             # Map deformation (§3.2): the keyframe's Gaussians follow its new pose and depth
             self.mapper.apply_update(k, pd.pose, pd.depth, pd.source > 0)
+            self.dirty.add(k)
             self.last_update_seq = max(self.last_update_seq, int(pd.update_seq))
             self.seen_new[h] = None
             self._status()
@@ -180,6 +188,8 @@ class MapperNode(SplatNode):
         st = self.mapper.add_keyframe(kf.kf_id, kf.image, pd.pose, pd.depth, pd.source > 0,
                                       timestamp=kf.timestamp)
         self.offered[kf.kf_id] = bool(st.get("mapped"))
+        if st.get("mapped"):
+            self.dirty.add(kf.kf_id)
         if st.get("mapped") and self.store is not None and not self.store.has(f"kf{kf.kf_id}_image"):
             self.store.put(f"kf{kf.kf_id}_image", image=np.asarray(kf.image, np.uint8))
         self.n_mapped_since_snap += 1
@@ -297,6 +307,7 @@ class MapperNode(SplatNode):
             self.pending_kf.clear()
             self.pending_depth.clear()
             self.offered.clear()
+            self.dirty.clear()
             self.seen_new.clear()
             self.seen.clear()
             if self.store is not None:

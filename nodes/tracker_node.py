@@ -76,6 +76,7 @@ class TrackerNode(SplatNode):
             except IntrinsicsError as e:
                 self.log.fatal(str(e))
                 raise SystemExit(2)
+        import splat_slam_ros.tracker  # noqa: F401  (torch, OpenCV before 'ready')
         self.log.info(f"listening on {self.cfg.ros.image_topic} + {self.cfg.ros.camera_info_topic} "
                       f"({self.opts['input_qos']} QoS)")
         self.publish_event("ready")

@@ -302,24 +302,20 @@ class KeyframeStore(RecordStore):
 # ====================================================================== mapper
 def mapper_state(mapper) -> Tuple[Dict[str, np.ndarray], Dict[str, Any]]:
     """Arrays + JSON metadata that :func:`restore_mapper` turns back into an equal Mapper
-    (Gaussians with kf_id/created/born/uid, mapped keyframes with pose, depth, validity,
-    exposure, the window and its visibility sets). Adam moments are not kept (they restart
-    at zero, as for freshly added Gaussians). Keyframe images are not included: they are
-    immutable and stored once per keyframe by the caller (``image_of`` in restore)."""
+    (Gaussians with kf_id/created/born/uid, mapped keyframes with pose and exposure, the
+    window and its visibility sets). Adam moments are not kept (they restart at zero, as for
+    freshly added Gaussians). Keyframe images and depths are not included: the caller stores
+    them per keyframe (images once, depths when they change: :func:`keyframe_depth`), so a
+    snapshot costs O(map), not O(keyframes x image)."""
     g = mapper.map
     t = g.tensors()
     arrays = {k: v.detach().cpu().numpy() for k, v in t.items()}
     ids = sorted(mapper.keyframes)
     kfs = [mapper.keyframes[k] for k in ids]
-    H, W = mapper.H, mapper.W
     arrays["kf_ids"] = np.array(ids, np.int64)
     arrays["kf_index"] = np.array([k.index for k in kfs], np.int64)
     arrays["kf_timestamp"] = np.array([k.timestamp for k in kfs], np.float64)
     arrays["kf_pose"] = (np.stack([k.pose for k in kfs]) if kfs else np.zeros((0, 4, 4)))
-    arrays["kf_depth_exact"] = (np.stack([k.depth.detach().cpu().numpy() for k in kfs])
-                                if kfs else np.zeros((0, H, W), np.float32))
-    arrays["kf_valid"] = (np.packbits(np.stack([k.valid.cpu().numpy() for k in kfs]), axis=-1)
-                          if kfs else np.zeros((0, H, (W + 7) // 8), np.uint8))
     arrays["kf_exposure"] = (np.stack([k.exposure.detach().cpu().numpy() for k in kfs])
                              if kfs else np.zeros((0, 2), np.float32))
     win = mapper.window
@@ -332,10 +328,18 @@ def mapper_state(mapper) -> Tuple[Dict[str, np.ndarray], Dict[str, Any]]:
     return arrays, meta
 
 
+def keyframe_depth(mapper, kf_id: int) -> Dict[str, np.ndarray]:
+    """The proxy depth (float32) and packed validity mask a mapped keyframe holds now."""
+    kf = mapper.keyframes[int(kf_id)]
+    return {"depth": kf.depth.detach().cpu().numpy().astype(np.float32),
+            "valid": np.packbits(kf.valid.cpu().numpy(), axis=-1),
+            "width": np.array(kf.valid.shape[-1], np.int64)}
+
+
 def restore_mapper(arrays: Dict[str, np.ndarray], meta: Dict[str, Any], cfg, intrinsics,
-                   image_of) -> "object":
+                   image_of, depth_of) -> "object":
     """Rebuild a Mapper from :func:`mapper_state` output; ``image_of(kf_id)`` returns the
-    keyframe's H x W x 3 uint8 image."""
+    keyframe's H x W x 3 uint8 image, ``depth_of(kf_id)`` what :func:`keyframe_depth` gave."""
     import torch
 
     from .mapper import MappedKeyframe, Mapper
@@ -351,17 +355,16 @@ def restore_mapper(arrays: Dict[str, np.ndarray], meta: Dict[str, Any], cfg, int
               kf_id=T["kf_id"], created=T["created"], born=T["born"])
         g.uid = T["uid"].to(device=dev, dtype=torch.long)
     g._next_uid = int(meta.get("next_uid", n))
-    H, W = mp.H, mp.W
-    valid = np.unpackbits(np.asarray(arrays["kf_valid"]), axis=-1)[..., :W].astype(bool) \
-        if len(arrays["kf_ids"]) else np.zeros((0, H, W), bool)
     for i, k in enumerate(np.asarray(arrays["kf_ids"]).tolist()):
         img = np.asarray(image_of(int(k)), np.uint8)
+        d = depth_of(int(k))
+        W = int(d["width"])
+        valid = np.unpackbits(np.asarray(d["valid"]), axis=-1)[..., :W].astype(bool)
         kf = MappedKeyframe(int(k), int(arrays["kf_index"][i]), float(arrays["kf_timestamp"][i]),
                             np.asarray(arrays["kf_pose"][i], np.float64),
                             torch.from_numpy(np.ascontiguousarray(img)).to(dev),
-                            torch.from_numpy(np.asarray(arrays["kf_depth_exact"][i],
-                                                        np.float32)).to(dev),
-                            torch.from_numpy(valid[i].copy()).to(dev),
+                            torch.from_numpy(np.asarray(d["depth"], np.float32)).to(dev),
+                            torch.from_numpy(valid.copy()).to(dev),
                             torch.from_numpy(np.asarray(arrays["kf_exposure"][i],
                                                         np.float32)).to(dev))
         if kf.index > 0:
@@ -382,4 +385,3 @@ def restore_mapper(arrays: Dict[str, np.ndarray], meta: Dict[str, Any], cfg, int
     mp.n_deformed_gaussians = int(meta.get("n_deformed_gaussians", 0))
     mp._scene_depth = float(meta.get("scene_depth", 0.0))
     return mp
-

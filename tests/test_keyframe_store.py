@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from splat_slam_ros.keyframe_store import (KeyframeStore, RecordStore, StoreError,
-                                           mapper_state, restore_mapper)
+                                           keyframe_depth, mapper_state, restore_mapper)
 from splat_slam_ros.types import Intrinsics, KeyframeData
 
 
@@ -144,8 +144,14 @@ def test_mapper_snapshot_round_trip(tmp_path):
     arrays, meta = mapper_state(mp)
     st = KeyframeStore(tmp_path / "m")
     st.put("map", meta={"map": meta}, **arrays)
+    for k in mp.keyframes:
+        st.put(f"d{k}", **keyframe_depth(mp, k))
     st2 = KeyframeStore(tmp_path / "m")
-    mp2 = restore_mapper(st2.get("map"), st2.meta["map"], cfg, intr, lambda k: imgs[k])
+    mp2 = restore_mapper(st2.get("map"), st2.meta["map"], cfg, intr, lambda k: imgs[k],
+                         lambda k: st2.get(f"d{k}"))
+    for k in mp.keyframes:
+        np.testing.assert_array_equal(mp2.keyframes[k].valid.numpy(), mp.keyframes[k].valid.numpy())
+        np.testing.assert_array_equal(mp2.keyframes[k].depth.numpy(), mp.keyframes[k].depth.numpy())
     assert len(mp2.map) == len(mp.map) and sorted(mp2.keyframes) == sorted(mp.keyframes)
     assert mp2.window.window == mp.window.window and mp2.iteration == mp.iteration
     pose = mp.keyframes[1].pose
