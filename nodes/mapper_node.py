@@ -229,14 +229,10 @@ class MapperNode(SplatNode):
         mp = self.mapper
         w = int(width or self.opts["render_width"] or mp.W)
         h = int(height or self.opts["render_height"] or mp.H)
+        intr = None
         if intrinsics is not None and any(abs(float(x)) > 0 for x in intrinsics):
-            import torch
-            with torch.no_grad():
-                out = mp._raster(np.asarray(pose, np.float64), tuple(float(x) for x in intrinsics),
-                                 w, h)
-            rgb = (out.rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
-            return rgb, out.depth.float().cpu().numpy()
-        return mp.render(pose, w, h)
+            intr = [float(x) for x in intrinsics]
+        return mp.render(np.asarray(pose, np.float64), w, h, intrinsics=intr)
 
     def _publish_renders(self, kf_id, pose, stamp) -> None:
         from .convert import image_to_msg
