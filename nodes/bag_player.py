@@ -281,6 +281,8 @@ class Player:
         wall = time.monotonic() - t_start
         self.log.info(f"end of stream: {n} frames in {wall:.1f} s ({n / max(wall, 1e-9):.2f} "
                       f"frames/s){f', {lost_acks} acks missing' if lost_acks else ''}")
+        if not a.end_of_stream:
+            return 0
         self.event("end_of_stream", frames=n, wall_s=wall, mode=a.mode, lost_acks=lost_acks)
         try:
             self.events_pub.wait_for_all_acked(timeout=rclpy.duration.Duration(seconds=5))
@@ -313,6 +315,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--ack-timeout", type=float, default=300.0)
     ap.add_argument("--max-frames", type=int, default=0)
     ap.add_argument("--no-clock", dest="clock", action="store_false", help="do not publish /clock")
+    ap.add_argument("--no-end-of-stream", dest="end_of_stream", action="store_false",
+                    help="do not announce the end (act like a live camera that just stops)")
     ap.add_argument("--report-every", type=float, default=10.0, help="progress line period (s)")
     ap.add_argument("--name", default="bag_player", help="node name")
     return ap

@@ -188,3 +188,36 @@ def test_mapper_killed_mid_run_resumes(tiny_bag, graph_run, tmp_path):
     assert sorted(int(k) for k in offered) == list(range(k_ref))   # no keyframe lost
     mm = json.loads((out / "mapper_metrics.json").read_text())
     assert mm["map"]["keyframes"] >= 1 and np.isfinite(mm["psnr"])
+
+
+def test_live_topics_ctrl_c_finalises(tiny_bag, tmp_path):
+    """No --bag: the graph listens on the configured topics (here fed by a player in realtime
+    mode acting as a camera, frames may be dropped); the first SIGINT finalises and saves."""
+    bag, cfg = tiny_bag
+    env = isolated_env()
+    out = tmp_path / "out"
+    launch = start([PY, "-m", "splat_slam_nodes.launch", "--out", str(out), "--config", str(cfg),
+                    "--set", "ros.image_topic=/camera/image_raw",
+                    "--set", "ros.camera_info_topic=/camera/camera_info"], env,
+                   tmp_path / "launch.log")
+    cam = start([PY, "-m", "splat_slam_nodes.bag_player", str(bag), "--mode", "realtime",
+                 "--rate", "2.0", "--wait-nodes", "tracker,depth,mapper", "--wait-acks", "",
+                 "--no-end-of-stream", "--no-clock", "--start-timeout", "300"], env,
+                tmp_path / "camera.log")
+    try:
+        assert cam.wait(timeout=600) == 0, (tmp_path / "camera.log").read_text()[-2000:]
+        time.sleep(3.0)
+        assert launch.poll() is None
+        launch.send_signal(signal.SIGINT)
+        rc = launch.wait(timeout=600)
+    finally:
+        stop(cam)
+        stop(launch)
+    log = (tmp_path / "launch.log").read_text(errors="replace")
+    assert rc == 0, log[-4000:]
+    assert "finalising and saving" in log
+    for f in ("trajectory_full.txt", "trajectory_keyframes.txt", "metrics.json"):
+        assert (out / f).is_file(), (f, log[-3000:])
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["dataset"] == "live" and m["frames_tracked"] == 40
+    assert 0 <= m["frames_dropped"] < 40
