@@ -221,3 +221,51 @@ def test_live_topics_ctrl_c_finalises(tiny_bag, tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert m["dataset"] == "live" and m["frames_tracked"] == 40
     assert 0 <= m["frames_dropped"] < 40
+
+
+def _children(pid: int):
+    try:
+        return [int(k) for k in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+    except OSError:
+        return []
+
+
+def _gone(pid: int) -> bool:
+    try:
+        st = Path(f"/proc/{pid}/stat").read_text()
+        return st.rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
+
+
+def test_sigterm_stops_everything_and_tracker_death_fails(tiny_bag, tmp_path):
+    bag, cfg = tiny_bag
+    env = isolated_env()
+    # SIGTERM: every child is stopped, exit status 130
+    launch = start([PY, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out",
+                    str(tmp_path / "a"), "--config", str(cfg)], env, tmp_path / "a.log")
+    try:
+        assert wait_for(lambda: len(_children(launch.pid)) >= 4, 120)
+        kids = _children(launch.pid)
+        time.sleep(3.0)
+        launch.terminate()
+        rc = launch.wait(timeout=120)
+    finally:
+        stop(launch)
+    assert rc == 130, (tmp_path / "a.log").read_text()[-3000:]
+    assert wait_for(lambda: all(_gone(k) for k in kids), 10)
+    # the tracker cannot resume: its death stops the graph with a non-zero status
+    launch = start([PY, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out",
+                    str(tmp_path / "b"), "--config", str(cfg)], env, tmp_path / "b.log")
+    try:
+        assert wait_for(lambda: len(_children(launch.pid)) >= 4, 120)
+        tracker = [k for k in _children(launch.pid)
+                   if b"tracker_node" in Path(f"/proc/{k}/cmdline").read_bytes()]
+        time.sleep(2.0)
+        os.kill(tracker[0], signal.SIGKILL)
+        rc = launch.wait(timeout=120)
+        kids = _children(launch.pid)
+    finally:
+        stop(launch)
+    log = (tmp_path / "b.log").read_text(errors="replace")
+    assert rc == 1 and "tracker died unexpectedly (exit status -9)" in log, log[-3000:]
