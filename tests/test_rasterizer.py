@@ -322,6 +322,20 @@ def test_build_failure_is_a_clear_error(tmp_path):
     assert "SHAPE (8, 8, 3)" in out
 
 
+def test_compile_error_is_reported(tmp_path):
+    code = """
+        from splat_slam_ros.rasterizer import kernel
+        try:
+            kernel.load_extension()
+        except kernel.RasterizerBuildError as e:
+            print("ERR", e)
+    """
+    r = _run_py(code, {"SPLAT_SLAM_CXXFLAGS": "-fno-such-flag", "SPLAT_SLAM_EXT_DIR": str(tmp_path)})
+    assert r.returncode == 0, r.stderr
+    assert "ERR building the C++ rasterizer failed" in r.stdout
+    assert "-fno-such-flag" in r.stdout          # the compiler's own diagnostic is shown
+
+
 # ---------------------------------------------------------------- gsplat (CUDA only)
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_gsplat_backend_matches_reference():

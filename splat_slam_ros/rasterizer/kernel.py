@@ -8,7 +8,6 @@ compiler, no ninja). A file lock keeps concurrent processes from building at onc
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import hashlib
 import importlib.util
 import os
@@ -20,6 +19,11 @@ import threading
 from pathlib import Path
 
 import torch
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - Windows: no inter-process build lock
+    fcntl = None
 
 CSRC = Path(__file__).resolve().parent / "csrc"
 SOURCES = ("raster.cpp",)              # compiled
@@ -98,11 +102,13 @@ def _import_built(d: Path):
 @contextlib.contextmanager
 def _file_lock(path: Path):
     with open(path, "a+") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
+        if fcntl is not None:
+            fcntl.flock(fh, fcntl.LOCK_EX)
         try:
             yield
         finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
+            if fcntl is not None:
+                fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 @contextlib.contextmanager
@@ -140,9 +146,11 @@ def _build(d: Path, verbose: bool):
                     extra_cflags=build_flags(), extra_ldflags=["-fopenmp"],
                     build_directory=str(d), verbose=verbose)
         except Exception as e:  # compiler errors, missing ninja, ...
-            lines = [ln for ln in str(e).strip().splitlines() if ln.strip()]
-            detail = " | ".join(lines[-3:])[-400:] if lines else type(e).__name__
-            raise RasterizerBuildError(f"building the C++ rasterizer failed: {detail}") from None
+            lines = [ln.strip() for ln in str(e).strip().splitlines() if ln.strip()]
+            errors = [ln for ln in lines if "error:" in ln]   # compiler diagnostics
+            detail = " | ".join(errors[:2] or lines[-2:])[:400] if lines else type(e).__name__
+            raise RasterizerBuildError(
+                f"building the C++ rasterizer failed ({detail}); build directory: {d}") from None
         (d / "BUILD_OK").write_text(" ".join(build_flags()) + "\n")
         return mod
 
@@ -189,8 +197,9 @@ class RasterizeCpp(torch.autograd.Function):
                               keys, rgb, depth, t_final)
         ctx.size = (width, height, tile_size)
         ctx.bg_needs_grad = background.requires_grad
+        visible = visible.bool()
         ctx.mark_non_differentiable(visible)
-        return rgb, depth, alpha, visible.bool()
+        return rgb, depth, alpha, visible
 
     @staticmethod
     def backward(ctx, g_rgb, g_depth, g_alpha, _g_vis):
