@@ -142,11 +142,13 @@ def main(argv=None):
         load = os.getloadavg()
     except OSError:
         load = None
-    results = {"threads": args.threads, "allocator": allocator, "torch": torch.__version__,
+    policy = os.environ.get("OMP_WAIT_POLICY", "default").lower()
+    results = {"threads": args.threads, "allocator": allocator, "omp_wait_policy": policy,
+               "torch": torch.__version__,
                "cpu": platform.processor() or platform.machine(),
                "cpu_capability": torch.backends.cpu.get_cpu_capability(),
                "loadavg_before": load, "configs": []}
-    print(f"threads={args.threads} allocator={allocator} loadavg={load}")
+    print(f"threads={args.threads} allocator={allocator} OMP_WAIT_POLICY={policy} loadavg={load}")
     print(f"{'scene':>18} {'backend':>7} {'fwd ms':>9} {'fwd+bwd ms':>11} {'(cpu ms)':>9} {'visible':>8}")
     for n, w, h in configs:
         scene = room_scene(n, w, h)
@@ -175,7 +177,7 @@ def main(argv=None):
     old = json.loads(out.read_text()) if out.is_file() else {}
     if not isinstance(old, dict) or "runs" not in old:
         old = {"runs": {}}
-    old["runs"][f"{allocator}_t{args.threads}"] = results
+    old["runs"][f"{allocator}_t{args.threads}_omp-{policy}"] = results
     out.write_text(json.dumps(old, indent=2))
     print(f"wrote {out}")
     if args.also_jemalloc and allocator != "jemalloc":

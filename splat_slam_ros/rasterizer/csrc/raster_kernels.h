@@ -10,18 +10,20 @@
 //  * a pixel stops at the first Gaussian that would take T below 1e-4 (not composited);
 //  * visible[g]: g composited at some pixel while T was still >= 0.5.
 //
-// Performance notes. The inner loops run over one tile row (TS pixels) and must
-// auto-vectorise; check with -fopt-info-vec (GCC):
+// Performance notes. The pixel loops must auto-vectorise; check with -fopt-info-vec (GCC):
 //  * build with -fno-trapping-math, else GCC will not if-convert the loop bodies;
 //  * no compound conditions, no early exits, float masks instead of branches; the
 //    footprint test is computed inline (a precomputed mask array broke vectorisation);
-//  * sums are kept per lane and reduced once per Gaussian (float reductions do not
-//    vectorise without -ffast-math, which we avoid);
+//  * forward: one flat loop over the tile rows the footprint reaches (only integer
+//    reductions); backward: rows x TS lanes, float sums kept per lane and reduced once
+//    per Gaussian (float reductions do not vectorise without -ffast-math, which we avoid);
 //  * exp() is exp_neg() (plain arithmetic) on the exponent clamped to >= -12;
-//  * each Gaussian only visits the tile rows its footprint reaches.
+//  * Gaussians are packed one per cache line; backward gradients are written per
+//    (tile, Gaussian) pair in list order and reduced per Gaussian afterwards
+//    (deterministic, no atomics).
 // The backward recomputes the forward front to back with the same expressions (exact
-// transmittance, no division chain); the "everything behind" sums come from the
-// forward outputs minus a running prefix, folded into one scalar per pixel (R below).
+// transmittance, no division chain, same decisions); the "everything behind" sums come
+// from the forward outputs minus a running prefix, folded into one scalar per pixel (R).
 #pragma once
 
 #include <algorithm>
