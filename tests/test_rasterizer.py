@@ -25,7 +25,7 @@ from splat_slam_ros.rasterizer import kernel as rkernel
 from splat_slam_ros.rasterizer.projection import project_gaussians
 from splat_slam_ros.rasterizer.reference import rasterize_reference
 
-W, H = 64, 48
+W, H = 61, 45  # not multiples of the tile size: partial edge tiles
 TOL = 1e-4
 REPO = Path(__file__).resolve().parents[1]
 
