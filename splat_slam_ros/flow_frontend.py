@@ -265,17 +265,19 @@ class DISFlowPredictor:
         back = cv2.remap(f_ba, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                          borderValue=(1e4, 1e4))
         back += f_ab
-        fb2 = (back * back).sum(-1) * ((self.fds / self.fb_px) ** 2)   # (err / fb_px)^2
-        penalty = fb2
+        bx, by = back[..., 0], back[..., 1]
+        penalty = (bx * bx + by * by) * ((self.fds / self.fb_px) ** 2)   # (err / fb_px)^2
         if self.photo_sigma > 0:
             warped = cv2.remap(B.gray, mx, my, cv2.INTER_LINEAR,
                                borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
             gain = float(np.clip(A.mean / max(B.mean, 1.0), 0.5, 2.0))
             res = A.gray.astype(np.float32) - gain * warped
-            penalty = penalty + res * res * (1.0 / self.photo_sigma ** 2)
-        conf = 1.0 / (1.0 + penalty)
-        inside = (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)
-        conf[~inside] = 0.0
+            res *= 1.0 / self.photo_sigma
+            penalty += res * res
+        penalty += 1.0
+        conf = 1.0 / penalty
+        # flows leaving the image: the backward remap returned the 1e4 border value
+        conf[np.abs(bx) > 1e3] = 0.0
         return conf
 
     def _pool(self, A: PreparedImage, f: np.ndarray, c: np.ndarray):
@@ -285,13 +287,16 @@ class DISFlowPredictor:
         size = (W // k, H // k)
         area = cv2.INTER_AREA
         cm = cv2.resize(c, size, interpolation=area)                  # mean confidence
-        cf = cv2.resize(f * c[..., None], size, interpolation=area)
+        fc = f * c[..., None]
+        cf = cv2.resize(fc, size, interpolation=area)
         csafe = np.maximum(cm, 1e-6)[..., None]
         fs = cf / csafe
         weight_cell = cm
         if self.spread_px > 0:
-            f2 = cv2.resize((f * f).sum(-1) * c, size, interpolation=area)
-            var = np.maximum(f2 / csafe[..., 0] - (fs * fs).sum(-1), 0.0) * self.fds ** 2
+            f2 = cv2.resize(f[..., 0] * fc[..., 0] + f[..., 1] * fc[..., 1], size,
+                            interpolation=area)
+            var = np.maximum(f2 / csafe[..., 0] - fs[..., 0] ** 2 - fs[..., 1] ** 2,
+                             0.0) * self.fds ** 2
             weight_cell = cm / (1.0 + var / self.spread_px ** 2)
         weight = weight_cell[..., None] * A.tex
         if self.min_weight > 0:

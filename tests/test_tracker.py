@@ -1,0 +1,359 @@
+"""Tracker, flow front end and trajectory filler on small synthetic sequences.
+
+``render_room`` ray-casts a textured box room with two boxes inside it (exact
+depth, any pose), so the tests know the true trajectory. It is also imported
+by tests/test_loop_closure.py.
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from splat_slam_ros.config import SlamConfig
+from splat_slam_ros.geometry import se3_exp
+from splat_slam_ros.types import Frame, Intrinsics
+
+ROOM = (np.array([-3.0, -2.0, -2.0]), np.array([3.0, 2.0, 4.0]))
+BOXES = [(np.array([-1.2, 0.2, 1.6]), np.array([-0.4, 2.0, 2.4])),
+         (np.array([0.6, -0.6, 2.2]), np.array([1.6, 0.5, 3.0]))]
+
+
+@lru_cache(maxsize=4)
+def _textures(seed: int = 0, size: int = 512):
+    rng = np.random.default_rng(seed)
+    tex = []
+    for _ in range(6 + 6 * len(BOXES)):
+        img = np.zeros((size, size, 3), np.float32)
+        for octave in (4, 8, 16, 32, 64, 128):
+            n = rng.random((octave, octave, 3)).astype(np.float32)
+            img += cv2.resize(n, (size, size), interpolation=cv2.INTER_CUBIC) * (48.0 / octave ** 0.3)
+        for _ in range(40):
+            c = tuple(float(x) for x in rng.uniform(0, 255, 3))
+            p = rng.integers(0, size, 2)
+            r = int(rng.integers(4, 30))
+            if rng.random() < 0.5:
+                cv2.circle(img, (int(p[0]), int(p[1])), r, c, -1)
+            else:
+                cv2.rectangle(img, (int(p[0]), int(p[1])), (int(p[0]) + r, int(p[1]) + r), c, -1)
+        img = img - img.min()
+        tex.append(np.clip(img * (230.0 / max(img.max(), 1)), 0, 255).astype(np.float32))
+    return tex
+
+
+@lru_cache(maxsize=4)
+def _atlas(seed: int = 0):
+    return np.ascontiguousarray(np.concatenate(_textures(seed), 0))
+
+
+def render_room(pose: np.ndarray, intr: Intrinsics, seed: int = 0):
+    """RGB uint8 and depth (metres) of the textured room seen from camera-to-world ``pose``."""
+    W, H = intr.width, intr.height
+    u, v = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    rays = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], -1)
+    d = (rays.reshape(-1, 3) @ pose[:3, :3].T.astype(np.float32))           # (P, 3)
+    o = pose[:3, 3].astype(np.float32)
+    lo, hi = ROOM
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        # room walls seen from inside: the exit distance along each axis
+        t_wall = np.where(d > 0, (hi - o) * inv, (lo - o) * inv)            # (P, 3)
+        ax = t_wall.argmin(1)
+        t = t_wall[np.arange(len(d)), ax]
+        face = 2 * ax + (d[np.arange(len(d)), ax] > 0)
+        box_lo = np.repeat(lo[None], len(d), 0).astype(np.float32)
+        box_hi = np.repeat(hi[None], len(d), 0).astype(np.float32)
+        for bi, (blo, bhi) in enumerate(BOXES):                            # boxes: slabs
+            t1 = (blo - o) * inv
+            t2 = (bhi - o) * inv
+            tmin = np.minimum(t1, t2)
+            tnear = tmin.max(1)
+            tfar = np.maximum(t1, t2).min(1)
+            hit = (tnear <= tfar) & (tnear > 1e-6) & (tnear < t)
+            bax = tmin.argmax(1)
+            t = np.where(hit, tnear, t)
+            face = np.where(hit, 6 + 3 * bi + bax, face)
+            ax = np.where(hit, bax, ax)
+            box_lo[hit] = blo
+            box_hi[hit] = bhi
+    p = o + t[:, None] * d
+    rel = (p - box_lo) / (box_hi - box_lo)
+    a1 = np.where(ax == 0, 1, 0)
+    a2 = np.where(ax == 2, 1, 2)
+    idx = np.arange(len(d))
+    cu, cv = rel[idx, a1], rel[idx, a2]
+    atlas = _atlas(seed)
+    size = atlas.shape[1]
+    mx = (np.clip(cu, 0, 1) * (size - 1)).astype(np.float32).reshape(H, W)
+    my = (np.clip(cv, 0, 1) * (size - 1) + face * size).astype(np.float32).reshape(H, W)
+    img = cv2.remap(atlas, mx, my, cv2.INTER_LINEAR)
+    depth = t.reshape(H, W)          # rays have unit camera z, so t is the z-depth
+    return np.clip(img, 0, 255).astype(np.uint8), depth.astype(np.float32)
+
+
+def make_sequence(n: int, intr: Intrinsics, motion=(0.012, 0.004, 0.002), rot=0.004,
+                  seed: int = 0, start=None):
+    """``n`` frames of a smooth hand-held-like motion; returns (frames, gt poses)."""
+    rng = np.random.default_rng(seed)
+    xi = np.zeros((n, 6))
+    tt = np.arange(n, dtype=np.float64)
+    xi[:, 0] = motion[0] * tt + 0.05 * np.sin(tt / 7.0)
+    xi[:, 1] = motion[1] * tt + 0.03 * np.sin(tt / 5.0 + 1)
+    xi[:, 2] = motion[2] * tt
+    xi[:, 3] = rot * np.sin(tt / 9.0)
+    xi[:, 4] = rot * tt * 0.5
+    xi[:, 5] = rot * np.cos(tt / 6.0)
+    poses = se3_exp(torch.from_numpy(xi)).numpy()
+    if start is not None:
+        poses = start @ poses
+    frames = []
+    for k in range(n):
+        img, depth = render_room(poses[k], intr, seed)
+        frames.append(Frame(k, k / 30.0, img, intr, gt_pose=poses[k], gt_depth=depth))
+    return frames, poses
+
+
+# ----------------------------------------------------------------- fixtures
+INTR = Intrinsics(112.0, 112.0, 79.5, 59.5, 160, 120)
+
+
+def small_cfg(**tracking) -> SlamConfig:
+    """Tracking config for 160x120 test renders (BA grid 40x30)."""
+    cfg = SlamConfig()
+    tc = cfg.tracking
+    tc.ba_downsample = 4
+    tc.motion_filter_thresh = 2.0
+    tc.keyframe_thresh = 1.5
+    tc.warmup = 5
+    tc.loop_closure = False
+    tc.global_ba = False
+    for k, v in tracking.items():
+        setattr(tc, k, v)
+    return cfg
+
+
+@lru_cache(maxsize=2)
+def sequence(n: int = 50):
+    return make_sequence(n, INTR, motion=(0.02, 0.006, 0.004), rot=0.006)
+
+
+def ate_cm(frames_or_ts, gt, ts, poses) -> float:
+    from splat_slam_ros.evaluation import ate
+    gts = np.array([f.timestamp for f in frames_or_ts]) if not isinstance(
+        frames_or_ts, np.ndarray) else frames_or_ts
+    return ate(gts, gt, ts, poses)["rmse_cm"]
+
+
+def true_flow(fa: Frame, fb: Frame, ds: int):
+    """Flow a -> b at the BA grid from the renderer's depth and poses."""
+    from splat_slam_ros.dense_ba import reproject
+    from splat_slam_ros.geometry import pixel_grid
+    h, w = fa.gt_depth.shape[0] // ds, fa.gt_depth.shape[1] // ds
+    d = 1.0 / torch.from_numpy(cv2.resize(fa.gt_depth, (w, h), interpolation=cv2.INTER_AREA))
+    bi = INTR.scaled(1.0 / ds)
+    P = torch.from_numpy(np.stack([fa.gt_pose, fb.gt_pose]))
+    uv, _ = reproject(P, d[None].float(), (bi.fx, bi.fy, bi.cx, bi.cy), torch.tensor([0]),
+                      torch.tensor([1]))
+    return uv[0] - pixel_grid(h, w)
+
+
+# ------------------------------------------------------------------- front end
+def test_dis_predictor_matches_true_flow_and_is_a_flow_predictor():
+    from splat_slam_ros.flow_frontend import DISFlowPredictor, FlowPredictor
+    frames, _ = sequence()
+    pred = DISFlowPredictor(ba_downsample=4, method="dis_medium", flow_downsample=2)
+    assert isinstance(pred, FlowPredictor)
+    a, b = pred.prepare(frames[10].image), pred.prepare(frames[16].image)
+    f, w = pred.predict(a, b)
+    assert f.shape == (30, 40, 2) and w.shape == (30, 40, 2)
+    assert float(w.min()) >= 0 and float(w.max()) <= 1
+    gt = true_flow(frames[10], frames[16], 4)
+    err = (f - gt).norm(dim=-1)
+    conf = w.mean(-1) > 0.3
+    assert float(gt.norm(dim=-1).mean()) > 1.0                  # a real displacement
+    assert float(err[conf].median()) < 0.15
+    assert float(conf.float().mean()) > 0.3
+
+
+def test_preprocessor_undistorts_with_a_map_built_once():
+    from splat_slam_ros.flow_frontend import ImagePreprocessor
+    K = Intrinsics(458.654, 457.296, 367.215, 248.375, 752, 480, "plumb_bob",
+                   [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05])
+    pre = ImagePreprocessor(K, 8)
+    assert pre.map1 is not None
+    ti = pre.intrinsics
+    assert ti.width % 8 == 0 and ti.height % 8 == 0 and not ti.has_distortion
+    # an output pixel samples the source where the distortion model puts its ray
+    u, v = 600.0, 100.0
+    src = pre.map1[int(v), int(u)].astype(np.float64)          # CV_16SC2: integer part
+    x = np.array([[[(u - ti.cx) / ti.fx, (v - ti.cy) / ti.fy, 1.0]]])
+    proj, _ = cv2.projectPoints(x, np.zeros(3), np.zeros(3), K.K, np.asarray(K.distortion))
+    assert np.abs(proj[0, 0] - src).max() < 1.5
+    mono = np.full((480, 752), 128, np.uint8)
+    out = pre(mono)
+    assert out.shape == (ti.height, ti.width, 3) and out.dtype == np.uint8
+
+
+# ------------------------------------------------------------------- tracking
+def test_tracks_a_synthetic_sequence_accurately():
+    from splat_slam_ros.tracker import track_sequence
+    frames, gt = sequence()
+    res = track_sequence(frames, small_cfg(), INTR, progress=False)
+    assert res.n_frames == 50 and res.n_lost == 0
+    assert len(res.timestamps) == 50 and res.n_keyframes >= 5
+    path = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum()
+    err = ate_cm(frames, gt, res.timestamps, res.poses)
+    assert err < 0.03 * path * 100, f"ATE {err:.2f} cm over a {path:.2f} m path"
+    assert set(res.timings) >= {"flow", "ba", "wall", "fps"}
+
+
+def test_update_events_report_exactly_the_changed_keyframes():
+    from splat_slam_ros.tracker import Tracker
+    frames, _ = sequence()
+    cfg = small_cfg()
+    tr = Tracker(cfg, INTR)
+    mirror = {}                        # what a consumer knows from keyframes + events
+    last_seq = -1
+    thr = cfg.tracking.event_pose_thresh
+    n_events = 0
+    for f in frames:
+        before = {k: tr.poses[k].clone() for k in tr.published}
+        st = tr.track(f)
+        for ev in st.events:
+            assert ev.seq > last_seq and ev.reason == "local_ba"
+            last_seq = ev.seq
+            n_events += 1
+            assert ev.poses.shape == (len(ev.kf_ids), 4, 4)
+            assert ev.disparities.shape[0] == len(ev.kf_ids)
+            for n, k in enumerate(ev.kf_ids):
+                assert k in before                      # only already published keyframes
+                moved = np.abs(ev.poses[n] - before[k].numpy()).max()
+                dd = np.abs(ev.disparities[n] - mirror[k][1]).mean() / np.abs(mirror[k][1]).mean()
+                assert moved > 0.1 * thr or dd > 0.1 * cfg.tracking.event_disp_thresh
+                mirror[k] = (ev.poses[n], ev.disparities[n])
+        for kd in st.keyframes:
+            assert kd.disparity.shape == (30, 40) and kd.confidence.shape == (30, 40)
+            assert kd.image.shape == (120, 160, 3)
+            mirror[kd.kf_id] = (kd.pose, kd.disparity)
+        # a consumer applying the events holds the tracker's state up to the threshold
+        for k in tr.published:
+            P = tr.poses[k].numpy()
+            assert np.abs(mirror[k][0][:3, 3] - P[:3, 3]).max() < 20 * thr
+    assert n_events >= 2
+
+
+class OraclePredictor:
+    """A stand-in 'learned' predictor: exact flow from the renderer's ground truth."""
+    ba_downsample = 4
+
+    def __init__(self, frames):
+        self.by_key = {f.image.tobytes()[::997]: f for f in frames}
+
+    def prepare(self, image):
+        return self.by_key[image.tobytes()[::997]]
+
+    def predict(self, a, b):
+        return true_flow(a, b, 4).float(), torch.ones(30, 40, 2)
+
+
+def test_a_custom_flow_predictor_replaces_dis_without_touching_ba():
+    from splat_slam_ros.tracker import Tracker
+    frames, gt = sequence()
+    tr = Tracker(small_cfg(), INTR, flow_predictor=OraclePredictor(frames))
+    for f in frames:
+        tr.track(f)
+    ts, poses = tr.trajectory_full()
+    assert ate_cm(frames, gt, ts, poses) < 0.5
+
+
+def test_tracking_loss_black_duplicate_and_alien_frames_are_handled(caplog):
+    from splat_slam_ros.tracker import Tracker
+    frames, gt = sequence()
+    alien_pose = gt[25].copy()
+    alien_pose[:3, :3] = alien_pose[:3, :3] @ cv2.Rodrigues(np.array([0.0, np.pi, 0.0]))[0]
+    alien_img, _ = render_room(alien_pose, INTR, seed=3)
+    black = np.zeros_like(frames[0].image)
+    stream = []
+    for f in frames:
+        stream.append((f, "normal"))
+        if f.index == 20:
+            for k in range(2):
+                stream.append((Frame(1000 + k, f.timestamp + 0.01 * (k + 1), black, INTR),
+                               "black"))
+        if f.index == 30:
+            stream.append((Frame(2000, f.timestamp + 0.01, f.image.copy(), INTR), "duplicate"))
+        if f.index == 35:
+            stream.append((Frame(3000, f.timestamp + 0.01, alien_img, INTR), "alien"))
+    tr = Tracker(small_cfg(), INTR)
+    kinds = {}
+    with caplog.at_level("WARNING"):
+        for f, kind in stream:
+            st = tr.track(f)
+            kinds.setdefault(kind, []).append(st.lost)
+    assert all(kinds["black"]) and all(kinds["alien"])
+    assert not any(kinds["duplicate"]) and sum(kinds["normal"]) == 0
+    assert "tracking lost" in caplog.text
+    ts, poses = tr.trajectory_full()
+    assert len(ts) == len(stream)
+    keep = np.isin(ts, [f.timestamp for f in frames])
+    assert ate_cm(frames, gt, ts[keep], poses[keep]) < 3.0
+
+
+def test_static_camera_does_not_drift():
+    """Moving start (initialisation), then 30 identical-pose frames with sensor noise."""
+    from splat_slam_ros.tracker import Tracker
+    frames, gt = sequence()
+    rng = np.random.default_rng(0)
+    static = []
+    for k in range(30):
+        noisy = np.clip(frames[40].image.astype(np.float32) + rng.normal(0, 2.0, frames[40].image.shape),
+                        0, 255).astype(np.uint8)
+        static.append(Frame(100 + k, frames[40].timestamp + (k + 1) / 30.0, noisy, INTR))
+    tr = Tracker(small_cfg(), INTR)
+    for f in list(frames[:41]) + static:
+        tr.track(f)
+    ts, poses = tr.trajectory_full()
+    assert tr.initialized
+    scene_depth = 1.0 / float(torch.stack([tr.disps[k] for k in tr.published]).mean())
+    tail = poses[-30:, :3, 3]
+    spread = np.linalg.norm(tail - tail.mean(0), axis=1).max()
+    assert spread < 0.002 * scene_depth, f"static drift {spread / scene_depth:.4f} x depth"
+
+
+def _euroc_frames(root: Path, n: int):
+    try:
+        from splat_slam_ros.datasets import open_dataset
+        ds = open_dataset(root, keep_mono=True)
+        return ds.intrinsics, [f for _, f in zip(range(n), ds)]
+    except ImportError:
+        import yaml
+        s = yaml.safe_load((root / "mav0" / "cam0" / "sensor.yaml").read_text())
+        fu, fv, cu, cv = s["intrinsics"]
+        K = Intrinsics(fu, fv, cu, cv, *s["resolution"], "plumb_bob", list(s["distortion_coefficients"]))
+        files = sorted((root / "mav0" / "cam0" / "data").glob("*.png"))[:n]
+        return K, [Frame(i, int(p.stem) * 1e-9, cv2.imread(str(p), cv2.IMREAD_GRAYSCALE), K)
+                   for i, p in enumerate(files)]
+
+
+def test_euroc_static_camera_real_images(shared_data):
+    """Real mono8 752x480 images with radtan distortion, almost static (1.7 cm)."""
+    root = shared_data / "euroc_v1_01_first95"
+    if not root.is_dir():
+        pytest.skip(f"{root} not found")
+    from splat_slam_ros.tracker import Tracker
+    K, frames = _euroc_frames(root, 95)
+    cfg = SlamConfig()
+    cfg.tracking.loop_closure = cfg.tracking.global_ba = False
+    tr = Tracker(cfg, K)
+    lost = sum(tr.track(f).lost for f in frames)
+    ts, poses = tr.trajectory_full()
+    assert lost == 0 and len(ts) == len(frames)
+    disps = [tr.disps[k] for k in tr.published] or [torch.ones(1)]
+    scene_depth = 1.0 / float(torch.stack([d.mean() for d in disps]).mean())
+    spread = np.linalg.norm(poses[:, :3, 3] - poses[0, :3, 3], axis=1).max()
+    # 1.7 cm of real motion at ~3 m: a few mm relative to the scene scale at most
+    assert spread < 0.01 * scene_depth
