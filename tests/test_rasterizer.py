@@ -167,6 +167,19 @@ def test_gradients_each_output_separately(ext):
                 assert rel(x, y) < TOL
 
 
+def test_background_gradient(ext):
+    scene = make_scene(seed=9)
+    means, quats, scales, opac, cols, viewmat, intr = scene
+    res = []
+    for backend in ("cpp", "torch"):
+        bg = torch.tensor([0.1, 0.5, 0.9], dtype=torch.float64, requires_grad=True)
+        out = rasterize(means, quats, scales, opac, cols, viewmat, intr, W, H, backend=backend,
+                        background=bg)
+        (out.rgb * upstream(2)[0]).sum().backward()
+        res.append(bg.grad)
+    assert res[1].abs().max() > 0 and rel(res[0], res[1]) < TOL
+
+
 def test_reference_gradcheck():
     """The reference (and the projection) against finite differences, tiny scene."""
     scene = make_scene(n=5, seed=4, edge_cases=False, width=12, height=10)
