@@ -1,7 +1,9 @@
 """EWA splatting of 3D Gaussians onto the image plane (paper §3.2, "Rendering"), in torch.
 
 Device-agnostic and differentiable by autograd; shared by the C++ and the pure-torch
-rasterizers so both see bit-identical 2D Gaussians.
+rasterizers so both see the same 2D Gaussians. Culled (radius 0, no footprint): centre not
+beyond ``near``, or footprint outside the image (the frustum test, with the footprint as
+margin).
 
 Pixel convention (the project's, see ``geometry.pixel_grid``): pixel ``(row v, col u)`` has
 its centre at the continuous image point ``(u, v)``, i.e. ``u = fx * x / z + cx``.
