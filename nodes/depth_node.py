@@ -71,6 +71,13 @@ class DepthNode(SplatNode):
             self.est.add_keyframes(kfs)
             self.est.take_refreshed()
             self.kf_stamp = {kf.kf_id: kf.timestamp for kf in kfs}
+            # what this node published before it died left with its DDS history: publish
+            # the current proxy depth of every keyframe again (a consumer that already has
+            # it skips the identical message or applies a no-op update)
+            for kf in kfs:
+                res = self.est.get(kf.kf_id)
+                if res is not None:
+                    self._publish(res, True)
         self.log.info(f"resumed from {self.state_dir}: {len(kfs)} keyframes, "
                       f"{len(self.seen)} handled messages")
 

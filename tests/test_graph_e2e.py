@@ -147,7 +147,7 @@ def test_graph_end_to_end(graph_run):
     assert len(ts) == m["keyframes"]
 
 
-def test_mapper_killed_mid_run_resumes(tiny_bag, graph_run, tmp_path):
+def test_resumable_nodes_killed_mid_run_resume(tiny_bag, graph_run, tmp_path):
     bag, cfg = tiny_bag
     rc0, d0 = graph_run
     assert rc0 == 0
@@ -165,24 +165,30 @@ def test_mapper_killed_mid_run_resumes(tiny_bag, graph_run, tmp_path):
     try:
         assert wait_for(snapshot_taken, 600, 0.2), (tmp_path / "launch.log").read_text()[-3000:]
         kids = Path(f"/proc/{launch.pid}/task/{launch.pid}/children").read_text().split()
-        mapper_pid = None
+        victims = {}
         for k in kids:
             try:
-                if b"mapper_node" in Path(f"/proc/{k}/cmdline").read_bytes():
-                    mapper_pid = int(k)
+                for name in (b"mapper_node", b"depth_node", b"loop_closure_node"):
+                    if name in Path(f"/proc/{k}/cmdline").read_bytes():
+                        victims[name] = int(k)
             except OSError:
                 pass
-        assert mapper_pid is not None
-        os.kill(mapper_pid, signal.SIGKILL)
+        assert len(victims) == (3 if _loop_available() else 2)
+        for pid in victims.values():             # every resumable node goes down at once
+            os.kill(pid, signal.SIGKILL)
         rc = launch.wait(timeout=900)
     finally:
         stop(launch)
     log = (tmp_path / "launch.log").read_text(errors="replace")
     assert rc == 0, log[-4000:]
     assert "mapper died (exit status -9); restarting it" in log
-    assert "resumed from" in log
+    assert "depth died (exit status -9); restarting it" in log
+    assert "[mapper]" in log and "resumed from" in log
     m = json.loads((out / "metrics.json").read_text())
-    assert m["nodes"]["mapper"]["restarts"] == 1
+    assert m["nodes"]["mapper"]["restarts"] == 1 and m["nodes"]["depth"]["restarts"] == 1
+    if _loop_available():
+        assert m["nodes"]["loop_closure"]["restarts"] == 1
+        assert "loop_closure died (exit status -9); restarting it" in log
     assert m["keyframes"] == k_ref                     # same lockstep run, same keyframes
     offered = json.loads(manifest.read_text())["meta"]["offered"]
     assert sorted(int(k) for k in offered) == list(range(k_ref))   # no keyframe lost
