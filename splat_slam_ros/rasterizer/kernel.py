@@ -134,7 +134,11 @@ def _build(d: Path, verbose: bool):
     if shutil.which(_compiler()) is None:
         raise RasterizerBuildError(
             f"no C++ compiler found ('{_compiler()}'): install g++ (apt-get install g++)")
-    d.mkdir(parents=True, exist_ok=True)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise RasterizerBuildError(f"cannot create the kernel cache directory {d} ({e}); set "
+                                   "SPLAT_SLAM_EXT_DIR to a writable directory") from None
     with _file_lock(d.parent / f"{d.name}.lock"):
         mod = _import_built(d)  # another process may have finished meanwhile
         if mod is not None:
