@@ -10,6 +10,10 @@ Publishes   /splat/keyframes (Keyframe), /splat/pose_graph_updates (its local-BA
 Bad input (unsupported encoding, no camera_info, a size change, undecodable bytes) is a
 logged error; the frame is acknowledged as consumed and dropped, the node keeps running.
 Resize / crop / undistort follow ``camera.*`` (done by the Tracker's preprocessor).
+Node options: node.input_qos (sensor = BEST_EFFORT, matches any camera driver; reliable for
+the bag player), node.max_queue (frames waiting for the tracker; 2 by default so a live camera
+stays current, older frames are dropped and counted; the launcher sets 0 = never drop in
+lockstep), node.camera_info_timeout, node.intrinsics_file (when no camera_info is published).
 """
 from __future__ import annotations
 
@@ -23,7 +27,7 @@ from .node_common import TOPICS, TRACKER_REASONS, SplatNode, run_node
 
 class TrackerNode(SplatNode):
     def __init__(self):
-        super().__init__("tracker", {"input_qos": "sensor", "max_queue": 0,
+        super().__init__("tracker", {"input_qos": "sensor", "max_queue": 2,
                                      "camera_info_timeout": 2.0, "intrinsics_file": "",
                                      "loop_closure": True, "mapping": True, "path_every": 10})
         from geometry_msgs.msg import PoseStamped
