@@ -142,10 +142,11 @@ class DepthNode(SplatNode):
             self.est = ProxyDepthEstimator(self.cfg, kfs[0].intrinsics)
         for kf in kfs:
             self.kf_stamp[kf.kf_id] = kf.timestamp
-        for res in self.est.add_keyframes(kfs):
-            self._publish(res, False)
-        for _old, new in self.est.take_refreshed():
+        results = self.est.add_keyframes(kfs)
+        for _old, new in self.est.take_refreshed():   # deformations before new mapping
             self._publish(new, True)
+        for res in results:
+            self._publish(res, False)
         for h in hashes:
             self._mark(h)
         if self.store is not None:

@@ -10,12 +10,15 @@ with their latest poses / disparities); a restarted node re-adds them and contin
 from __future__ import annotations
 
 import sys
-from typing import Dict, Optional
+import threading
+import time
+from typing import Dict, List, Optional
 
 from .node_common import TOPICS, TRACKER_REASONS, SplatNode, raw_hash, run_node
 
 SEQ_START = 1_000_000_000          # loop-closure update numbers (the tracker's start at 1)
 SEEN_KEEP = 5000
+BURST_GAP_S = 0.05       # keyframes arriving closer than this are one burst (warm-up)
 
 
 class LoopClosureNode(SplatNode):
@@ -48,8 +51,10 @@ class LoopClosureNode(SplatNode):
                 self._resume()
         self.subscribe(PoseGraphUpdate, TOPICS["updates"], Q.pose_graph_qos(), self._on_update,
                        "PoseGraphUpdate")
-        self.subscribe(Keyframe, TOPICS["keyframes"], Q.keyframe_qos(),
-                       lambda m, raw: self.worker.submit(self._keyframe, m, raw_hash(raw)),
+        self.inbox: List[tuple] = []
+        self.inbox_lock = threading.Lock()
+        self.last_kf_arrival = 0.0
+        self.subscribe(Keyframe, TOPICS["keyframes"], Q.keyframe_qos(), self._on_keyframe,
                        "Keyframe")
         self.on_events(lambda d: self.worker.submit(self._event, d))
         self.publish_event("ready")
@@ -115,29 +120,47 @@ class LoopClosureNode(SplatNode):
         self._persist_events([ev])
         self._check_final()
 
-    def _keyframe(self, msg, h: str) -> None:
+    def _on_keyframe(self, msg, raw) -> None:
+        with self.inbox_lock:
+            self.inbox.append((msg, raw_hash(raw)))
+            self.last_kf_arrival = time.monotonic()
+        self.worker.submit(self._keyframes)
+
+    def _keyframes(self) -> None:
+        """The keyframes received so far as one batch (the tracker's warm-up burst), then one
+        loop-closure step, as the in-process pipeline does."""
         from .convert import frame_ack_msg, msg_to_keyframe, to_stamp
-        if h in self.seen:
-            return
-        kf = msg_to_keyframe(msg)
-        if kf.kf_id in self.kf_ids:
+        while time.monotonic() - self.last_kf_arrival < BURST_GAP_S:
+            time.sleep(0.01)
+        with self.inbox_lock:
+            batch, self.inbox = self.inbox, []
+        kfs = []
+        for msg, h in batch:
+            if h in self.seen:
+                continue
+            kf = msg_to_keyframe(msg)
             self.seen[h] = None
+            if kf.kf_id in self.kf_ids:
+                continue
+            if self.loop is None:
+                self.loop = self._make(kf.intrinsics)
+            self.loop.add_keyframe(kf)
+            self.kf_ids[kf.kf_id] = kf.timestamp
+            kfs.append(kf)
+        if not kfs:
             return
-        if self.loop is None:
-            self.loop = self._make(kf.intrinsics)
-        self.loop.add_keyframe(kf)
-        self.kf_ids[kf.kf_id] = kf.timestamp
         events = self.loop.step()                  # loop detection + loop BA / online global BA
         self._publish(events)
-        self.seen[h] = None
         if self.store is not None:
-            self.store.put_keyframe(kf, meta=self._meta())
+            for kf in kfs:
+                self.store.put_keyframe(kf, meta=self._meta())
             self._persist_events(events)
-        ack = frame_ack_msg(kf.frame_index, "loop_closure", 0.0, kf.kf_id)
-        ack.header.stamp = to_stamp(kf.timestamp)
-        self.pub_ack.publish(ack)
+        for kf in kfs:
+            ack = frame_ack_msg(kf.frame_index, "loop_closure", 0.0, kf.kf_id)
+            ack.header.stamp = to_stamp(kf.timestamp)
+            self.pub_ack.publish(ack)
         if events:
-            self.log.info(f"keyframe {kf.kf_id}: {len(events)} update(s) "
+            self.log.info(f"keyframe {kfs[-1].kf_id}: {len(events)} update(s) "
                           f"({', '.join(sorted({e.reason for e in events}))})")
 
     def _event(self, d: dict) -> None:
