@@ -49,7 +49,7 @@ import numpy as np
 import torch
 import yaml
 
-from .geometry import pose_from_tq, so3_exp, so3_log
+from .geometry import interpolate_pose, pose_from_tq
 from .trajectory_io import TrajectoryFormatError, read_trajectory
 from .types import Frame, Intrinsics, IntrinsicsError
 
@@ -251,11 +251,8 @@ def interpolate_poses(t_src, poses_src, t_query, tol: float = ASSOC_TOL,
             continue
         if 0 < i < len(ts) and ts[i] - ts[i - 1] <= max_gap:
             a = (t - ts[i - 1]) / (ts[i] - ts[i - 1])
-            R0, R1 = torch.from_numpy(P[i - 1, :3, :3]), torch.from_numpy(P[i, :3, :3])
-            T = np.eye(4)
-            T[:3, :3] = (R0 @ so3_exp(a * so3_log(R0.T @ R1))).numpy()   # SLERP
-            T[:3, 3] = (1 - a) * P[i - 1, :3, 3] + a * P[i, :3, 3]
-            out.append(T)
+            out.append(interpolate_pose(torch.from_numpy(P[i - 1]), torch.from_numpy(P[i]),
+                                        a).numpy())
             continue
         j = associate([t], ts, tol)[0]
         out.append(None if j is None else P[j].copy())

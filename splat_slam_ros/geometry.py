@@ -238,3 +238,30 @@ def point_jacobian_se3_world(Xw: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     ``[d I, -hat(Xw)]``. Chain with ``R_j^T`` for a camera j observing it."""
     eye = torch.eye(3, dtype=Xw.dtype, device=Xw.device).expand(*Xw.shape[:-1], 3, 3)
     return torch.cat([d[..., None, None] * eye, -hat(Xw)], -1)
+
+
+# ------------------------------------------------------------- interpolation
+def quat_slerp(q0: torch.Tensor, q1: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """Spherical linear interpolation of (..., 4) (x, y, z, w) quaternions at fractions a (...)."""
+    a = torch.as_tensor(a, dtype=q0.dtype, device=q0.device)[..., None]
+    dot = (q0 * q1).sum(-1, keepdim=True)
+    q1 = torch.where(dot < 0, -q1, q1)
+    theta = torch.arccos(dot.abs().clamp(max=1.0))
+    s = torch.sin(theta)
+    small = s < 1e-9
+    s_safe = torch.where(small, torch.ones_like(s), s)
+    w0 = torch.where(small, 1 - a, torch.sin((1 - a) * theta) / s_safe)
+    w1 = torch.where(small, a, torch.sin(a * theta) / s_safe)
+    q = w0 * q0 + w1 * q1
+    return q / q.norm(dim=-1, keepdim=True)
+
+
+def interpolate_pose(T0: torch.Tensor, T1: torch.Tensor, a) -> torch.Tensor:
+    """Pose between (..., 4, 4) T0 and T1 at fraction a: linear translation, SLERP rotation."""
+    a_t = torch.as_tensor(a, dtype=T0.dtype, device=T0.device)
+    q = quat_slerp(matrix_to_quat(T0[..., :3, :3]), matrix_to_quat(T1[..., :3, :3]), a_t)
+    out = torch.zeros_like(T0)
+    out[..., :3, :3] = quat_to_matrix(q)
+    out[..., :3, 3] = (1 - a_t[..., None]) * T0[..., :3, 3] + a_t[..., None] * T1[..., :3, 3]
+    out[..., 3, 3] = 1
+    return out

@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 import torch
 
-from .geometry import pose_from_tq, pose_to_tq
+from .geometry import pose_from_tq, pose_to_tq, quat_slerp
 from .trajectory_io import detect_format, read_trajectory, write_tum
 from .types import Intrinsics
 
@@ -163,18 +163,10 @@ def builtin_trajectory(duration: float = 60.0, seed: int = 0,
 
 
 def _slerp(q0: np.ndarray, q1: np.ndarray, a: np.ndarray) -> np.ndarray:
-    """Spherical linear interpolation of (x, y, z, w) quaternions, batched."""
-    dot = np.sum(q0 * q1, -1, keepdims=True)
-    q1 = np.where(dot < 0, -q1, q1)
-    dot = np.abs(dot).clip(max=1.0)
-    theta = np.arccos(dot)
-    s = np.sin(theta)
-    small = s < 1e-9
-    a = a[:, None]
-    w0 = np.where(small, 1 - a, np.sin((1 - a) * theta) / np.where(small, 1, s))
-    w1 = np.where(small, a, np.sin(a * theta) / np.where(small, 1, s))
-    q = w0 * q0 + w1 * q1
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+    """Batched SLERP of (x, y, z, w) quaternions (numpy front of geometry.quat_slerp)."""
+    return quat_slerp(torch.from_numpy(np.asarray(q0, np.float64)),
+                      torch.from_numpy(np.asarray(q1, np.float64)),
+                      torch.from_numpy(np.asarray(a, np.float64))).numpy()
 
 
 class PoseInterpolator:

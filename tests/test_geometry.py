@@ -83,3 +83,18 @@ def test_transform_points_and_sim3():
     assert torch.allclose(P[:3, :3], R @ T[:3, :3])
     S = g.sim3_matrix(2.0, R, t)
     assert torch.allclose(S[:3, :3], 2.0 * R)
+
+
+def test_slerp_and_pose_interpolation():
+    gen = torch.Generator().manual_seed(5)
+    T0 = g.se3_exp(torch.randn(6, generator=gen, dtype=torch.float64) * 0.3)
+    xi = torch.randn(6, generator=gen, dtype=torch.float64) * 0.3
+    T1 = g.se3_exp(xi) @ T0
+    for a in (0.0, 0.25, 1.0):
+        Ta = g.interpolate_pose(T0, T1, a)
+        # rotation: geodesic fraction a of the relative rotation (right-composed)
+        Rexp = T0[:3, :3] @ g.so3_exp(a * g.so3_log(T0[:3, :3].T @ T1[:3, :3]))
+        assert torch.allclose(Ta[:3, :3], Rexp, atol=1e-10)
+        assert torch.allclose(Ta[:3, 3], (1 - a) * T0[:3, 3] + a * T1[:3, 3], atol=1e-12)
+    q0 = g.matrix_to_quat(T0[:3, :3])
+    assert torch.allclose(g.quat_slerp(q0, -q0, torch.tensor(0.5, dtype=torch.float64)).abs(), q0.abs())
