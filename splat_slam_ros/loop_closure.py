@@ -1,0 +1,362 @@
+"""Loop closure and online / final global BA (paper Sec. 3.1), as a self-contained stage.
+
+In the ROS graph this runs in its own node, so :class:`LoopCloser` keeps its
+own keyframe store (poses, disparities, flow-ready images) and its own flow
+edges; the only coupling with the tracker is messages: keyframes in
+(:meth:`add_keyframe`), pose/disparity updates in both directions
+(:meth:`apply_update`, and the events returned by :meth:`step` /
+:meth:`finalize`).
+
+Loop detection: the mean flow that the current estimate induces between the
+active keyframes (the last ``loop_window``) and every older keyframe; pairs
+below ``tau_loop`` (``loop_flow_thresh``) and more than ``tau_t``
+(``loop_time_gap``) keyframes apart become candidates. Each candidate's flow
+is measured (DIS initialised with the induced flow) and, if confident, added
+as a unidirectional edge. Loop BA then optimises the active keyframes and
+their loop nodes (Eq. 1); a loop whose edges still do not fit afterwards is
+rejected. Online global BA runs every ``global_ba_every`` keyframes (and after
+an accepted loop); ``finalize`` runs the final global BA passes.
+"""
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from collections import defaultdict
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from .config import SlamConfig
+from .dense_ba import bundle_adjust, intr_tensor, reproject
+from .factor_graph import FactorGraph, proximity_pairs
+from .flow_frontend import make_flow_predictor
+from .geometry import pixel_grid, se3_inverse, se3_log
+from .global_ba import normalized_global_ba, spatial_pairs, temporal_pairs
+from .motion_filter import MotionFilter
+from .types import Intrinsics, KeyframeData, UpdateEvent
+
+log = logging.getLogger(__name__)
+
+
+class LoopCloser:
+    """Loop closure + global BA over its own keyframe store (see module docstring)."""
+
+    def __init__(self, cfg: SlamConfig, intrinsics: Optional[Intrinsics] = None,
+                 flow_predictor=None, seq_start: int = 0):
+        from .tracker import resolve_device
+        self.cfg = cfg
+        self.tc = tc = cfg.tracking
+        self.device = resolve_device(tc.device)
+        self.flow = flow_predictor if flow_predictor is not None else make_flow_predictor(tc)
+        self.raw_intrinsics = intrinsics
+        self.intr = None                       # BA-grid (fx, fy, cx, cy), from the keyframes
+        self.h = self.w = 0
+        self.graph: Optional[FactorGraph] = None
+        self.poses: Dict[int, torch.Tensor] = {}
+        self.disps: Dict[int, torch.Tensor] = {}
+        self.prep: Dict[int, object] = {}
+        self.meta: Dict[int, Tuple[int, float]] = {}
+        self.ids: List[int] = []
+        self.loop_pairs: set = set()           # accepted loop edges (i, j)
+        self.checked: set = set()              # candidate pairs already measured (rejected)
+        self.new_since_gba: List[int] = []
+        self._seq = itertools.count(seq_start)
+        self.motion = MotionFilter(tc.motion_filter_thresh, min_valid_frac=tc.lost_min_valid)
+        self.huber = tc.robust_huber_px / tc.ba_downsample if tc.robust_huber_px > 0 else None
+        self.timings: Dict[str, float] = defaultdict(float)
+        self.n_loops = 0
+
+    # ------------------------------------------------------------ inputs
+    def _setup(self, kd: KeyframeData) -> None:
+        s = self.tc.ba_downsample
+        h, w = kd.disparity.shape
+        bi = kd.intrinsics.scaled(1.0 / s)
+        self.intr = intr_tensor(bi, torch.float32, self.device)
+        self.h, self.w = h, w
+        self.graph = FactorGraph(h, w, self.device)
+        self.grid = pixel_grid(h, w, device=self.device)
+
+    def add_keyframe(self, kf: KeyframeData) -> None:
+        """Store a new keyframe and measure its odometry edges to the previous ones."""
+        if self.graph is None:
+            self._setup(kf)
+        from .tracker import limit_threads
+        with limit_threads(self.tc.threads):
+            t0 = time.perf_counter()
+            k = int(kf.kf_id)
+            self.poses[k] = torch.as_tensor(np.asarray(kf.pose), dtype=torch.float64,
+                                            device=self.device)
+            self.disps[k] = torch.as_tensor(np.asarray(kf.disparity), dtype=torch.float32,
+                                            device=self.device)
+            self.prep[k] = self.flow.prepare(kf.image)
+            self.meta[k] = (int(kf.frame_index), float(kf.timestamp))
+            prev = [i for i in self.ids if i < k][-self.tc.global_ba_radius:]
+            self.ids.append(k)
+            self.ids.sort()
+            self.new_since_gba.append(k)
+            for p in prev:
+                self._measure(p, k, kind="odometry", both=True)
+            self._evict()
+            self.timings["add"] += time.perf_counter() - t0
+
+    def _evict(self) -> None:
+        """Bound the store to ``keyframe_buffer`` keyframes (oldest images dropped first)."""
+        cap = self.tc.keyframe_buffer
+        if len(self.ids) > cap:
+            for k in self.ids[: len(self.ids) - cap]:
+                self.prep.pop(k, None)
+
+    def apply_update(self, ev: UpdateEvent) -> None:
+        """Pose/disparity changes made elsewhere (the tracker's local BA)."""
+        for n, k in enumerate(ev.kf_ids):
+            k = int(k)
+            if k not in self.poses:
+                continue
+            self.poses[k] = torch.as_tensor(np.asarray(ev.poses[n]), dtype=torch.float64,
+                                            device=self.device)
+            if ev.disparities is not None:
+                self.disps[k] = torch.as_tensor(np.asarray(ev.disparities[n]),
+                                                dtype=torch.float32, device=self.device)
+
+    # ------------------------------------------------------------ helpers
+    def _stack(self, ids):
+        return (torch.stack([self.poses[k] for k in ids]),
+                torch.stack([self.disps[k] for k in ids]))
+
+    def _induced_pair(self, a, b):
+        P, D = self._stack([a, b])
+        uv, _ = reproject(P, D, self.intr, torch.tensor([0, 1], device=self.device),
+                          torch.tensor([1, 0], device=self.device))
+        return uv - self.grid
+
+    def _measure(self, a: int, b: int, kind: str, both: bool = True, use_init: bool = False):
+        """Measure flow a <-> b and add the edge(s); returns the FlowCheck or None.
+
+        With ``use_init`` DIS is run twice, from scratch and pre-warped by the
+        flow the current estimate induces, and the more confident result kept
+        (drift can make the induced flow worse than none)."""
+        if a not in self.prep or b not in self.prep:
+            return None
+        from .flow_frontend import predict_both
+        t0 = time.perf_counter()
+        results = [predict_both(self.flow, self.prep[a], self.prep[b])]
+        if use_init and hasattr(self.flow, "predict_pair"):
+            init = self._induced_pair(a, b).cpu()
+            results.append(self.flow.predict_pair(self.prep[a], self.prep[b],
+                                                  init_ij=init[0], init_ji=init[1]))
+        self.timings["flow"] += time.perf_counter() - t0
+        best = None
+        for res in results:
+            f, w, fb, wb = (x.to(self.device) for x in res)
+            fc = self.motion.check(f, w)
+            if best is None or fc.valid_frac > best[0].valid_frac:
+                best = (fc, f, w, fb, wb)
+        fc, f, w, fb, wb = best
+        if not fc.ok:
+            return fc
+        self.graph.add(a, b, f, w, kind=kind)
+        if both:
+            self.graph.add(b, a, fb, wb, kind=kind)
+        return fc
+
+    def _event(self, reason: str, before: Dict[int, Tuple[torch.Tensor, torch.Tensor]]
+               ) -> List[UpdateEvent]:
+        tc = self.tc
+        ids = []
+        for k, (P0, D0) in before.items():
+            P1, D1 = self.poses[k], self.disps[k]
+            dxi = se3_log(se3_inverse(P0) @ P1)
+            scale = 1.0 / max(float(D1.mean()), 1e-6)
+            moved = float(dxi[:3].norm()) > tc.event_pose_thresh * scale or \
+                float(dxi[3:].norm()) > tc.event_pose_thresh
+            dd = float((D1 - D0).abs().mean()) / max(float(D0.abs().mean()), 1e-9)
+            if moved or dd > tc.event_disp_thresh:
+                ids.append(k)
+        if not ids:
+            return []
+        return [UpdateEvent(seq=next(self._seq), reason=reason, kf_ids=ids,
+                            poses=np.stack([self.poses[k].cpu().numpy() for k in ids]),
+                            disparities=np.stack([self.disps[k].cpu().numpy()
+                                                  for k in ids]).astype(np.float32))]
+
+    def _optimize(self, ids: Sequence[int], iters: int, fixed: int, normalize: bool):
+        ii, jj, tgt, wgt, pairs = self.graph.gather(ids)
+        if not pairs:
+            return None
+        P, D = self._stack(ids)
+        if normalize:
+            P, D, infos = normalized_global_ba(P, D, self.intr, ii, jj, tgt, wgt, iters,
+                                               fixed=fixed, huber=self.huber)
+        else:
+            P, D, infos = bundle_adjust(P, D, self.intr, ii, jj, tgt, wgt, iters=iters,
+                                        fixed=fixed, huber=self.huber)
+        return P, D, infos, pairs
+
+    # ------------------------------------------------------------ loop closure
+    def detect(self) -> List[Tuple[int, int, float]]:
+        """Loop candidates (active, old, induced distance) by the Sec. 3.1 criteria."""
+        tc = self.tc
+        if len(self.ids) <= tc.loop_time_gap:
+            return []
+        active = self.ids[-tc.loop_window:]
+        old = [k for k in self.ids if k < active[-1] - tc.loop_time_gap and k in self.prep]
+        if not old:
+            return []
+        cand_ids = sorted(set(active) | set(old))
+        P, D = self._stack(cand_ids)
+        excl = set(self.loop_pairs) | set(self.checked) | set(self.graph.pairs())
+        cands = proximity_pairs(cand_ids, P, D, self.intr, active, tc.loop_flow_thresh,
+                                max_pairs=10 * max(tc.loop_max_edges, 1), exclude=excl,
+                                min_gap=tc.loop_time_gap + 1, nms=0, stride=4)
+        # keep (active, old) orientation, non-maximum suppression in id space
+        out: List[Tuple[int, int, float]] = []
+        for a, b, d in cands:
+            act, o = (b, a) if a < b else (a, b)
+            if o not in old:
+                continue
+            if any(abs(act - x) <= tc.loop_nms and abs(o - y) <= tc.loop_nms for x, y, _ in out):
+                continue
+            out.append((act, o, d))
+            if len(out) >= tc.loop_max_edges:
+                break
+        return out
+
+    def _close_loops(self) -> List[UpdateEvent]:
+        tc = self.tc
+        cands = self.detect()
+        if not cands:
+            return []
+        added = []
+        for act, o, d in cands:
+            fc = self._measure(act, o, kind="loop", both=False, use_init=True)
+            self.checked.add((act, o))
+            if fc is not None and fc.ok and fc.valid_frac >= 0.5 * (self.motion._typical or 0):
+                added.append((act, o))
+        if not added:
+            return []
+        active = self.ids[-tc.loop_window:]
+        nodes = set(active)
+        for act, o in added:
+            nodes.add(o)
+            nodes.update(n for n in self.graph.neighbours(o) if abs(n - o) <= 2)
+        for p in self.loop_pairs:
+            if p[0] in nodes or p[1] in nodes:
+                nodes.update(p)
+        ids = sorted(nodes)
+        before = {k: (self.poses[k].clone(), self.disps[k].clone()) for k in ids}
+        t0 = time.perf_counter()
+        res = self._optimize(ids, tc.loop_ba_iters, fixed=2, normalize=True)
+        self.timings["loop_ba"] += time.perf_counter() - t0
+        if res is None:
+            return []
+        P, D, infos, pairs = res
+        # verify: the new loop edges must fit after the loop BA
+        pos = {k: n for n, k in enumerate(ids)}
+        ok_pairs = []
+        for act, o in added:
+            ii = torch.tensor([pos[act]], device=self.device)
+            jj = torch.tensor([pos[o]], device=self.device)
+            tgt, wgt = self.graph.edges[(act, o)]
+            uv, valid = reproject(P, D, self.intr, ii, jj)
+            r = (uv[0] - tgt.float()).norm(dim=-1)
+            wm = wgt.float().mean(-1) * valid[0]
+            rms = float(((r ** 2 * wm).sum() / wm.sum().clamp_min(1e-9)) ** 0.5)
+            if rms < max(4 * infos[-1].rms, 0.5):
+                ok_pairs.append((act, o))
+            else:
+                self.graph.remove([(act, o)])
+        if not ok_pairs:
+            return []
+        if len(ok_pairs) < len(added):      # re-run without the rejected edges
+            res = self._optimize(ids, tc.loop_ba_iters, fixed=2, normalize=True)
+            P, D, infos, pairs = res
+        for n, k in enumerate(ids):
+            self.poses[k] = P[n]
+            self.disps[k] = D[n]
+        self.loop_pairs.update(ok_pairs)
+        self.n_loops += len(ok_pairs)
+        log.info("loop closure: %d edge(s) %s, loop BA rms %.3f BA px over %d keyframes",
+                 len(ok_pairs), ok_pairs, infos[-1].rms, len(ids))
+        return self._event("loop_closure", before)
+
+    # ------------------------------------------------------------ global BA
+    def _add_spatial_edges(self) -> None:
+        tc = self.tc
+        ids = [k for k in self.ids]
+        if len(ids) < 3:
+            return
+        P, D = self._stack(ids)
+        sources = [k for k in self.new_since_gba if k in self.prep]
+        pairs = spatial_pairs(ids, P, D, self.intr, sources, tc.global_ba_radius,
+                              tc.global_ba_thresh, tc.global_ba_max_edges,
+                              exclude=set(self.graph.pairs()) | self.checked)
+        for a, b, _ in pairs:
+            fc = self._measure(a, b, kind="global", both=True, use_init=True)
+            self.checked.add((a, b))
+            if fc is None or not fc.ok:
+                continue
+
+    def global_ba(self, iters: int, reason: str = "global_ba") -> List[UpdateEvent]:
+        """Global BA over all stored keyframes (temporal + spatial + loop edges)."""
+        if len(self.ids) < 3:
+            return []
+        t0 = time.perf_counter()
+        self._add_spatial_edges()
+        self.new_since_gba = []
+        ids = list(self.ids)
+        before = {k: (self.poses[k].clone(), self.disps[k].clone()) for k in ids}
+        res = self._optimize(ids, iters, fixed=2, normalize=True)
+        self.timings["global_ba"] += time.perf_counter() - t0
+        if res is None:
+            return []
+        P, D, infos, pairs = res
+        for n, k in enumerate(ids):
+            self.poses[k] = P[n]
+            self.disps[k] = D[n]
+        log.info("global BA (%s): %d keyframes, %d edges, rms %.3f -> %.3f BA px", reason,
+                 len(ids), len(pairs), infos[0].rms, infos[-1].rms)
+        return self._event(reason, before)
+
+    # ------------------------------------------------------------ public API
+    def step(self) -> List[UpdateEvent]:
+        """Loop detection + loop BA, and the online global BA when it is due."""
+        if self.graph is None:
+            return []
+        from .tracker import limit_threads
+        events: List[UpdateEvent] = []
+        with limit_threads(self.tc.threads):
+            t0 = time.perf_counter()
+            loop = []
+            if self.tc.loop_closure:
+                loop = self._close_loops()
+                events += loop
+            due = self.tc.global_ba and (
+                len(self.new_since_gba) >= self.tc.global_ba_every or bool(loop))
+            if due:
+                events += self.global_ba(self.tc.global_ba_iters)
+            self.timings["step"] += time.perf_counter() - t0
+        return events
+
+    def finalize(self) -> List[UpdateEvent]:
+        """Final global BA (two passes, ``final_ba_iters``); one event per changed set."""
+        if self.graph is None or not self.tc.global_ba:
+            return []
+        from .tracker import limit_threads
+        with limit_threads(self.tc.threads):
+            if self.tc.loop_closure:
+                pre = self._close_loops()
+            else:
+                pre = []
+            start = {k: (self.poses[k].clone(), self.disps[k].clone()) for k in self.ids}
+            for it in self.tc.final_ba_iters:
+                self.global_ba(int(it), reason="final")
+            ev = self._event("final", start)
+        return pre + ev
+
+    def trajectory_keyframes(self) -> Tuple[np.ndarray, np.ndarray]:
+        ids = list(self.ids)
+        return (np.array([self.meta[k][1] for k in ids]),
+                np.stack([self.poses[k].cpu().numpy() for k in ids]) if ids else
+                np.zeros((0, 4, 4)))

@@ -1,0 +1,187 @@
+"""Loop closure and global BA (paper Sec. 3.1) on a synthetic closed path of keyframes."""
+from __future__ import annotations
+
+from functools import lru_cache
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from splat_slam_ros.config import SlamConfig
+from splat_slam_ros.geometry import se3_exp, se3_inverse
+from splat_slam_ros.types import KeyframeData, UpdateEvent
+
+from test_tracker import INTR, render_room, small_cfg
+
+N_KF = 32
+
+
+def loop_poses(n: int = N_KF) -> np.ndarray:
+    """Camera-to-world poses on a closed ellipse, looking at the far wall."""
+    a = 2 * np.pi * np.arange(n) / n
+    xi = np.zeros((n, 6))
+    xi[:, 0] = 0.45 * np.cos(a) - 0.45
+    xi[:, 1] = 0.3 * np.sin(a)
+    xi[:, 2] = 0.1 * np.sin(2 * a)
+    xi[:, 4] = 0.12 * np.sin(a)              # yaw follows the path a little
+    xi[:, 3] = 0.05 * np.cos(a)
+    return se3_exp(torch.from_numpy(xi)).numpy()
+
+
+@lru_cache(maxsize=1)
+def loop_keyframes():
+    """Images, true poses and true disparities (BA grid 40x30) around the loop."""
+    poses = loop_poses()
+    out = []
+    for k, P in enumerate(poses):
+        img, depth = render_room(P, INTR)
+        disp = 1.0 / cv2.resize(depth, (40, 30), interpolation=cv2.INTER_AREA)
+        out.append((img, P, disp.astype(np.float32)))
+    return out
+
+
+def drifted(poses: np.ndarray, rot_deg=0.25, trans=0.004, scale=0.004) -> np.ndarray:
+    """Accumulate a per-keyframe error (rotation, translation and scale drift)."""
+    out = [poses[0]]
+    rng = np.random.default_rng(0)
+    d = np.array([trans, -trans, trans / 2, 0.0, np.radians(rot_deg), 0.0])
+    for k in range(1, len(poses)):
+        rel = se3_inverse(torch.from_numpy(poses[k - 1])) @ torch.from_numpy(poses[k])
+        rel = rel.numpy().copy()
+        rel[:3, 3] *= 1 + scale
+        noise = se3_exp(torch.from_numpy(d + rng.normal(0, 1e-4, 6))).numpy()
+        out.append(out[-1] @ rel @ noise)
+    return np.stack(out)
+
+
+def keyframe(k: int, pose: np.ndarray, data) -> KeyframeData:
+    img, _, disp = data[k]
+    return KeyframeData(kf_id=k, frame_index=10 * k, timestamp=k / 3.0, pose=pose, image=img,
+                        intrinsics=INTR, disparity=disp, confidence=np.ones_like(disp))
+
+
+def loop_cfg(**kw) -> SlamConfig:
+    cfg = small_cfg(loop_closure=True, global_ba=True, loop_time_gap=8, loop_window=6,
+                    loop_nms=3, loop_flow_thresh=8.0, global_ba_every=1000,
+                    global_ba_thresh=6.0, global_ba_max_edges=2, final_ba_iters=(4, 6))
+    for k, v in kw.items():
+        setattr(cfg.tracking, k, v)
+    return cfg
+
+
+def ate(est: np.ndarray, gt: np.ndarray) -> float:
+    from splat_slam_ros.evaluation import ate as ate_fn
+    ts = np.arange(len(gt), dtype=np.float64)
+    return ate_fn(ts, gt, ts, est)["rmse_cm"]
+
+
+def end_gap_cm(P: np.ndarray, gt: np.ndarray) -> float:
+    """Error of the last keyframe's position relative to the first (after scale alignment)."""
+    from splat_slam_ros.evaluation import umeyama_alignment
+    s, _, _ = umeyama_alignment(P[:, :3, 3], gt[:, :3, 3])
+    rel = np.linalg.inv(P[0]) @ P[-1]
+    relg = np.linalg.inv(gt[0]) @ gt[-1]
+    return float(np.linalg.norm(s * rel[:3, 3] - relg[:3, 3]) * 100)
+
+
+def test_loop_edges_detected_on_a_revisit():
+    from splat_slam_ros.loop_closure import LoopCloser
+    data = loop_keyframes()
+    gt = np.stack([d[1] for d in data])
+    est = drifted(gt)
+    lc = LoopCloser(loop_cfg(global_ba=False), INTR)
+    events = []
+    first_loop_at = None
+    for k in range(N_KF):
+        lc.add_keyframe(keyframe(k, est[k], data))
+        ev = lc.step()
+        if ev and first_loop_at is None:
+            first_loop_at = k
+        events += ev
+    assert lc.loop_pairs, "no loop edge found"
+    for a, o in lc.loop_pairs:
+        assert a - o > 8                                     # the time-gap criterion
+    # the revisit: the last keyframes close onto the first ones
+    assert any(a >= N_KF - 4 and o <= 4 for a, o in lc.loop_pairs)
+    assert all(e.reason == "loop_closure" for e in events)
+    assert first_loop_at is not None and first_loop_at > 8
+
+
+def test_global_ba_reduces_drift_on_a_loop():
+    from splat_slam_ros.loop_closure import LoopCloser
+    data = loop_keyframes()
+    gt = np.stack([d[1] for d in data])
+    est = drifted(gt)
+    before = ate(est, gt)
+    lc = LoopCloser(loop_cfg(loop_closure=False), INTR)
+    for k in range(N_KF):
+        lc.add_keyframe(keyframe(k, est[k], data))
+        assert lc.step() == []                 # online global BA not due (every 1000)
+    events = lc.finalize()
+    assert events and events[-1].reason == "final"
+    _, P = lc.trajectory_keyframes()
+    after = ate(P, gt)
+    assert after < 0.5 * before, f"ATE {before:.2f} -> {after:.2f} cm"
+    # the loop's end-to-start gap (Sim(3)-aligned) shrinks most
+    assert end_gap_cm(P, gt) < 0.35 * end_gap_cm(est, gt)
+
+
+def test_loop_closer_events_list_exactly_the_changed_keyframes():
+    from splat_slam_ros.geometry import se3_log
+    from splat_slam_ros.loop_closure import LoopCloser
+    data = loop_keyframes()
+    gt = np.stack([d[1] for d in data])
+    est = gt.copy()
+    est[12:16] = drifted(gt[12:16], rot_deg=0.5, trans=0.01)   # only the tail is off
+    cfg = loop_cfg()
+    tc = cfg.tracking
+    lc = LoopCloser(cfg, INTR)
+    for k in range(16):
+        lc.add_keyframe(keyframe(k, est[k], data))
+    snap = {k: (lc.poses[k].clone(), lc.disps[k].clone()) for k in lc.ids}
+    events = lc.global_ba(3)
+    assert len(events) == 1
+    ev = events[0]
+    assert ev.reason == "global_ba" and ev.disparities.shape == (len(ev.kf_ids), 30, 40)
+    listed = set(ev.kf_ids)
+    assert {12, 13, 14, 15} <= listed
+    for k in lc.ids:
+        P0, D0 = snap[k]
+        dxi = se3_log(se3_inverse(P0) @ lc.poses[k])
+        scale = 1.0 / float(lc.disps[k].mean())
+        pose_change = max(float(dxi[:3].norm()) / scale, float(dxi[3:].norm()))
+        disp_change = float((lc.disps[k] - D0).abs().mean() / D0.abs().mean())
+        changed = pose_change > tc.event_pose_thresh or disp_change > tc.event_disp_thresh
+        assert (k in listed) == changed, (k, pose_change, disp_change)
+        if k in listed:
+            n = ev.kf_ids.index(k)
+            assert np.allclose(ev.poses[n], lc.poses[k].numpy())
+            assert np.allclose(ev.disparities[n], lc.disps[k].numpy())
+    for k in (0, 1):                                   # the gauge: poses fixed
+        assert torch.allclose(lc.poses[k], snap[k][0], atol=1e-9)
+
+
+def test_tracker_applies_loop_events_and_moves_later_keyframes_rigidly():
+    from splat_slam_ros.tracker import Tracker
+    tr = Tracker(small_cfg(), INTR)
+    eye = np.eye(4)
+    for k in range(4):
+        T = eye.copy()
+        T[0, 3] = 0.1 * k
+        tr.poses[k] = torch.from_numpy(T)
+        tr.disps[k] = torch.ones(30, 40)
+        tr.published.add(k)
+    tr.last_pose = tr.poses[3].clone()
+    corr = se3_exp(torch.tensor([0.0, 0.05, 0.0, 0.0, 0.02, 0.0], dtype=torch.float64)).numpy()
+    new1 = corr @ tr.poses[1].numpy()
+    tr.apply_update(UpdateEvent(seq=5, reason="loop_closure", kf_ids=[1], poses=new1[None],
+                                disparities=np.full((1, 30, 40), 2.0, np.float32)))
+    assert np.allclose(tr.poses[1].numpy(), new1)
+    assert float(tr.disps[1].mean()) == pytest.approx(2.0)
+    assert np.allclose(tr.poses[0].numpy(), eye)                     # older: untouched
+    for k in (2, 3):                                                 # newer: same correction
+        T = eye.copy()
+        T[0, 3] = 0.1 * k
+        assert np.allclose(tr.poses[k].numpy(), corr @ T, atol=1e-9)
+    assert np.allclose(tr.last_pose.numpy(), tr.poses[3].numpy())
