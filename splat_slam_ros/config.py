@@ -31,6 +31,7 @@ class CameraConfig:
 @dataclass
 class TrackingConfig:
     device: str = "cpu"                  # "cpu", "cuda" or "auto"
+    threads: int = 1                     # torch/OpenCV threads while tracking (0 = unchanged)
     ba_downsample: int = 8               # BA resolution = tracking image / this (paper: 1/8)
     # flow front end (classical stand-in for the paper's learned flow, see flow_frontend.py)
     flow_method: str = "dis_medium"      # OpenCV DIS preset: dis_ultrafast | dis_fast | dis_medium
@@ -44,14 +45,14 @@ class TrackingConfig:
     keyframe_thresh: float = 4.0         # tau: candidate dropped if its BA-induced flow stays below
     warmup: int = 8                      # keyframes collected before initialisation
     init_iters: int = 15                 # BA iterations of the initialisation
-    frontend_window: int = 25            # keyframes in the local BA window
+    frontend_window: int = 12            # keyframes in the local BA window (reference: 25)
     frontend_radius: int = 1
-    frontend_max_factors: int = 75
+    frontend_max_factors: int = 36       # (reference: 75; CPU budget)
     frontend_thresh: float = 16.0        # proximity edges: induced mean flow below (BA px)
     frontend_new_edges: int = 3          # proximity edge pairs added per new keyframe
     frontend_nms: int = 1
     max_edge_age: int = 50
-    ba_iters: int = 4
+    ba_iters: int = 2                    # local BA iterations per keyframe
     pose_iters: int = 4                  # pose-only iterations per frame
     robust_huber_px: float = 2.0         # Huber threshold on the reprojection error (tracking px)
     lost_min_valid: float = 0.12         # lost if fewer BA cells than this have a usable flow
@@ -74,7 +75,7 @@ class TrackingConfig:
     global_ba_iters: int = 4
     global_ba_radius: int = 2            # temporal neighbours connected in the global graph
     global_ba_thresh: float = 12.0       # spatial edges: induced mean flow below (BA px)
-    global_ba_max_edges: int = 6         # spatial edge pairs per keyframe at most
+    global_ba_max_edges: int = 2         # spatial edge pairs per new keyframe at most
     final_ba_iters: tuple = (7, 12)
     keyframe_buffer: int = 512
     # DSPO (paper Eq. 2); only active when a mono depth model is configured
