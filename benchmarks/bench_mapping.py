@@ -75,6 +75,8 @@ def run_one(name: str, ds, cfg, scale: float, keyframe_every: int, refine):
         "keyframes": m["keyframes"], "psnr": round(m["psnr"], 3), "ssim": round(m["ssim"], 4),
         "depth_l1_cm": round(m["depth_l1_cm"], 3), "gaussians": m["gaussians"],
         "map_mb": m["map_mb"], "s_per_keyframe": m["s_per_keyframe"],
+        "first_keyframe_s": m["first_keyframe_s"],
+        "s_per_later_keyframe": m["s_per_later_keyframe"],
         "refine_iters": m["refine_iters"], "refine_s": m["refine_s"], "wall_s": round(wall, 1),
         "peak_rss_mb": round(peak_rss_mb(), 1), "torch_threads": torch.get_num_threads(),
         "loadavg_start": round(load0, 2), "loadavg_end": round(os.getloadavg()[0], 2),
@@ -136,7 +138,7 @@ def main(argv=None) -> int:
         r["overrides"] = overrides
         print(f"{r['dataset']:28s} {r['size']:>8s} kf {r['keyframes']:3d}  "
               f"PSNR {r['psnr']:6.2f} dB  SSIM {r['ssim']:.3f}  depth L1 {r['depth_l1_cm']:.2f} cm  "
-              f"{r['s_per_keyframe']:.1f} s/kf  refine {r['refine_s']:.0f} s  "
+              f"{r['s_per_keyframe']:.1f} s/kf (first {r['first_keyframe_s']:.0f} s)  refine {r['refine_s']:.0f} s  "
               f"G {r['gaussians']}  {r['map_mb']:.1f} MB  RSS {r['peak_rss_mb']:.0f} MB  "
               f"load {r['loadavg_start']:.1f}->{r['loadavg_end']:.1f}"
               + (f"  novel PSNR {r['novel_view_psnr']:.2f}" if "novel_view_psnr" in r else ""))

@@ -101,6 +101,7 @@ class Mapper:
         self.last_loss = float("nan")
         self._scene_depth = 0.0
         self.backend = "auto"
+        self.progress = False          # tqdm bar for long optimisations (first keyframe)
 
     # ================================================================ render
     def _viewmat(self, pose_c2w: np.ndarray) -> torch.Tensor:
@@ -245,16 +246,18 @@ class Mapper:
             self._scene_depth = float(depth_t[valid_t].median())
 
         # supplementary "Map Initialization": anchor new Gaussians from the proxy depth
+        # ("first" settings while the map is still empty, e.g. a first keyframe without depth)
+        empty = len(self.map) == 0
         new = init_gaussians(img_t, depth_t, valid_t, pose, self.intr,
-                             self.mcfg.downsample_first if first else self.mcfg.downsample,
+                             self.mcfg.downsample_first if empty else self.mcfg.downsample,
                              self.mcfg.init_opacity, self.gen, self.device)
         n_new = int(new["means"].shape[0])
         self.map.add(new["means"], new["colors"], new["log_scales"], new["quats"],
                      new["opacity_logits"], kf_id=kf_id, created=kf.index, born=self.iteration)
         removed = self.window.add(kf_id, vis, {k: k2.pose for k, k2 in self.keyframes.items()})
 
-        iters = self.mcfg.iters_first if first else self.mcfg.iters_per_keyframe
-        self._optimize(iters, densify=True)
+        iters = self.mcfg.iters_first if empty else self.mcfg.iters_per_keyframe
+        self._optimize(iters, densify=True, progress=self.progress and iters >= 200)
         n_vis_pruned = self._visibility_prune() if self.window.full else 0
         self.last_ms = 1000 * (time.perf_counter() - t0)
         stats.update({"new_gaussians": n_new, "left_window": removed,
@@ -300,7 +303,8 @@ class Mapper:
         bar = None
         if progress:
             from tqdm import tqdm
-            bar = tqdm(total=iters, desc="refine", unit="it", dynamic_ncols=True, leave=False)
+            bar = tqdm(total=iters, desc="refine" if single_random else "optimise", unit="it",
+                       dynamic_ncols=True, leave=False)
         for _ in range(iters):
             views = self._pick_views(single_random)
             self.map.zero_grad()
@@ -613,13 +617,15 @@ class Mapper:
 def map_sequence(frames: Iterable, cfg: SlamConfig, intrinsics: Intrinsics,
                  use_gt_depth: bool = True, progress: bool = True,
                  keyframe_every: Optional[int] = None,
-                 refine_iters: Optional[int] = None) -> Tuple[Mapper, dict]:
+                 refine_iters: Optional[int] = None,
+                 lpips_model=None) -> Tuple[Mapper, dict]:
     """Mapping alone on ground-truth poses and depth (``splat-slam-run --gt-poses --gt-depth``).
 
     Every frame is offered as a keyframe and the covisibility rules decide, or every
     ``keyframe_every``-th frame is mapped (default ``mapping.keyframe_every``; 0 = rules).
     Ends with the final refinement (``refine_iters``, default ``mapping.final_refine_iters``)
-    and returns (mapper, metrics on the mapped keyframes against the ground-truth depth).
+    and returns (mapper, metrics on the mapped keyframes against the ground-truth depth;
+    LPIPS too when ``lpips_model`` names a backbone file, see ``evaluation.lpips``).
     """
     from tqdm import tqdm
     if not use_gt_depth:
@@ -627,12 +633,14 @@ def map_sequence(frames: Iterable, cfg: SlamConfig, intrinsics: Intrinsics,
                        "(--gt-depth) or run the full pipeline for proxy depth")
     every = cfg.mapping.keyframe_every if keyframe_every is None else int(keyframe_every)
     mapper = Mapper(cfg, intrinsics)
+    mapper.progress = progress
     total = len(frames) if hasattr(frames, "__len__") else None
     bar = tqdm(total=total, unit="frame", desc="mapping", disable=not progress,
                dynamic_ncols=True)
     gt_depth: Dict[int, np.ndarray] = {}
     t0 = time.perf_counter()
     map_time = 0.0
+    kf_times: List[float] = []
     offered = 0
     for i, fr in enumerate(frames):
         bar.update(1)
@@ -646,8 +654,9 @@ def map_sequence(frames: Iterable, cfg: SlamConfig, intrinsics: Intrinsics,
         t1 = time.perf_counter()
         st = mapper.add_keyframe(fr.index, fr.image, fr.gt_pose, fr.gt_depth,
                                  timestamp=fr.timestamp, force=every > 0)
+        map_time += time.perf_counter() - t1        # rejected keyframes cost a render
         if st["mapped"]:
-            map_time += time.perf_counter() - t1
+            kf_times.append(time.perf_counter() - t1)
             gt_depth[fr.index] = np.asarray(fr.gt_depth, dtype=np.float32)
         bar.set_postfix(kf=st["keyframes"], G=st["gaussians"], ms=int(st["last_ms"]))
     bar.close()
@@ -655,10 +664,13 @@ def map_sequence(frames: Iterable, cfg: SlamConfig, intrinsics: Intrinsics,
         raise MapError("no frames to map (empty input)")
     n_kf = len(mapper.keyframes)
     ref = mapper.final_refine(refine_iters, progress=progress)
-    metrics = mapper.evaluate(None, gt_depth=gt_depth)
+    metrics = mapper.evaluate(None, gt_depth=gt_depth, lpips_model=lpips_model)
     metrics.update({"keyframes": n_kf, "frames_offered": offered,
                     "mapping_s": round(map_time, 3),
                     "s_per_keyframe": round(map_time / n_kf, 3),
+                    "first_keyframe_s": round(kf_times[0], 3),
+                    "s_per_later_keyframe": (round(float(np.mean(kf_times[1:])), 3)
+                                             if n_kf > 1 else None),
                     "iterations": mapper.iteration, **ref,
                     "total_s": round(time.perf_counter() - t0, 3)})
     return mapper, metrics

@@ -1,0 +1,298 @@
+"""Mapper: map initialisation, keyframe window rules, Gaussian map bookkeeping,
+densification/pruning and optimisation on a tiny rendered scene."""
+import numpy as np
+import pytest
+import torch
+
+from splat_slam_ros.config import MappingConfig, SlamConfig
+from splat_slam_ros.gaussian_map import GaussianMap
+from splat_slam_ros.geometry import se3_exp, se3_inverse
+from splat_slam_ros.keyframe_window import (KeyframeWindow, covisibility_iou,
+                                            overlap_coefficient)
+from splat_slam_ros.map_init import init_gaussians, nn_scale
+from splat_slam_ros.mapper import MapError, Mapper, map_sequence
+from splat_slam_ros.types import Frame, Intrinsics
+
+W, H, F = 48, 36, 42.0
+K = Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H)
+
+
+# ----------------------------------------------------------------- tiny scene
+def scene_gaussians(n=40):
+    """Ground-truth scene: a textured wall at z = 3 and a floor at y = 1 (camera y down)."""
+    u = torch.linspace(-2.2, 2.2, n)
+    X, Y = torch.meshgrid(u, torch.linspace(-1.6, 1.0, n), indexing="xy")
+    wall = torch.stack([X.flatten(), Y.flatten(), torch.full((n * n,), 3.0)], -1)
+    cw = torch.stack([torch.sin(3 * X) * 0.4 + 0.5, torch.cos(4 * Y) * 0.4 + 0.5,
+                      ((X.floor() + Y.floor()) % 2) * 0.7 + 0.15], -1).reshape(-1, 3)
+    Z, X2 = torch.meshgrid(torch.linspace(0.6, 3.0, n), u, indexing="ij")
+    floor = torch.stack([X2.flatten(), torch.full((n * n,), 1.0), Z.flatten()], -1)
+    cf = torch.stack([((X2 * 2).floor() % 2) * 0.6 + 0.2, Z * 0.25,
+                      torch.full_like(Z, 0.5)], -1).reshape(-1, 3)
+    means = torch.cat([wall, floor]).float()
+    N = len(means)
+    quats = torch.zeros(N, 4)
+    quats[:, 3] = 1
+    return (means, quats, torch.full((N, 3), 0.07), torch.full((N,), 0.97),
+            torch.cat([cw, cf]).float().clamp(0, 1))
+
+
+def pose_at(tx=0.0, ty=0.0, tz=0.0, yaw=0.0):
+    return se3_exp(torch.tensor([tx, ty, tz, 0.0, yaw, 0.0], dtype=torch.float64)).numpy()
+
+
+def render_view(scene, pose):
+    from splat_slam_ros.rasterizer import rasterize
+    V = se3_inverse(torch.as_tensor(pose)).float()
+    out = rasterize(*scene, V, (K.fx, K.fy, K.cx, K.cy), W, H)
+    img = (out.rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
+    d = torch.where(out.alpha > 0.5, out.depth / out.alpha.clamp_min(1e-6),
+                    torch.zeros_like(out.depth))
+    return img, d.numpy().astype(np.float32)
+
+
+def small_cfg(**kw):
+    cfg = SlamConfig()
+    cfg.mapping = MappingConfig.fast(**kw)
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return scene_gaussians()
+
+
+def psnr(a, b):
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2) / 255.0 ** 2
+    return -10 * np.log10(mse)
+
+
+# ------------------------------------------------------------------- map init
+def test_map_init_counts_positions_colours_scales():
+    depth = np.full((H, W), 2.0, np.float32)
+    depth[:, : W // 2] = 0.0                                   # left half missing
+    img = np.zeros((H, W, 3), np.uint8)
+    img[..., 0] = np.arange(W)[None, :] * 5
+    img[..., 1] = np.arange(H)[:, None] * 7
+    pose = pose_at(0.5, -0.2, 1.0)
+    g = init_gaussians(img, depth, None, pose, (K.fx, K.fy, K.cx, K.cy), downsample=16,
+                       generator=torch.Generator().manual_seed(0))
+    n_valid = H * W // 2
+    assert g["means"].shape == (n_valid // 16, 3)
+    # all on the plane z_cam = 2 in the right half, colours read from their pixels
+    X = (g["means"].double() - torch.tensor(pose[:3, 3])) @ torch.tensor(pose[:3, :3])
+    assert torch.allclose(X[:, 2], torch.full_like(X[:, 2], 2.0), atol=1e-5)
+    u = X[:, 0] / X[:, 2] * K.fx + K.cx
+    v = X[:, 1] / X[:, 2] * K.fy + K.cy
+    assert torch.allclose(u, u.round(), atol=1e-3) and (u >= W // 2 - 1e-3).all()
+    ui, vi = u.round().long(), v.round().long()
+    assert torch.allclose(g["colors"][:, 0], torch.from_numpy(img[vi, ui, 0] / 255.).float())
+    assert torch.allclose(g["colors"][:, 1], torch.from_numpy(img[vi, ui, 1] / 255.).float())
+    # isotropic scale = sqrt(mean squared distance to the 3 nearest neighbours)
+    P = g["means"].double().numpy()
+    d2 = ((P[:, None] - P[None]) ** 2).sum(-1)
+    np.fill_diagonal(d2, np.inf)
+    expect = np.sqrt(np.sort(d2, 1)[:, :3].mean(1))
+    np.testing.assert_allclose(g["log_scales"].exp().numpy(), np.repeat(expect[:, None], 3, 1),
+                               rtol=1e-5)
+    assert torch.allclose(g["quats"], torch.tensor([0.0, 0, 0, 1]).expand(len(P), 4))
+    assert torch.allclose(torch.sigmoid(g["opacity_logits"]), torch.tensor(0.5))
+    # the valid mask is honoured as well as depth == 0; nothing valid -> nothing
+    valid = np.zeros((H, W), bool)
+    valid[:4, -4:] = True
+    g2 = init_gaussians(img, depth, valid, pose, (K.fx, K.fy, K.cx, K.cy), downsample=4)
+    assert len(g2["means"]) == 4
+    g3 = init_gaussians(img, np.zeros((H, W), np.float32), None, pose,
+                        (K.fx, K.fy, K.cx, K.cy), downsample=4)
+    assert len(g3["means"]) == 0
+
+
+def test_nn_scale_against_brute_force():
+    rng = np.random.default_rng(1)
+    P = rng.normal(size=(50, 3))
+    d = np.linalg.norm(P[:, None] - P[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    np.testing.assert_allclose(nn_scale(P), np.sqrt((np.sort(d, 1)[:, :3] ** 2).mean(1)))
+
+
+# -------------------------------------------------------------- window rules
+def test_iou_and_overlap_coefficient():
+    a = torch.arange(0, 10)
+    b = torch.arange(5, 25)
+    assert covisibility_iou(a, b) == pytest.approx(5 / 25)
+    assert overlap_coefficient(a, b) == pytest.approx(5 / 10)
+    assert covisibility_iou(a, torch.arange(0)) == 0.0
+
+
+def test_keyframe_selection_rules():
+    w = KeyframeWindow(size=8, k_fcov=0.9, k_fm=0.08, k_fc=0.3)
+    poses = {0: np.eye(4)}
+    assert w.decide(torch.arange(100), np.eye(4), 2.0, poses).reason == "first"
+    w.add(0, torch.arange(100), poses)
+    near = np.eye(4)
+    near[0, 3] = 0.1                               # 0.1 m < 0.08 x 2.0 m
+    d = w.decide(torch.arange(3, 100), near, 2.0, poses)        # IOU 0.97
+    assert not d.mapped and d.reason == "redundant"
+    d = w.decide(torch.arange(20, 100), near, 2.0, poses)       # IOU 0.8 < 0.9
+    assert d.mapped and d.reason == "covisibility" and d.iou == pytest.approx(0.8)
+    far = np.eye(4)
+    far[2, 3] = 0.2                                # 0.2 m > 0.16 m
+    d = w.decide(torch.arange(100), far, 2.0, poses)
+    assert d.mapped and d.reason == "translation"
+
+
+def test_window_overlap_cutoff_and_size_limit():
+    w = KeyframeWindow(size=3, k_fcov=0.9, k_fm=0.08, k_fc=0.3)
+    poses = {i: np.eye(4) for i in range(6)}
+    for i in range(6):
+        poses[i][0, 3] = 0.1 * i
+    w.add(0, torch.arange(0, 100), poses)
+    w.add(1, torch.arange(50, 150), poses)
+    w.add(2, torch.arange(60, 160), poses)
+    assert w.window == [2, 1, 0]
+    # keyframe 3 overlaps 0 by 20 % (< k_fc) -> 0 leaves; 1 and 2 stay
+    removed = w.add(3, torch.arange(80, 180), poses)
+    assert removed == [0] and w.window == [3, 2, 1]
+    # no OC removal, but the window is over-full: one of the older ones goes, newest two stay
+    removed = w.add(4, torch.arange(80, 180), poses)
+    assert len(removed) == 1 and w.window[:2] == [4, 3] and len(w) == 3
+    # the two newest are kept even without overlap
+    removed = w.add(5, torch.arange(1000, 1100), poses)
+    assert w.window[:2] == [5, 4] and 3 in removed
+
+
+# -------------------------------------------------------------- Gaussian map
+def test_gaussian_map_add_remove_keeps_adam_state_aligned():
+    g = GaussianMap(lrs={"means": 0.1})
+    g.add(torch.zeros(3, 3), torch.zeros(3, 3), torch.zeros(3, 3), kf_id=7, created=0)
+    g.means.sum().backward() if False else None
+    (g.means * torch.tensor([[1.0], [2.0], [3.0]])).sum().backward()
+    g.step()
+    st = g.optimizer.state[g.means]
+    row = st["exp_avg"].clone()
+    uid_before = g.uid.clone()
+    g.add(torch.ones(2, 3), torch.zeros(2, 3), torch.zeros(2, 3), kf_id=9, created=1)
+    assert len(g) == 5 and g.optimizer.state[g.means]["exp_avg"].shape == (5, 3)
+    assert torch.equal(g.optimizer.state[g.means]["exp_avg"][:3], row)
+    assert (g.optimizer.state[g.means]["exp_avg"][3:] == 0).all()
+    assert g.kf_id.tolist() == [7, 7, 7, 9, 9] and g.created.tolist() == [0, 0, 0, 1, 1]
+    g.remove(torch.tensor([False, True, False, True, False]))
+    assert torch.equal(g.optimizer.state[g.means]["exp_avg"][:2], row[[0, 2]])
+    assert g.uid.tolist() == [uid_before[0].item(), uid_before[2].item(), 4]
+    # the optimiser updates the new tensors, with the per-group learning rate
+    before = g.means.detach().clone()
+    g.zero_grad()
+    g.means.sum().backward()
+    g.step()
+    assert not torch.equal(before, g.means.detach())
+    assert [grp["lr"] for grp in g.optimizer.param_groups if grp["name"] == "means"] == [0.1]
+
+
+def test_densify_clone_and_split():
+    mp = Mapper(small_cfg(scene_extent=1.0, percent_dense=0.01), K)
+    g = mp.map
+    ls = torch.log(torch.tensor([[0.005] * 3, [0.05] * 3, [0.05] * 3]))
+    g.add(torch.zeros(3, 3), torch.full((3, 3), 0.5), ls, kf_id=3, created=0)
+    g.grad_accum[:] = torch.tensor([1.0, 1.0, 0.0])      # third: no gradient
+    g.grad_count[:] = 1
+    n_clone, n_split = mp._densify()
+    assert (n_clone, n_split) == (1, 1)
+    # small one cloned (2 copies), big one replaced by 2 smaller ones, third untouched
+    assert len(g) == 1 + 1 + 1 + 2
+    s = g.scales()[:, 0]
+    assert torch.isclose(s, torch.tensor(0.005)).sum() == 2
+    assert torch.isclose(s, torch.tensor(0.05 / 1.6)).sum() == 2
+    assert (g.kf_id == 3).all()
+
+
+def test_prune_opacity_and_size():
+    mp = Mapper(small_cfg(scene_extent=1.0, prune_opacity=0.7, prune_min_age=10), K)
+    g = mp.map
+    logit = lambda p: float(np.log(p / (1 - p)))  # noqa: E731
+    g.add(torch.zeros(4, 3), torch.zeros(4, 3),
+          torch.log(torch.tensor([[0.01] * 3, [0.01] * 3, [0.5] * 3, [0.01] * 3])),
+          opacity_logits=torch.tensor([logit(0.9), logit(0.3), logit(0.9), logit(0.3)]),
+          born=torch.tensor([0, 0, 0, 15]))
+    mp.iteration = 20
+    assert mp._prune() == 2          # low opacity (old enough) + oversized; young one spared
+    assert len(g) == 2 and torch.isclose(g.opacities(), torch.tensor([0.9, 0.3])).all()
+
+
+# ---------------------------------------------------------------- mapping
+def test_optimisation_lowers_loss_and_improves_render(scene):
+    pose = pose_at()
+    img, depth = render_view(scene, pose)
+    mp = Mapper(small_cfg(iters_first=0, downsample_first=4), K)
+    mp.add_keyframe(0, img, pose, depth)
+    kf = mp.keyframes[0]
+
+    def loss():
+        with torch.no_grad():
+            return float(mp._view_loss(kf, mp._raster(kf.pose)))
+    l0 = loss()
+    p0 = psnr(mp.render(pose)[0], img)
+    mp._optimize(80)
+    assert loss() < 0.5 * l0
+    p1 = psnr(mp.render(pose)[0], img)
+    assert p1 > p0 + 3 and p1 > 24, (p0, p1)
+    st = mp.stats()
+    assert st["iterations"] == 80 and st["gaussians"] == len(mp.map) > 0
+
+
+def test_add_keyframe_decides_window_membership(scene):
+    mp = Mapper(small_cfg(iters_first=30, iters_per_keyframe=5), K)
+    p0 = pose_at()
+    img, d = render_view(scene, p0)
+    st = mp.add_keyframe(0, img, p0, d)
+    assert st["mapped"] and st["reason"] == "first" and st["new_gaussians"] > 0
+    # the same view again adds nothing
+    st = mp.add_keyframe(1, img, p0, d)
+    assert not st["mapped"] and st["reason"] == "redundant" and st["keyframes"] == 1
+    # a large move is mapped
+    p2 = pose_at(0.8, 0, 0.3)
+    img2, d2 = render_view(scene, p2)
+    st = mp.add_keyframe(2, img2, p2, d2)
+    assert st["mapped"] and st["keyframes"] == 2 and mp.window.window == [2, 0]
+    with pytest.raises(MapError, match="already mapped"):
+        mp.add_keyframe(2, img2, p2, d2)
+    with pytest.raises(MapError, match="image"):
+        mp.add_keyframe(3, img2[:10], p2, d2)
+    with pytest.raises(MapError, match="pose"):
+        mp.add_keyframe(3, img2, np.eye(3), d2)
+
+
+def test_negative_focal_length_is_rejected_clearly():
+    with pytest.raises(MapError, match="positive focal"):
+        Mapper(small_cfg(), Intrinsics(100, -100, 10, 10, 20, 20))
+
+
+def test_map_sequence_gt_poses_and_depth(scene, tmp_path):
+    frames = []
+    for i in range(4):
+        p = pose_at(0.15 * i, 0, 0.1 * i, 0.05 * i)
+        img, d = render_view(scene, p)
+        frames.append(Frame(i, 0.1 * i, img, K, gt_pose=p, gt_depth=d))
+    cfg = small_cfg(iters_first=100, iters_per_keyframe=20, final_refine_iters=20,
+                    downsample_first=4, downsample=8)
+    mapper, m = map_sequence(frames, cfg, K, progress=False, keyframe_every=2)
+    assert m["keyframes"] == 2 and sorted(mapper.keyframes) == [0, 2]
+    assert m["psnr"] > 22 and m["depth_l1_cm"] < 10, m
+    assert m["gaussians"] == len(mapper.map) and m["map_mb"] > 0
+    ts, P = mapper.keyframe_trajectory()
+    np.testing.assert_allclose(ts, [0.0, 0.2])
+    # every frame offered: the rules pick at least the first one
+    mapper2, m2 = map_sequence(frames, cfg, K, progress=False, keyframe_every=0)
+    assert 1 <= m2["keyframes"] <= 4 and m2["frames_offered"] == 4
+    # novel views (all frames, at their ground-truth poses)
+    ev = mapper.evaluate(frames)
+    assert ev["views"] == 4 and ev["psnr"] > 18
+    # PLY round trip renders the same image
+    mapper.save_ply(tmp_path / "m.ply")
+    loaded = Mapper.load_ply(tmp_path / "m.ply", cfg, K)
+    a = mapper.render(frames[1].gt_pose)[0].astype(int)
+    b = loaded.render(frames[1].gt_pose)[0].astype(int)
+    assert np.abs(a - b).max() <= 1
+    assert mapper.save_renders(tmp_path / "r") == 2 and (tmp_path / "r" / "kf_00002.png").is_file()
+    with pytest.raises(MapError, match="ground-truth pose"):
+        map_sequence([Frame(0, 0.0, frames[0].image, K, gt_depth=frames[0].gt_depth)], cfg, K,
+                      progress=False)
