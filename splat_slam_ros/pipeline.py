@@ -70,7 +70,8 @@ class SlamPipeline:
         self.loop = None
         if cfg.tracking.loop_closure or cfg.tracking.global_ba:
             if not getattr(self.tracker, "owns_loop_closure", False):
-                self.loop = stage("loop_closure")(cfg, intrinsics)
+                # its own update seq range, as in track_sequence and the loop-closure node
+                self.loop = stage("loop_closure")(cfg, intrinsics, seq_start=1_000_000_000)
         self.mapping = mapping
         self.depth = None
         self.mapper = None
