@@ -183,7 +183,7 @@ class Player:
         while not cond():
             if not rclpy.ok():
                 raise KeyboardInterrupt
-            rclpy.spin_once(self.node, timeout_sec=0.02)
+            rclpy.spin_once(self.node, timeout_sec=0.2)
             now = time.monotonic()
             if now - t0 > timeout:
                 return False

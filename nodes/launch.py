@@ -311,9 +311,9 @@ class Launcher:
         last_sample = 0.0
         eos_sent = False
         while True:
-            self.rclpy.spin_once(self.node, timeout_sec=0.05)
+            self.rclpy.spin_once(self.node, timeout_sec=0.25)
             now = time.monotonic()
-            if now - last_sample > 0.25:
+            if now - last_sample > 0.5:
                 last_sample = now
                 for c in self.children.values():
                     c.sample()
