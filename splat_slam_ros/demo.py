@@ -19,7 +19,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="./run.sh demo", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
-    p.add_argument("--frames", type=int, default=150, help="synthetic frames (default 150)")
+    p.add_argument("--frames", type=int, default=240, help="synthetic frames (default 240)")
     p.add_argument("--size", default="320x240", help="image size WxH (default 320x240)")
     p.add_argument("--trajectory", default="builtin",
                    help="trajectory file (TUM/KITTI/EuRoC) or 'builtin' (default)")
@@ -28,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mode", default="auto", choices=["auto", "graph", "inprocess"],
                    help="run the ROS 2 node graph, or all stages in one process "
                         "(auto: the graph when it is available)")
-    p.add_argument("--config", default=None, help="SLAM config YAML (default config/synthetic.yaml)")
+    p.add_argument("--config", default=None, help="SLAM config YAML (default config/demo.yaml)")
     p.add_argument("--fresh", action="store_true", help="regenerate the sequence and the bag")
     return p
 
@@ -63,7 +63,7 @@ def main(argv=None) -> int:
             write_bag(open_dataset(seq), bag, progress=True)
         else:
             print(f"[demo] 2/4 reusing the bag in {bag}")
-        cfg_path = args.config or str(config_dir() / "synthetic.yaml")
+        cfg_path = args.config or str(config_dir() / "demo.yaml")
         cfg = load_config(cfg_path if Path(cfg_path).is_file() else None)
 
         mode = args.mode
