@@ -151,6 +151,9 @@ def main(argv=None) -> int:
     if not (bag / "metadata.yaml").is_file():
         write_bag(open_dataset(seq), bag, progress=True)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
+    if "ROS_DOMAIN_ID" not in env:            # a shared machine: never the default domain
+        from splat_slam_ros.ros_env import random_domain_id
+        env["ROS_DOMAIN_ID"] = str(random_domain_id())
     res = {"frames": a.frames, "size": a.size, "trajectory": str(traj), "config": cfg or None,
            "cpu_count": os.cpu_count(), "loadavg_start": _loadavg(), "note": loop_note}
 
