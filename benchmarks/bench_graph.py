@@ -56,7 +56,9 @@ from splat_slam_ros.datasets import open_dataset
 from splat_slam_ros.pipeline import run
 bag, out, cfg = sys.argv[1], Path(sys.argv[2]), (sys.argv[3] or None)
 r = run(open_dataset(bag), load_config(cfg), out, mode="full", progress=False)
-print("RESULT " + json.dumps({"fps": r.metrics["fps"], "wall_s": r.wall_s}), flush=True)
+import resource
+print("RESULT " + json.dumps({"fps": r.metrics["fps"], "wall_s": r.wall_s,
+      "maxrss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}), flush=True)
 '''
 
 
@@ -114,6 +116,9 @@ def main(argv=None) -> int:
     ap.add_argument("--work", default=str(REPO / "benchmarks" / "results" / "graph_work"))
     ap.add_argument("--skip-inprocess", action="store_true")
     ap.add_argument("--skip-graph", action="store_true")
+    ap.add_argument("--graph-first", action="store_true",
+                    help="run the graph before the in-process pipeline (load drifts on a "
+                         "shared machine: alternate the order between runs)")
     ap.add_argument("--json", default=str(REPO / "benchmarks" / "results" / "graph.json"))
     a = ap.parse_args(argv)
     from splat_slam_ros.bagio import write_bag
@@ -154,50 +159,65 @@ def main(argv=None) -> int:
     if "ROS_DOMAIN_ID" not in env:            # a shared machine: never the default domain
         from splat_slam_ros.ros_env import random_domain_id
         env["ROS_DOMAIN_ID"] = str(random_domain_id())
-    res = {"frames": a.frames, "size": a.size, "trajectory": str(traj), "config": cfg or None,
+    res = {"order": "graph first" if a.graph_first else "in-process first", "frames": a.frames, "size": a.size, "trajectory": str(traj), "config": cfg or None,
            "cpu_count": os.cpu_count(), "loadavg_start": _loadavg(), "note": loop_note}
 
-    if not a.skip_inprocess:
-        out = work / "inprocess"
-        c0, _ = _rusage_children()
-        t0 = time.perf_counter()
-        r = subprocess.run([sys.executable, "-c", INPROC, str(bag), str(out), cfg], env=env,
-                           capture_output=True, text=True)
-        wall_proc = time.perf_counter() - t0
-        c1, rss = _rusage_children()
-        if r.returncode != 0:
-            print(r.stdout[-3000:], r.stderr[-3000:], file=sys.stderr)
-            return 1
-        m = json.loads((out / "metrics.json").read_text())
-        res["inprocess"] = {k: m.get(k) for k in ("ate_rmse_cm_full", "ate_rmse_cm_keyframes",
-                                                   "psnr", "ssim", "keyframes", "fps", "wall_s",
-                                                   "timings_s")}
-        res["inprocess"].update(cpu_s=round(c1 - c0, 1), peak_rss_mb=round(rss / 2**20, 1),
-                                wall_process_s=round(wall_proc, 1))
-        res["inprocess"].update(depth_l1_cm(out, seq, cfg or None))
-        print("in-process:", json.dumps(res["inprocess"]), flush=True)
+    def run_inprocess():
+        if not a.skip_inprocess:
+            out = work / "inprocess"
+            c0, _ = _rusage_children()
+            t0 = time.perf_counter()
+            r = subprocess.run([sys.executable, "-c", INPROC, str(bag), str(out), cfg], env=env,
+                               capture_output=True, text=True)
+            wall_proc = time.perf_counter() - t0
+            c1, _ = _rusage_children()
+            rss = 0
+            for line in r.stdout.splitlines():
+                if line.startswith("RESULT "):
+                    rss = json.loads(line[7:])["maxrss"]
+            if r.returncode != 0:
+                print(r.stdout[-3000:], r.stderr[-3000:], file=sys.stderr)
+                return 1
+            m = json.loads((out / "metrics.json").read_text())
+            res["inprocess"] = {k: m.get(k) for k in ("ate_rmse_cm_full", "ate_rmse_cm_keyframes",
+                                                       "psnr", "ssim", "keyframes", "fps", "wall_s",
+                                                       "timings_s")}
+            res["inprocess"].update(cpu_s=round(c1 - c0, 1), peak_rss_mb=round(rss / 2**20, 1),
+                                    wall_process_s=round(wall_proc, 1))
+            res["inprocess"].update(depth_l1_cm(out, seq, cfg or None))
+            print("in-process:", json.dumps(res["inprocess"]), flush=True)
 
-    if not a.skip_graph:
-        out = work / "graph"
-        c0, _ = _rusage_children()
-        t0 = time.perf_counter()
-        args = [sys.executable, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out",
-                str(out), "--mode", "lockstep"] + (["--config", cfg] if cfg else [])
-        r = subprocess.run(args, env=env, capture_output=True, text=True)
-        wall_proc = time.perf_counter() - t0
-        c1, _ = _rusage_children()
-        (work / "graph_launch.log").write_text(r.stdout + r.stderr)
-        if r.returncode != 0:
-            print(r.stdout[-4000:], r.stderr[-3000:], file=sys.stderr)
+        return 0
+
+    def run_graph():
+        if not a.skip_graph:
+            out = work / "graph"
+            c0, _ = _rusage_children()
+            t0 = time.perf_counter()
+            args = [sys.executable, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out",
+                    str(out), "--mode", "lockstep"] + (["--config", cfg] if cfg else [])
+            r = subprocess.run(args, env=env, capture_output=True, text=True)
+            wall_proc = time.perf_counter() - t0
+            c1, _ = _rusage_children()
+            (work / "graph_launch.log").write_text(r.stdout + r.stderr)
+            if r.returncode != 0:
+                print(r.stdout[-4000:], r.stderr[-3000:], file=sys.stderr)
+                return 1
+            m = json.loads((out / "metrics.json").read_text())
+            g = {k: m.get(k) for k in ("ate_rmse_cm_full", "ate_rmse_cm_keyframes", "psnr", "ssim",
+                                       "keyframes", "fps", "wall_s", "nodes", "peak_rss_mb_sum")}
+            g.update(cpu_s=round(c1 - c0, 1), wall_process_s=round(wall_proc, 1),
+                     cpu_s_nodes=round(sum(v["cpu_s"] for v in m["nodes"].values()), 1))
+            g.update(depth_l1_cm(out, seq, cfg or None))
+            res["graph"] = g
+            print("graph:", json.dumps(g), flush=True)
+
+        return 0
+
+    order = [run_graph, run_inprocess] if a.graph_first else [run_inprocess, run_graph]
+    for step in order:
+        if step():
             return 1
-        m = json.loads((out / "metrics.json").read_text())
-        g = {k: m.get(k) for k in ("ate_rmse_cm_full", "ate_rmse_cm_keyframes", "psnr", "ssim",
-                                   "keyframes", "fps", "wall_s", "nodes", "peak_rss_mb_sum")}
-        g.update(cpu_s=round(c1 - c0, 1), wall_process_s=round(wall_proc, 1),
-                 cpu_s_nodes=round(sum(v["cpu_s"] for v in m["nodes"].values()), 1))
-        g.update(depth_l1_cm(out, seq, cfg or None))
-        res["graph"] = g
-        print("graph:", json.dumps(g), flush=True)
 
     if "inprocess" in res and "graph" in res:
         ip, g = res["inprocess"], res["graph"]
