@@ -293,13 +293,19 @@ def ba_step(poses: torch.Tensor, disps: torch.Tensor, intr, ii: torch.Tensor, jj
 
 
 def bundle_adjust(poses, disps, intr, ii, jj, target, weight, iters: int = 4, fixed=1,
-                  huber=None, **kw):
-    """Run ``iters`` BA iterations; returns (poses, disps, list[BAInfo])."""
+                  huber=None, rtol: float = 0.0, **kw):
+    """Run up to ``iters`` BA iterations; returns (poses, disps, list[BAInfo]).
+
+    With ``rtol > 0`` it stops once an iteration lowered the cost by less than
+    that fraction (not when the cost rose: Gauss-Newton may need to recover)."""
     infos = []
     for _ in range(iters):
         poses, disps, info = ba_step(poses, disps, intr, ii, jj, target, weight, fixed=fixed,
                                      huber=huber, **kw)
         infos.append(info)
+        if rtol > 0 and len(infos) >= 2 and \
+                0 <= infos[-2].cost - info.cost < rtol * max(infos[-2].cost, 1e-12):
+            break
     return poses, disps, infos
 
 

@@ -46,8 +46,8 @@ def spatial_pairs(ids: Sequence[int], poses: torch.Tensor, disps: torch.Tensor, 
 
 
 def normalized_global_ba(poses: torch.Tensor, disps: torch.Tensor, intr, ii, jj, target,
-                         weight, iters: int, fixed: int = 2, huber: Optional[float] = None
-                         ) -> Tuple[torch.Tensor, torch.Tensor, List[BAInfo]]:
+                         weight, iters: int, fixed: int = 2, huber: Optional[float] = None,
+                         rtol: float = 1e-3) -> Tuple[torch.Tensor, torch.Tensor, List[BAInfo]]:
     """Eq. 1 over all keyframes with the mean-disparity normalisation of Sec. 3.1:
     ``d_norm = d / d_mean``, ``t_norm = d_mean t``; BA; then back to the input scale."""
     dbar = float(disps.mean())
@@ -57,7 +57,7 @@ def normalized_global_ba(poses: torch.Tensor, disps: torch.Tensor, intr, ii, jj,
     P[:, :3, 3] *= dbar
     D = disps / dbar
     P, D, infos = bundle_adjust(P, D, intr, ii, jj, target, weight, iters=iters, fixed=fixed,
-                                huber=huber)
+                                huber=huber, rtol=rtol)
     P = P.clone()
     P[:, :3, 3] /= dbar
     return P, D * dbar, infos

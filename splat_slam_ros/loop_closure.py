@@ -11,11 +11,15 @@ Loop detection: the mean flow that the current estimate induces between the
 active keyframes (the last ``loop_window``) and every older keyframe; pairs
 below ``tau_loop`` (``loop_flow_thresh``) and more than ``tau_t``
 (``loop_time_gap``) keyframes apart become candidates. Each candidate's flow
-is measured (DIS initialised with the induced flow) and, if confident, added
-as a unidirectional edge. Loop BA then optimises the active keyframes and
-their loop nodes (Eq. 1); a loop whose edges still do not fit afterwards is
-rejected. Online global BA runs every ``global_ba_every`` keyframes (and after
-an accepted loop); ``finalize`` runs the final global BA passes.
+is measured (DIS from scratch and initialised with the induced flow, the more
+confident kept) and, if confident, added to the graph - in both directions: the
+old keyframe's settled disparity pins the loop's scale, which one edge from the
+active side alone leaves free. Loop BA (Eq. 1) then runs over the active
+keyframes and their loop nodes (with their temporal neighbours); the older
+side is held fixed as the gauge, all disparities move. A loop whose edges still
+do not fit afterwards is rejected. Online global BA runs every ``global_ba_every`` keyframes;
+``finalize`` runs the final global BA passes (stopping early once an iteration
+gains less than 0.1 %).
 """
 from __future__ import annotations
 
@@ -65,6 +69,7 @@ class LoopCloser:
         self._seq = itertools.count(seq_start)
         self.motion = MotionFilter(tc.motion_filter_thresh, min_valid_frac=tc.lost_min_valid)
         self.huber = tc.robust_huber_px / tc.ba_downsample if tc.robust_huber_px > 0 else None
+        self.gate = tc.edge_gate_px / tc.ba_downsample
         self.timings: Dict[str, float] = defaultdict(float)
         self.n_loops = 0
 
@@ -92,12 +97,13 @@ class LoopCloser:
                                             device=self.device)
             self.prep[k] = self.flow.prepare(kf.image)
             self.meta[k] = (int(kf.frame_index), float(kf.timestamp))
-            prev = [i for i in self.ids if i < k][-self.tc.global_ba_radius:]
+            prev = [i for i in self.ids if i < k][-max(self.tc.global_ba_radius, 1):]
             self.ids.append(k)
             self.ids.sort()
             self.new_since_gba.append(k)
-            for p in prev:
-                self._measure(p, k, kind="odometry", both=True)
+            for n, p in enumerate(reversed(prev)):
+                # the previous keyframe in both directions, further ones k -> p only
+                self._measure(p, k, kind="odometry", both=(n == 0), gate=self.gate)
             self._evict()
             self.timings["add"] += time.perf_counter() - t0
 
@@ -131,28 +137,43 @@ class LoopCloser:
                           torch.tensor([1, 0], device=self.device))
         return uv - self.grid
 
-    def _measure(self, a: int, b: int, kind: str, both: bool = True, use_init: bool = False):
+    def _measure(self, a: int, b: int, kind: str, both: bool = True, mode: str = "induced",
+                 gate: float = 0.0):
         """Measure flow a <-> b and add the edge(s); returns the FlowCheck or None.
 
-        With ``use_init`` DIS is run twice, from scratch and pre-warped by the
-        flow the current estimate induces, and the more confident result kept
-        (drift can make the induced flow worse than none)."""
+        ``mode``: ``"induced"`` pre-warps DIS by the flow the current estimate
+        induces (large but predictable displacements: the tracker's poses are
+        good), falling back to DIS from scratch if that is not confident;
+        ``"scratch"`` the other way round (loop candidates, where drift can make
+        the induced flow worse than none). The more confident result is kept.
+        ``gate`` (BA px, > 0): cells whose measured flow is further than this
+        from the induced one get zero weight (DIS locking onto a wrong period
+        of a repetitive texture is confident but wrong)."""
         if a not in self.prep or b not in self.prep:
             return None
         from .flow_frontend import predict_both
         t0 = time.perf_counter()
-        results = [predict_both(self.flow, self.prep[a], self.prep[b])]
-        if use_init and hasattr(self.flow, "predict_pair"):
-            init = self._induced_pair(a, b).cpu()
-            results.append(self.flow.predict_pair(self.prep[a], self.prep[b],
-                                                  init_ij=init[0], init_ji=init[1]))
-        self.timings["flow"] += time.perf_counter() - t0
+        init = self._induced_pair(a, b)
+        order = ["induced", "scratch"] if mode == "induced" else ["scratch", "induced"]
+        if not hasattr(self.flow, "predict_pair"):
+            order = ["scratch"]
         best = None
-        for res in results:
+        for how in order:
+            if how == "scratch":
+                res = predict_both(self.flow, self.prep[a], self.prep[b])
+            else:
+                res = self.flow.predict_pair(self.prep[a], self.prep[b],
+                                             init_ij=init[0].cpu(), init_ji=init[1].cpu())
             f, w, fb, wb = (x.to(self.device) for x in res)
+            if gate > 0:
+                w = w * ((f - init[0]).norm(dim=-1, keepdim=True) < gate)
+                wb = wb * ((fb - init[1]).norm(dim=-1, keepdim=True) < gate)
             fc = self.motion.check(f, w)
             if best is None or fc.valid_frac > best[0].valid_frac:
                 best = (fc, f, w, fb, wb)
+            if fc.ok and fc.valid_frac >= 0.6 * (self.motion._typical or 0.0):
+                break
+        self.timings["flow"] += time.perf_counter() - t0
         fc, f, w, fb, wb = best
         if not fc.ok:
             return fc
@@ -230,7 +251,7 @@ class LoopCloser:
             return []
         added = []
         for act, o, d in cands:
-            fc = self._measure(act, o, kind="loop", both=False, use_init=True)
+            fc = self._measure(act, o, kind="loop", both=True, mode="scratch")
             self.checked.add((act, o))
             if fc is not None and fc.ok and fc.valid_frac >= 0.5 * (self.motion._typical or 0):
                 added.append((act, o))
@@ -245,9 +266,15 @@ class LoopCloser:
             if p[0] in nodes or p[1] in nodes:
                 nodes.update(p)
         ids = sorted(nodes)
+        # the older side (loop nodes and their neighbours) holds the gauge and the
+        # scale; the active keyframes move onto it (their disparities all move)
+        act_set = set(active)
+        fixed = torch.tensor([k not in act_set for k in ids], device=self.device)
+        if int(fixed.sum()) < 2:
+            fixed[:2] = True
         before = {k: (self.poses[k].clone(), self.disps[k].clone()) for k in ids}
         t0 = time.perf_counter()
-        res = self._optimize(ids, tc.loop_ba_iters, fixed=2, normalize=True)
+        res = self._optimize(ids, tc.loop_ba_iters, fixed=fixed, normalize=True)
         self.timings["loop_ba"] += time.perf_counter() - t0
         if res is None:
             return []
@@ -266,11 +293,11 @@ class LoopCloser:
             if rms < max(4 * infos[-1].rms, 0.5):
                 ok_pairs.append((act, o))
             else:
-                self.graph.remove([(act, o)])
+                self.graph.remove([(act, o), (o, act)])
         if not ok_pairs:
             return []
         if len(ok_pairs) < len(added):      # re-run without the rejected edges
-            res = self._optimize(ids, tc.loop_ba_iters, fixed=2, normalize=True)
+            res = self._optimize(ids, tc.loop_ba_iters, fixed=fixed, normalize=True)
             P, D, infos, pairs = res
         for n, k in enumerate(ids):
             self.poses[k] = P[n]
@@ -293,7 +320,8 @@ class LoopCloser:
                               tc.global_ba_thresh, tc.global_ba_max_edges,
                               exclude=set(self.graph.pairs()) | self.checked)
         for a, b, _ in pairs:
-            fc = self._measure(a, b, kind="global", both=True, use_init=True)
+            new, old = (a, b) if a > b else (b, a)
+            fc = self._measure(new, old, kind="global", both=False)
             self.checked.add((a, b))
             if fc is None or not fc.ok:
                 continue
@@ -332,8 +360,7 @@ class LoopCloser:
             if self.tc.loop_closure:
                 loop = self._close_loops()
                 events += loop
-            due = self.tc.global_ba and (
-                len(self.new_since_gba) >= self.tc.global_ba_every or bool(loop))
+            due = self.tc.global_ba and len(self.new_since_gba) >= self.tc.global_ba_every
             if due:
                 events += self.global_ba(self.tc.global_ba_iters)
             self.timings["step"] += time.perf_counter() - t0
