@@ -63,19 +63,20 @@ class TrackingConfig:
     event_disp_thresh: float = 1e-3      # ... or its mean relative disparity change exceeds this
     # loop closure (paper 3.1 "Loop Closure")
     loop_closure: bool = True
-    loop_window: int = 25
+    loop_window: int = 12                # active keyframes checked / optimised (reference: 25)
     loop_flow_thresh: float = 25.0       # tau_loop (BA px, flow induced by the current estimate)
     loop_time_gap: int = 20              # tau_t (keyframes)
     loop_nms: int = 12
-    loop_max_edges: int = 4              # loop edge pairs accepted per step
-    loop_ba_iters: int = 6
+    loop_max_edges: int = 2              # loop candidates measured per step
+    loop_ba_iters: int = 3
     # online global BA (paper 3.1 "Global BA")
     global_ba: bool = True
     global_ba_every: int = 20            # keyframes
-    global_ba_iters: int = 4
-    global_ba_radius: int = 2            # temporal neighbours connected in the global graph
+    global_ba_iters: int = 3
+    global_ba_radius: int = 2            # temporal edges: k <-> k-1, k -> k-2 .. k-radius
     global_ba_thresh: float = 12.0       # spatial edges: induced mean flow below (BA px)
     global_ba_max_edges: int = 2         # spatial edge pairs per new keyframe at most
+    edge_gate_px: float = 16.0           # temporal edges: drop cells this far from the estimate (tracking px)
     final_ba_iters: tuple = (7, 12)
     keyframe_buffer: int = 512
     # DSPO (paper Eq. 2); only active when a mono depth model is configured
