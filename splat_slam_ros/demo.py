@@ -80,6 +80,11 @@ def main(argv=None) -> int:
                 return 3
         t_run = time.perf_counter()
         if graph is not None:
+            import os
+            from .ros_env import random_domain_id
+            # an isolated DDS domain, so another ROS graph on this machine or LAN cannot
+            # cross-talk with the demo (set ROS_DOMAIN_ID yourself to choose one)
+            os.environ.setdefault("ROS_DOMAIN_ID", str(random_domain_id()))
             print(f"[demo] 3/4 running the ROS 2 node graph on the bag -> {run_dir}", flush=True)
             rc = graph.main(["--bag", str(bag), "--out", str(run_dir), "--config", cfg_path])
             if rc:
