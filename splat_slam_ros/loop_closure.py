@@ -70,6 +70,7 @@ class LoopCloser:
         self.motion = MotionFilter(tc.motion_filter_thresh, min_valid_frac=tc.lost_min_valid)
         self.huber = tc.robust_huber_px / tc.ba_downsample if tc.robust_huber_px > 0 else None
         self.gate = tc.edge_gate_px / tc.ba_downsample
+        self.loop_fit_rms = 0.15            # BA px: a loop edge fitting this well needs no loop BA
         self.timings: Dict[str, float] = defaultdict(float)
         self.n_loops = 0
 
@@ -215,6 +216,20 @@ class LoopCloser:
                                         fixed=fixed, huber=self.huber)
         return P, D, infos, pairs
 
+    def _edge_rms(self, pair, poses=None, disps=None, ids=None) -> float:
+        """Weighted RMS reprojection error (BA px) of one stored edge."""
+        a, o = pair
+        if poses is None:
+            ids = [a, o]
+            poses, disps = self._stack(ids)
+        pos = {k: n for n, k in enumerate(ids)}
+        tgt, wgt = self.graph.edges[(a, o)]
+        uv, valid = reproject(poses, disps, self.intr, torch.tensor([pos[a]], device=self.device),
+                              torch.tensor([pos[o]], device=self.device))
+        r = (uv[0] - tgt.float()).norm(dim=-1)
+        wm = wgt.float().mean(-1) * valid[0]
+        return float(((r ** 2 * wm).sum() / wm.sum().clamp_min(1e-9)) ** 0.5)
+
     # ------------------------------------------------------------ loop closure
     def detect(self) -> List[Tuple[int, int, float]]:
         """Loop candidates (active, old, induced distance) by the Sec. 3.1 criteria."""
@@ -257,6 +272,15 @@ class LoopCloser:
                 added.append((act, o))
         if not added:
             return []
+        # a loop the current estimate already agrees with needs no loop BA: keep its
+        # edges for the global BA (saves most loop BAs when there is little drift)
+        fits = [self._edge_rms(p) < self.loop_fit_rms for p in added]
+        if all(fits):
+            self.loop_pairs.update(added)
+            self.n_loops += len(added)
+            log.info("loop closure: %d edge(s) %s already consistent, no loop BA",
+                     len(added), added)
+            return []
         active = self.ids[-tc.loop_window:]
         nodes = set(active)
         for act, o in added:
@@ -280,16 +304,9 @@ class LoopCloser:
             return []
         P, D, infos, pairs = res
         # verify: the new loop edges must fit after the loop BA
-        pos = {k: n for n, k in enumerate(ids)}
         ok_pairs = []
         for act, o in added:
-            ii = torch.tensor([pos[act]], device=self.device)
-            jj = torch.tensor([pos[o]], device=self.device)
-            tgt, wgt = self.graph.edges[(act, o)]
-            uv, valid = reproject(P, D, self.intr, ii, jj)
-            r = (uv[0] - tgt.float()).norm(dim=-1)
-            wm = wgt.float().mean(-1) * valid[0]
-            rms = float(((r ** 2 * wm).sum() / wm.sum().clamp_min(1e-9)) ** 0.5)
+            rms = self._edge_rms((act, o), P, D, ids)
             if rms < max(4 * infos[-1].rms, 0.5):
                 ok_pairs.append((act, o))
             else:
