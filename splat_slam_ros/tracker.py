@@ -217,9 +217,15 @@ class Tracker:
         return (torch.stack([self.poses[k] for k in ids]),
                 torch.stack([self.disps[k] for k in ids]))
 
+    MAX_STORED_FLOWS = 20000     # frames whose flow is kept for the final refinement
+
     def _record(self, frame: Frame, **kw) -> FrameRecord:
         r = FrameRecord(frame.index, float(frame.timestamp), **kw)
         self.records.append(r)
+        # bound memory on long live runs: older frames keep only their relative pose
+        old = len(self.records) - 1 - self.MAX_STORED_FLOWS
+        if old >= 0:
+            self.records[old].flow = self.records[old].weight = None
         return r
 
     def _store_flow(self, f, w):
@@ -466,6 +472,20 @@ class Tracker:
         fill = float(out[valid].median()) if bool(valid.any()) else float(d_ref.median())
         return torch.where(valid, out, torch.full_like(out, fill)).clamp(1e-3, 1e3)
 
+    def _add_radius_edges(self, kid: int) -> None:
+        """Edges to the keyframes 2 .. frontend_radius before the new one (the one
+        before is connected by the tracking flow already), DIS pre-warped by the
+        induced flow."""
+        for k in self.window[-1 - self.tc.frontend_radius:-2]:
+            if (k, kid) in self.graph:
+                continue
+            init_ab = self._induced(self.poses[k], self.disps[k], self.poses[kid])
+            init_ba = self._induced(self.poses[kid], self.disps[kid], self.poses[k])
+            f, w, fb, wb = self._flows(self.prep[k], self.prep[kid], init_ab, init_ba)
+            if self.motion.check(f, w).ok:
+                self.graph.add(k, kid, f, w, kind="radius")
+                self.graph.add(kid, k, fb, wb, kind="radius")
+
     def _add_proximity_edges(self, kid: int) -> None:
         tc = self.tc
         if tc.frontend_new_edges <= 0 or len(self.window) < 3:
@@ -558,6 +578,7 @@ class Tracker:
         self.conf[kid] = wb.mean(-1)
         self.graph.add(ref, kid, f, w)
         self.graph.add(kid, ref, fb, wb)
+        self._add_radius_edges(kid)
         self._add_proximity_edges(kid)
         self._trim_window()
         binfo = self._local_ba(tc.ba_iters)

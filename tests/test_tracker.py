@@ -357,3 +357,26 @@ def test_euroc_static_camera_real_images(shared_data):
     spread = np.linalg.norm(poses[:, :3, 3] - poses[0, :3, 3], axis=1).max()
     # 1.7 cm of real motion at ~3 m: a few mm relative to the scene scale at most
     assert spread < 0.01 * scene_depth
+
+
+def test_depth_prior_hook_runs_after_each_local_ba_and_its_disparities_are_used():
+    """The DSPO hook (paper Eq. 2) alternates with DBA: it sees the window and the edges."""
+    from splat_slam_ros.tracker import BAState, Tracker
+    frames, _ = sequence()
+    calls = []
+
+    def prior(st: BAState):
+        assert st.poses.shape[0] == st.disps.shape[0] == len(st.kf_ids)
+        assert st.target.shape[0] == st.weight.shape[0] == len(st.ii) == len(st.jj)
+        out = st.disps * 1.01                 # a visible, harmless change
+        calls.append((list(st.kf_ids), out.clone()))
+        return out
+
+    tr = Tracker(small_cfg(frontend_radius=2), INTR, depth_prior=prior)
+    for f in frames:
+        tr.track(f)
+    assert len(calls) >= 2
+    ids, out = calls[-1]                       # nothing optimised after the last call
+    for n, k in enumerate(ids):
+        assert torch.allclose(tr.disps[k], out[n])
+    assert any(kind == "radius" for kind in tr.graph.kind.values())
