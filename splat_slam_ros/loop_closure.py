@@ -48,7 +48,7 @@ class LoopCloser:
     """Loop closure + global BA over its own keyframe store (see module docstring)."""
 
     def __init__(self, cfg: SlamConfig, intrinsics: Optional[Intrinsics] = None,
-                 flow_predictor=None, seq_start: int = 0):
+                 flow_predictor=None, seq_start: int = 0, seq_counter=None):
         from .tracker import resolve_device
         self.cfg = cfg
         self.tc = tc = cfg.tracking
@@ -66,7 +66,7 @@ class LoopCloser:
         self.loop_pairs: set = set()           # accepted loop edges (i, j)
         self.checked: set = set()              # candidate pairs already measured (rejected)
         self.new_since_gba: List[int] = []
-        self._seq = itertools.count(seq_start)
+        self._seq = seq_counter if seq_counter is not None else itertools.count(seq_start)
         self.motion = MotionFilter(tc.motion_filter_thresh, min_valid_frac=tc.lost_min_valid)
         self.huber = tc.robust_huber_px / tc.ba_downsample if tc.robust_huber_px > 0 else None
         self.gate = tc.edge_gate_px / tc.ba_downsample

@@ -141,7 +141,7 @@ class Tracker:
 
     def __init__(self, cfg: SlamConfig, intrinsics: Intrinsics, flow_predictor=None,
                  depth_prior: Optional[Callable[[BAState], Optional[torch.Tensor]]] = None,
-                 seq_start: int = 0):
+                 seq_start: int = 0, seq_counter=None):
         self.cfg = cfg
         tc = self.tc = cfg.tracking
         self.device = resolve_device(tc.device)
@@ -169,7 +169,9 @@ class Tracker:
         self.records: List[FrameRecord] = []
         self.initialized = False
         self.next_kf = 0
-        self._seq = itertools.count(seq_start)
+        # event sequence numbers; pass one shared itertools.count to the tracker and
+        # the loop closer for a single increasing sequence in one process
+        self._seq = seq_counter if seq_counter is not None else itertools.count(seq_start)
         self.last_pose = torch.eye(4, dtype=torch.float64, device=self.device)
         self.velocity = torch.eye(4, dtype=torch.float64, device=self.device)
         self.lost_count = 0
@@ -696,13 +698,14 @@ def track_sequence(frames: Iterable[Frame], cfg: SlamConfig, intrinsics: Intrins
     events are applied to the tracker, the tracker's to the loop closer, exactly
     as the ROS nodes exchange them."""
     t_start = time.perf_counter()
-    tracker = Tracker(cfg, intrinsics)
+    seq = itertools.count()
+    tracker = Tracker(cfg, intrinsics, seq_counter=seq)
     tc = cfg.tracking
     use_loop = (tc.loop_closure or tc.global_ba) if loop_closure is None else loop_closure
     closer = None
     if use_loop:
         from .loop_closure import LoopCloser
-        closer = LoopCloser(cfg, intrinsics, seq_start=1_000_000_000)
+        closer = LoopCloser(cfg, intrinsics, seq_counter=seq)
     events: List[UpdateEvent] = []
     timings: Dict[str, float] = defaultdict(float)
     bar = None

@@ -211,6 +211,21 @@ def test_tracks_a_synthetic_sequence_accurately():
     assert set(res.timings) >= {"flow", "ba", "wall", "fps"}
 
 
+def test_track_sequence_with_loop_closer_in_process():
+    """Tracker + LoopCloser exchange events as the ROS nodes do; one increasing seq."""
+    from splat_slam_ros.tracker import track_sequence
+    frames, gt = sequence()
+    cfg = small_cfg(loop_closure=True, global_ba=True, global_ba_every=3, loop_time_gap=4,
+                    loop_window=4)
+    res = track_sequence(frames, cfg, INTR, progress=False)
+    reasons = {e.reason for e in res.events}
+    assert {"local_ba", "global_ba", "final"} <= reasons
+    seqs = [e.seq for e in res.events]
+    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+    path = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum()
+    assert ate_cm(frames, gt, res.timestamps, res.poses) < 0.03 * path * 100
+
+
 def test_update_events_report_exactly_the_changed_keyframes():
     from splat_slam_ros.tracker import Tracker
     frames, _ = sequence()
