@@ -16,7 +16,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from typing import Dict, List, Optional
+from typing import Dict, List
 
 from .node_common import TOPICS, TRACKER_REASONS, SplatNode, raw_hash, run_node
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import sys
 import threading
-import time
 from typing import List, Optional
 
 from .node_common import TOPICS, TRACKER_REASONS, SplatNode, run_node
