@@ -26,7 +26,6 @@ import time
 from pathlib import Path
 
 import cv2
-import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
@@ -137,8 +136,9 @@ def main(argv=None) -> int:
         r["tag"] = args.tag
         r["overrides"] = overrides
         print(f"{r['dataset']:28s} {r['size']:>8s} kf {r['keyframes']:3d}  "
-              f"PSNR {r['psnr']:6.2f} dB  SSIM {r['ssim']:.3f}  depth L1 {r['depth_l1_cm']:.2f} cm  "
-              f"{r['s_per_keyframe']:.1f} s/kf (first {r['first_keyframe_s']:.0f} s)  refine {r['refine_s']:.0f} s  "
+              f"PSNR {r['psnr']:6.2f} dB  SSIM {r['ssim']:.3f}  "
+              f"depth L1 {r['depth_l1_cm']:.2f} cm  {r['s_per_keyframe']:.1f} s/kf "
+              f"(first {r['first_keyframe_s']:.0f} s)  refine {r['refine_s']:.0f} s  "
               f"G {r['gaussians']}  {r['map_mb']:.1f} MB  RSS {r['peak_rss_mb']:.0f} MB  "
               f"load {r['loadavg_start']:.1f}->{r['loadavg_end']:.1f}"
               + (f"  novel PSNR {r['novel_view_psnr']:.2f}" if "novel_view_psnr" in r else ""))

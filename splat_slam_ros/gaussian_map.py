@@ -141,17 +141,14 @@ class GaussianMap:
             self._replace(name, torch.cat([self.params[name].detach(), t], 0),
                           lambda m, n=n: torch.cat([m, m.new_zeros((n,) + m.shape[1:])], 0))
         long = dict(dtype=torch.long, device=self.device)
-        kf = torch.as_tensor(kf_id, **long).expand(n) if not torch.is_tensor(kf_id) or \
-            kf_id.dim() == 0 else kf_id.to(**long)
-        cr = torch.as_tensor(created, **long).expand(n) if not torch.is_tensor(created) or \
-            created.dim() == 0 else created.to(**long)
-        bo = torch.as_tensor(born, **long).expand(n) if not torch.is_tensor(born) or \
-            born.dim() == 0 else born.to(**long)
+
+        def per_row(x):                   # scalar or (n,) -> (n,) long
+            return torch.as_tensor(x).to(**long).expand(n)
         uids = torch.arange(self._next_uid, self._next_uid + n, **long)
         self._next_uid += n
-        self.kf_id = torch.cat([self.kf_id, kf])
-        self.created = torch.cat([self.created, cr])
-        self.born = torch.cat([self.born, bo])
+        self.kf_id = torch.cat([self.kf_id, per_row(kf_id)])
+        self.created = torch.cat([self.created, per_row(created)])
+        self.born = torch.cat([self.born, per_row(born)])
         self.uid = torch.cat([self.uid, uids])
         z = torch.zeros(n, **f)
         self.grad_accum = torch.cat([self.grad_accum, z])

@@ -165,7 +165,6 @@ def test_window_overlap_cutoff_and_size_limit():
 def test_gaussian_map_add_remove_keeps_adam_state_aligned():
     g = GaussianMap(lrs={"means": 0.1})
     g.add(torch.zeros(3, 3), torch.zeros(3, 3), torch.zeros(3, 3), kf_id=7, created=0)
-    g.means.sum().backward() if False else None
     (g.means * torch.tensor([[1.0], [2.0], [3.0]])).sum().backward()
     g.step()
     st = g.optimizer.state[g.means]
