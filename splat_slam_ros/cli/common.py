@@ -21,6 +21,8 @@ def user_errors() -> Tuple[Type[BaseException], ...]:
         ("splat_slam_ros.mono_depth", "MonoDepthError"),
         ("splat_slam_ros.synth", "SynthError"),
         ("splat_slam_ros.rasterizer", "RasterizerBuildError"),
+        ("splat_slam_ros.mapper", "MapError"),
+        ("splat_slam_ros.ply_io", "PlyError"),
     ]
     out: List[Type[BaseException]] = []
     for mod, name in names:
