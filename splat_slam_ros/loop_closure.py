@@ -70,7 +70,7 @@ class LoopCloser:
         self.motion = MotionFilter(tc.motion_filter_thresh, min_valid_frac=tc.lost_min_valid)
         self.huber = tc.robust_huber_px / tc.ba_downsample if tc.robust_huber_px > 0 else None
         self.gate = tc.edge_gate_px / tc.ba_downsample
-        self.loop_fit_rms = 0.15            # BA px: a loop edge fitting this well needs no loop BA
+        self.loop_fit_rms = 0.25            # BA px: a loop edge fitting this well needs no loop BA
         self.timings: Dict[str, float] = defaultdict(float)
         self.n_loops = 0
 

@@ -235,11 +235,15 @@ class Tracker:
 
     def _keyframe_data(self, kid: int) -> KeyframeData:
         fi, ts = self.kf_meta[kid]
+        mono = None
+        if self.depth_prior is not None and hasattr(self.depth_prior, "take_mono_depth"):
+            mono = self.depth_prior.take_mono_depth(kid)     # DSPO ran the mono model already
         return KeyframeData(kf_id=kid, frame_index=fi, timestamp=ts,
                             pose=self.poses[kid].cpu().numpy().copy(),
                             image=self.images[kid], intrinsics=self.intrinsics,
                             disparity=self.disps[kid].cpu().numpy().astype(np.float32),
-                            confidence=self.conf[kid].cpu().numpy().astype(np.float32))
+                            confidence=self.conf[kid].cpu().numpy().astype(np.float32),
+                            mono_depth=mono)
 
     def _new_kf_id(self) -> int:
         k = self.next_kf
