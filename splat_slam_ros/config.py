@@ -68,7 +68,7 @@ class TrackingConfig:
     loop_time_gap: int = 20              # tau_t (keyframes)
     loop_nms: int = 12
     loop_max_edges: int = 2              # loop candidates measured per step
-    loop_ba_iters: int = 3
+    loop_ba_iters: int = 2
     # online global BA (paper 3.1 "Global BA")
     global_ba: bool = True
     global_ba_every: int = 20            # keyframes
