@@ -262,4 +262,8 @@ def load_config(path: Optional[str | Path] = None,
 def config_dir() -> Path:
     """The shipped config/ folder (repository checkout or installed share)."""
     here = Path(__file__).resolve().parent.parent / "config"
-    return here
+    if here.is_dir():
+        return here
+    import sys
+    installed = Path(sys.prefix) / "share" / "splat_slam_ros" / "config"
+    return installed if installed.is_dir() else here
