@@ -160,11 +160,12 @@ class Launcher:
 
     # ------------------------------------------------------------ setup
     def plan(self) -> None:
+        from splat_slam_ros.cli.common import parse_overrides
         from splat_slam_ros.config import ConfigError, load_config
         from splat_slam_ros.ros_env import RosEnvError, ros_environment
         a = self.args
         try:
-            self.overrides = _parse_sets(a.set)
+            self.overrides = parse_overrides(a.set)
             self.cfg = load_config(a.config, self.overrides)
         except ConfigError as e:
             raise LaunchError(str(e)) from None
@@ -437,19 +438,6 @@ def _ros_value(v) -> str:
     if isinstance(v, str):
         return v if v else "''"
     return str(v)
-
-
-def _parse_sets(items) -> Dict[str, object]:
-    import yaml
-
-    from splat_slam_ros.config import ConfigError
-    out = {}
-    for it in items or []:
-        if "=" not in it:
-            raise ConfigError(f"--set expects KEY=VALUE, got {it!r}")
-        k, v = it.split("=", 1)
-        out[k.strip()] = yaml.safe_load(v)
-    return out
 
 
 def build_parser() -> argparse.ArgumentParser:

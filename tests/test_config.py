@@ -47,3 +47,11 @@ def test_shipped_configs_load():
     files = sorted(config_dir().glob("*.yaml"))
     for f in files:
         load_config(f)
+
+
+def test_set_overrides_parse_and_reject_malformed():
+    from splat_slam_ros.cli.common import parse_overrides
+    assert parse_overrides(["tracking.warmup=6", "ros.map_frame=world"]) == {
+        "tracking.warmup": 6, "ros.map_frame": "world"}
+    with pytest.raises(ConfigError, match="--set expects KEY=VALUE"):
+        parse_overrides(["tracking.warmup"])

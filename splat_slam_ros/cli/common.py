@@ -1,13 +1,8 @@
 """Small helpers shared by the command-line entry points."""
 from __future__ import annotations
 
-import argparse
 import sys
 from typing import Callable, Dict, List, Tuple, Type
-
-# Exceptions that mean "the user gave us something wrong": printed as one line, exit 2.
-USER_ERRORS: Tuple[Type[BaseException], ...] = ()
-
 
 def user_errors() -> Tuple[Type[BaseException], ...]:
     """All project exception types that signal a user mistake (imported lazily)."""
@@ -50,12 +45,14 @@ def run_main(body: Callable[[], int]) -> int:
 
 
 def parse_overrides(items: List[str]) -> Dict[str, object]:
-    """`--set key=value` items -> dict with YAML-parsed values."""
+    """`--set key=value` items -> dict with YAML-parsed values (ConfigError if malformed)."""
     import yaml
+
+    from ..config import ConfigError
     out: Dict[str, object] = {}
     for it in items or []:
         if "=" not in it:
-            raise argparse.ArgumentTypeError(f"--set expects key=value, got '{it}'")
+            raise ConfigError(f"--set expects KEY=VALUE, got {it!r}")
         k, v = it.split("=", 1)
         out[k.strip()] = yaml.safe_load(v)
     return out
