@@ -1,7 +1,7 @@
 """splat_slam_ros: Splat-SLAM as a pip-installable ROS 2 Jazzy node graph."""
-from setuptools import setup
+from setuptools import find_packages, setup
 
 setup(
     package_dir={"splat_slam_ros": "splat_slam_ros", "splat_slam_nodes": "nodes"},
-    packages=["splat_slam_ros", "splat_slam_ros.cli", "splat_slam_ros.rasterizer", "splat_slam_nodes"],
+    packages=find_packages(include=["splat_slam_ros", "splat_slam_ros.*"]) + ["splat_slam_nodes"],
 )

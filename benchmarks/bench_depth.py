@@ -1,6 +1,6 @@
 """Proxy depth benchmark (paper §3.2, Eq. 4-5): accuracy, coverage and cost per keyframe.
 
-Data: synthetic RGB-D sequences from ``splat_slam_ros.synth.generate_sequence`` (textured
+Data: synthetic RGB-D sequences from ``splat_slam_ros.io.synth.generate_sequence`` (textured
 room, exact depth) along real recorded trajectories from ../shared/data/trajectories
 (TUM fr1/xyz, fr2/desk) and the built-in hand-held path.
 
@@ -39,9 +39,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from splat_slam_ros.config import SlamConfig  # noqa: E402
-from splat_slam_ros.datasets import open_dataset  # noqa: E402
-from splat_slam_ros.mono_depth import MonoDepthModel  # noqa: E402
-from splat_slam_ros.proxy_depth import (ProxyDepthEstimator, compose_proxy_depth,  # noqa: E402
+from splat_slam_ros.io.datasets import open_dataset  # noqa: E402
+from splat_slam_ros.depth.mono_depth import MonoDepthModel  # noqa: E402
+from splat_slam_ros.depth.proxy_depth import (ProxyDepthEstimator, compose_proxy_depth,  # noqa: E402
                                         multiview_filter, upsample_disparity)
 from splat_slam_ros.types import KeyframeData  # noqa: E402
 
@@ -113,7 +113,7 @@ def metrics(res, gt):
 
 def run_sequence(name, traj, args, workdir, variants):
     seq = workdir / name
-    from splat_slam_ros.synth import generate_sequence
+    from splat_slam_ros.io.synth import generate_sequence
     generate_sequence(traj, args.frames, args.size, seq, overwrite=True, progress=False,
                       fps=args.fps, seed=args.seed)
     ds = open_dataset(seq)
@@ -168,7 +168,7 @@ def run_sequence(name, traj, args, workdir, variants):
 
 def raw_result(kf, cfg, intr):
     """No multi-view filter: every BA pixel with a disparity, upsampled the same way."""
-    from splat_slam_ros.proxy_depth import ProxyDepthResult, _disp_to_depth
+    from splat_slam_ros.depth.proxy_depth import ProxyDepthResult, _disp_to_depth
     d = torch.from_numpy(kf.disparity)
     up, ok = upsample_disparity(d, d > 0, (intr.height, intr.width), cfg.depth.upsample_disc)
     depth, source, _, _ = compose_proxy_depth(_disp_to_depth(up), ok)
@@ -219,8 +219,8 @@ def bench_dspo_window(n=25, w=80, h=60, reps=3):
     high/low split (each keyframe vs its 8 nearest window keyframes) + 2 GN steps of Eq. 2.
     Scene: a slanted plane seen by a camera moving sideways; mono = exact affine."""
     from types import SimpleNamespace
-    from splat_slam_ros.dense_ba import reproject
-    from splat_slam_ros.dspo import DspoPrior
+    from splat_slam_ros.tracking.dense_ba import reproject
+    from splat_slam_ros.depth.dspo import DspoPrior
     fx = 0.8 * w
     intr = torch.tensor([fx, fx, w / 2 - 0.5, h / 2 - 0.5])
     poses = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)

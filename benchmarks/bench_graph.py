@@ -3,8 +3,8 @@
     .venv/bin/python benchmarks/bench_graph.py [--frames 300] [--size 640x480] [--config FILE]
 
 A synthetic sequence along /work/shared/data/trajectories/freiburg1_xyz-groundtruth.txt
-(splat_slam_ros.synth.generate_sequence) is converted to a rosbag2/MCAP bag
-(splat_slam_ros.bagio.write_bag) and run twice, each in its own process:
+(splat_slam_ros.io.synth.generate_sequence) is converted to a rosbag2/MCAP bag
+(splat_slam_ros.io.bagio.write_bag) and run twice, each in its own process:
   1. in-process: splat_slam_ros.pipeline.run on the bag;
   2. graph: splat-slam-launch --bag ... in lockstep mode (4 node processes + player).
 Reported per run: ATE RMSE (cm, Sim(3), full and keyframes), keyframe PSNR, depth L1 (cm,
@@ -52,7 +52,7 @@ INPROC = r'''
 import json, sys, time
 from pathlib import Path
 from splat_slam_ros.config import load_config
-from splat_slam_ros.datasets import open_dataset
+from splat_slam_ros.io.datasets import open_dataset
 from splat_slam_ros.pipeline import run
 bag, out, cfg = sys.argv[1], Path(sys.argv[2]), (sys.argv[3] or None)
 r = run(open_dataset(bag), load_config(cfg), out, mode="full", progress=False)
@@ -79,10 +79,10 @@ def depth_l1_cm(out: Path, seq_dir: Path, cfg_path) -> dict:
     scaling by the Sim(3) ATE scale of the keyframe trajectory (monocular maps have no metric
     scale). Pixels where both depths are > 0."""
     from splat_slam_ros.config import load_config
-    from splat_slam_ros.datasets import open_dataset
+    from splat_slam_ros.io.datasets import open_dataset
     from splat_slam_ros.evaluation import ate
-    from splat_slam_ros.mapper import Mapper
-    from splat_slam_ros.trajectory_io import read_trajectory
+    from splat_slam_ros.mapping.mapper import Mapper
+    from splat_slam_ros.io.trajectory_io import read_trajectory
     ds = open_dataset(seq_dir)
     gt_ts, gt_P = ds.gt_trajectory()
     ts, P = read_trajectory(out / "trajectory_keyframes.txt")
@@ -121,9 +121,9 @@ def main(argv=None) -> int:
                          "shared machine: alternate the order between runs)")
     ap.add_argument("--json", default=str(REPO / "benchmarks" / "results" / "graph.json"))
     a = ap.parse_args(argv)
-    from splat_slam_ros.bagio import write_bag
-    from splat_slam_ros.datasets import open_dataset
-    from splat_slam_ros.synth import generate_sequence
+    from splat_slam_ros.io.bagio import write_bag
+    from splat_slam_ros.io.datasets import open_dataset
+    from splat_slam_ros.io.synth import generate_sequence
     work = Path(a.work)
     seq, bag = work / "seq", work / "bag"
     cfg = a.config or (str(REPO / "config" / "synthetic.yaml")

@@ -29,8 +29,8 @@ from pathlib import Path
 import torch
 
 from splat_slam_ros.geometry import matrix_to_quat
-from splat_slam_ros.rasterizer import rasterize
-from splat_slam_ros.rasterizer.kernel import load_extension
+from splat_slam_ros.mapping.rasterizer import rasterize
+from splat_slam_ros.mapping.rasterizer.kernel import load_extension
 
 JEMALLOC = ("/usr/lib/x86_64-linux-gnu/libjemalloc.so.2", "/usr/lib/aarch64-linux-gnu/libjemalloc.so.2")
 

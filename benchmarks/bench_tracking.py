@@ -52,7 +52,7 @@ def closed_loop_trajectory(path: Path, duration: float = 13.5, period: float = 1
     """A hand-held-like closed path: once around an ellipse looking outwards at the
     walls (a full turn), then 1.5 s more so the start is revisited; TUM file."""
     import numpy as np
-    from splat_slam_ros.trajectory_io import write_tum
+    from splat_slam_ros.io.trajectory_io import write_tum
     t = np.arange(0, duration, 0.01)
     ang = 2 * np.pi * t / period
     pos = np.stack([radius * np.cos(ang), 0.7 * radius * np.sin(ang),
@@ -100,9 +100,9 @@ def run_child(args) -> None:
     t0 = time.perf_counter()
     import numpy as np
     from splat_slam_ros.config import load_config
-    from splat_slam_ros.datasets import open_dataset
+    from splat_slam_ros.io.datasets import open_dataset
     from splat_slam_ros.evaluation import ate
-    from splat_slam_ros.tracker import track_sequence
+    from splat_slam_ros.tracking.tracker import track_sequence
     overrides = {}
     for kv in args.set or []:
         k, v = kv.split("=", 1)

@@ -32,7 +32,7 @@ class DepthNode(SplatNode):
         from . import qos as Q
         n = self.node
         self.pub = n.create_publisher(ProxyDepth, TOPICS["proxy_depth"], Q.proxy_depth_qos())
-        import splat_slam_ros.proxy_depth  # noqa: F401  (torch before 'ready')
+        import splat_slam_ros.depth.proxy_depth  # noqa: F401  (torch before 'ready')
         self.est = None
         self.kf_stamp: Dict[int, float] = {}
         self.pending: Dict[int, tuple] = {}       # updates for keyframes not received yet
@@ -43,7 +43,7 @@ class DepthNode(SplatNode):
         self.finalized = False
         self.store = None
         if self.state_dir is not None:
-            from splat_slam_ros.keyframe_store import KeyframeStore
+            from splat_slam_ros.io.keyframe_store import KeyframeStore
             self.store = KeyframeStore(self.state_dir)
             if self.store.exists:
                 self._resume()
@@ -60,7 +60,7 @@ class DepthNode(SplatNode):
 
     # ------------------------------------------------------------ persistence
     def _resume(self) -> None:
-        from splat_slam_ros.proxy_depth import ProxyDepthEstimator
+        from splat_slam_ros.depth.proxy_depth import ProxyDepthEstimator
         meta = self.store.meta
         kfs = self.store.keyframes()
         self.seen = dict.fromkeys(meta.get("seen", []))
@@ -111,7 +111,7 @@ class DepthNode(SplatNode):
     def _keyframes(self) -> None:
         """All keyframes received so far, as one batch: the tracker's warm-up publishes
         several at once, and each must see the others as views (Eq. 5)."""
-        from splat_slam_ros.proxy_depth import ProxyDepthEstimator
+        from splat_slam_ros.depth.proxy_depth import ProxyDepthEstimator
 
         from .convert import msg_to_keyframe
         while time.monotonic() - self.last_kf_arrival < BURST_GAP_S:

@@ -401,7 +401,7 @@ class Launcher:
         m["peak_rss_mb_sum"] = round(sum(v["peak_rss_mb"] for v in m["nodes"].values()), 1)
         if self.bag is not None and self.out_dir is not None:
             try:
-                from splat_slam_ros.bagio import BagDataset
+                from splat_slam_ros.io.bagio import BagDataset
                 from splat_slam_ros.pipeline import evaluate_trajectories
                 ds = BagDataset(self.args.bag)
                 evaluate_trajectories(ds, self.out_dir, m)

@@ -1,4 +1,4 @@
-"""loop_closure_node: keyframes -> splat_slam_ros.loop_closure.LoopCloser -> PoseGraphUpdate.
+"""loop_closure_node: keyframes -> splat_slam_ros.tracking.loop_closure.LoopCloser -> PoseGraphUpdate.
 
 Subscribes  /splat/keyframes (Keyframe), /splat/pose_graph_updates (the tracker's local-BA
             updates -> LoopCloser.apply_update), /splat/graph_events (finalisation).
@@ -31,7 +31,7 @@ class LoopClosureNode(SplatNode):
         self.pub = n.create_publisher(PoseGraphUpdate, TOPICS["updates"], Q.pose_graph_qos())
         self.pub_ack = n.create_publisher(FrameAck, TOPICS["ack"], Q.ack_qos())
         try:
-            import splat_slam_ros.loop_closure  # noqa: F401  (torch before 'ready')
+            import splat_slam_ros.tracking.loop_closure  # noqa: F401  (torch before 'ready')
         except ImportError as e:
             self.log.fatal(f"the loop closure stage is not available: {e}")
             raise SystemExit(3)
@@ -45,7 +45,7 @@ class LoopClosureNode(SplatNode):
         self.finalized = False
         self.store = None
         if self.state_dir is not None:
-            from splat_slam_ros.keyframe_store import KeyframeStore
+            from splat_slam_ros.io.keyframe_store import KeyframeStore
             self.store = KeyframeStore(self.state_dir)
             if self.store.exists:
                 self._resume()
@@ -60,7 +60,7 @@ class LoopClosureNode(SplatNode):
         self.publish_event("ready")
 
     def _make(self, intr):
-        from splat_slam_ros.loop_closure import LoopCloser
+        from splat_slam_ros.tracking.loop_closure import LoopCloser
         try:
             return LoopCloser(self.cfg, intr, seq_start=self.next_seq)
         except TypeError:                     # a LoopCloser without seq_start

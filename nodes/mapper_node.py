@@ -1,4 +1,4 @@
-"""mapper_node: keyframes + proxy depth -> splat_slam_ros.mapper.Mapper -> renders, map, status.
+"""mapper_node: keyframes + proxy depth -> splat_slam_ros.mapping.mapper.Mapper -> renders, map, status.
 
 Subscribes  /splat/keyframes (images), /splat/proxy_depth (new keyframes are mapped once their
             depth is there; ``is_update`` depths deform the keyframe's Gaussians first),
@@ -53,7 +53,7 @@ class MapperNode(SplatNode):
         self.pub_status = n.create_publisher(MapperStatus, TOPICS["status"], Q.status_qos())
         self.pub_ack = n.create_publisher(FrameAck, TOPICS["ack"], Q.ack_qos())
         self.MapperStatus = MapperStatus
-        import splat_slam_ros.mapper  # noqa: F401  (torch + rasterizer before 'ready')
+        import splat_slam_ros.mapping.mapper  # noqa: F401  (torch + rasterizer before 'ready')
         self.mapper = None
         self.intr = None
         self.pending_kf: Dict[int, object] = {}    # kf_id -> KeyframeData waiting for depth
@@ -68,7 +68,7 @@ class MapperNode(SplatNode):
         self.dirty = set()                          # keyframes whose depth changed since
         self.store = None
         if self.state_dir is not None:
-            from splat_slam_ros.keyframe_store import KeyframeStore
+            from splat_slam_ros.io.keyframe_store import KeyframeStore
             self.store = KeyframeStore(self.state_dir)
             if self.store.exists:
                 self._resume()
@@ -90,7 +90,7 @@ class MapperNode(SplatNode):
 
     # ------------------------------------------------------------ persistence
     def _resume(self) -> None:
-        from splat_slam_ros.keyframe_store import restore_mapper
+        from splat_slam_ros.io.keyframe_store import restore_mapper
         from splat_slam_ros.types import Intrinsics
         meta = self.store.meta
         self.seen = dict.fromkeys(meta.get("seen", []))
@@ -109,7 +109,7 @@ class MapperNode(SplatNode):
     def _snapshot(self) -> None:
         if self.store is None or self.mapper is None:
             return
-        from splat_slam_ros.keyframe_store import keyframe_depth, mapper_state
+        from splat_slam_ros.io.keyframe_store import keyframe_depth, mapper_state
         arrays, meta = mapper_state(self.mapper)
         staged = {f"kf{k}_mdepth": self.store.stage(f"kf{k}_mdepth",
                                                      **keyframe_depth(self.mapper, k))
@@ -179,7 +179,7 @@ class MapperNode(SplatNode):
         self._check_final()
 
     def _map(self, kf, pd) -> None:
-        from splat_slam_ros.mapper import Mapper
+        from splat_slam_ros.mapping.mapper import Mapper
 
         from .convert import frame_ack_msg, to_stamp
         if self.mapper is None:
@@ -265,7 +265,7 @@ class MapperNode(SplatNode):
 
     def save(self, directory: Path, final: bool = False) -> dict:
         """map.ply, trajectory_keyframes (mapped keyframes), renders/, metrics."""
-        from splat_slam_ros.trajectory_io import write_tum
+        from splat_slam_ros.io.trajectory_io import write_tum
         d = Path(directory)
         d.mkdir(parents=True, exist_ok=True)
         metrics: dict = {}

@@ -132,7 +132,7 @@ class RerunLogger(SplatNode):
         ply = self.output_dir / "map.ply"
         if not ply.is_file():
             return
-        from splat_slam_ros.ply_io import load_gaussians_ply
+        from splat_slam_ros.mapping.ply_io import load_gaussians_ply
         g = load_gaussians_ply(ply)
         order = np.argsort(-g["opacity_logits"])[:MAX_ELLIPSOIDS]
         cols = (np.clip(g["colors"][order], 0, 1) * 255).astype(np.uint8)

@@ -1,4 +1,4 @@
-"""tracker_node: camera frames -> splat_slam_ros.tracker.Tracker -> keyframes, poses, updates.
+"""tracker_node: camera frames -> splat_slam_ros.tracking.tracker.Tracker -> keyframes, poses, updates.
 
 Subscribes  ros.image_topic (sensor_msgs/Image: rgb8, bgr8, mono8, rgba8, bgra8) and
             ros.camera_info_topic (sensor_msgs/CameraInfo) — remap with ``--set`` / ``-p``;
@@ -79,7 +79,7 @@ class TrackerNode(SplatNode):
             except IntrinsicsError as e:
                 self.log.fatal(str(e))
                 raise SystemExit(2)
-        import splat_slam_ros.tracker  # noqa: F401  (torch, OpenCV before 'ready')
+        import splat_slam_ros.tracking.tracker  # noqa: F401  (torch, OpenCV before 'ready')
         self.log.info(f"listening on {self.cfg.ros.image_topic} + {self.cfg.ros.camera_info_topic} "
                       f"({self.opts['input_qos']} QoS)")
         self.publish_event("ready")
@@ -158,7 +158,7 @@ class TrackerNode(SplatNode):
         self.warn_throttled(why.split(":")[0], f"frame {index} dropped: {why}")
 
     def _track(self, msg, index: int) -> Optional[int]:
-        from splat_slam_ros.tracker import TrackingError
+        from splat_slam_ros.tracking.tracker import TrackingError
         from splat_slam_ros.types import Frame
 
         from .convert import (ConversionError, from_stamp, keyframe_to_msg, msg_to_rgb,
@@ -185,7 +185,7 @@ class TrackerNode(SplatNode):
                               f"{intr.width}x{intr.height}")
             return None
         if self.tracker is None:
-            from splat_slam_ros.tracker import Tracker
+            from splat_slam_ros.tracking.tracker import Tracker
             try:
                 self.tracker = Tracker(self.cfg, intr, seq_start=1)
             except (TrackingError, ValueError) as e:
@@ -263,7 +263,7 @@ class TrackerNode(SplatNode):
         self.saved = True
         files = []
         if self.output_dir is not None and self.tracker is not None:
-            from splat_slam_ros.trajectory_io import write_tum
+            from splat_slam_ros.io.trajectory_io import write_tum
             self.output_dir.mkdir(parents=True, exist_ok=True)
             ts, P = self.tracker.trajectory_full()
             write_tum(self.output_dir / "trajectory_full.txt", ts, P)

@@ -35,13 +35,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from .cli.common import run_main
+    from splat_slam_ros.cli.common import run_main
 
     def body() -> int:
-        from .config import config_dir, load_config
-        from .datasets import open_dataset
-        from .bagio import write_bag
-        from .synth import generate_sequence
+        from splat_slam_ros.config import config_dir, load_config
+        from splat_slam_ros.io.datasets import open_dataset
+        from splat_slam_ros.io.bagio import write_bag
+        from splat_slam_ros.io.synth import generate_sequence
 
         out = Path(args.out)
         seq, bag, run_dir = out / "sequence", out / "bag", out / "run"
@@ -81,7 +81,7 @@ def main(argv=None) -> int:
         t_run = time.perf_counter()
         if graph is not None:
             import os
-            from .ros_env import random_domain_id
+            from splat_slam_ros.ros_env import random_domain_id
             # an isolated DDS domain, so another ROS graph on this machine or LAN cannot
             # cross-talk with the demo (set ROS_DOMAIN_ID yourself to choose one)
             os.environ.setdefault("ROS_DOMAIN_ID", str(random_domain_id()))
@@ -90,7 +90,7 @@ def main(argv=None) -> int:
             if rc:
                 return rc
         else:
-            from .pipeline import run
+            from splat_slam_ros.pipeline import run
             print(f"[demo] 3/4 running all stages in one process on the bag -> {run_dir}",
                   flush=True)
             run(open_dataset(bag), cfg, run_dir, mode="full", progress=True)

@@ -5,7 +5,7 @@ The trajectory metrics follow the reference evaluation (the evo library): poses 
 associated by nearest timestamp, the estimate is aligned to the ground truth with
 Umeyama's method (Sim(3) by default, the monocular case) over the full matched
 trajectory, and the translational error is reported in centimetres. File formats are
-read by :mod:`splat_slam_ros.trajectory_io`.
+read by :mod:`splat_slam_ros.io.trajectory_io`.
 
 Rendering metrics take images in [0, 1] (float, torch or numpy, H x W x 3 or 3 x H x W;
 uint8 images are divided by 255). PSNR can be computed after per-channel exposure
@@ -21,7 +21,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from .geometry import apply_sim3_to_poses, se3_inverse, so3_log
+from splat_slam_ros.geometry import apply_sim3_to_poses, se3_inverse, so3_log
 
 
 class MetricError(ValueError):

@@ -17,16 +17,16 @@ from typing import Dict, Iterable, List, Optional
 
 import numpy as np
 
-from .config import SlamConfig
-from .trajectory_io import write_tum
-from .types import Frame, Intrinsics, KeyframeData, UpdateEvent
+from splat_slam_ros.config import SlamConfig
+from splat_slam_ros.io.trajectory_io import write_tum
+from splat_slam_ros.types import Frame, Intrinsics, KeyframeData, UpdateEvent
 
 # Which module provides each stage, and what the user loses without it.
 STAGES = {
-    "tracking": ("splat_slam_ros.tracker", "Tracker"),
-    "loop_closure": ("splat_slam_ros.loop_closure", "LoopCloser"),
-    "depth": ("splat_slam_ros.proxy_depth", "ProxyDepthEstimator"),
-    "mapping": ("splat_slam_ros.mapper", "Mapper"),
+    "tracking": ("splat_slam_ros.tracking.tracker", "Tracker"),
+    "loop_closure": ("splat_slam_ros.tracking.loop_closure", "LoopCloser"),
+    "depth": ("splat_slam_ros.depth.proxy_depth", "ProxyDepthEstimator"),
+    "mapping": ("splat_slam_ros.mapping.mapper", "Mapper"),
     "evaluation": ("splat_slam_ros.evaluation", "ate"),
 }
 
@@ -166,7 +166,7 @@ def evaluate_trajectories(dataset, out: Path, metrics: dict) -> Optional[float]:
     if gt is None:
         return None
     ate = stage("evaluation")
-    from .trajectory_io import read_trajectory
+    from splat_slam_ros.io.trajectory_io import read_trajectory
     scale = None
     for name in ("full", "keyframes"):
         f = out / f"trajectory_{name}.txt"
@@ -201,7 +201,7 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
     n_total = len(dataset) if max_frames is None else min(len(dataset), max_frames)
 
     if mode == "gt_mapping":
-        from .mapper import map_sequence
+        from splat_slam_ros.mapping.mapper import map_sequence
         frames = (f for i, f in enumerate(dataset) if max_frames is None or i < max_frames)
         mapper, m = map_sequence(frames, cfg, dataset.intrinsics, use_gt_depth=True,
                                  progress=progress)

@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 import yaml
 
-from splat_slam_ros.bagio import (DEFAULT_TOPICS, INFO_FILE, BagDataset, make_typestore,
+from splat_slam_ros.io.bagio import (DEFAULT_TOPICS, INFO_FILE, BagDataset, make_typestore,
                                   register_project_types, write_bag)
 from splat_slam_ros.cli.convert import main as convert_main
-from splat_slam_ros.datasets import DatasetError, open_dataset, stamp_to_ns
+from splat_slam_ros.io.datasets import DatasetError, open_dataset, stamp_to_ns
 from splat_slam_ros.geometry import pose_from_tq
-from splat_slam_ros.trajectory_io import read_trajectory
+from splat_slam_ros.io.trajectory_io import read_trajectory
 from splat_slam_ros.types import Intrinsics
 
 from test_datasets import (K_SMALL, _write_rgb, _img, make_euroc, make_replica,  # noqa: E402
@@ -229,7 +229,7 @@ def test_cli_convert_overwrite_and_errors(tmp_path, capsys):
 
 def test_synthetic_sequence_converts(tmp_path, capsys):
     """splat-slam-synth output (TUM layout + intrinsics.yaml) -> convert CLI -> bag."""
-    synth = pytest.importorskip("splat_slam_ros.synth")
+    synth = pytest.importorskip("splat_slam_ros.io.synth")
     seq = synth.generate_sequence("builtin", frames=3, size="64x48", out=tmp_path / "syn",
                                   progress=False)
     ds = open_dataset(seq)

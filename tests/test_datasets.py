@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from splat_slam_ros.datasets import (DatasetError, TUM_DEFAULTS, detect_format,
+from splat_slam_ros.io.datasets import (DatasetError, TUM_DEFAULTS, detect_format,
                                      interpolate_poses, open_dataset)
 from splat_slam_ros.geometry import pose_from_tq, pose_to_tq, so3_exp
-from splat_slam_ros.trajectory_io import read_trajectory
+from splat_slam_ros.io.trajectory_io import read_trajectory
 from splat_slam_ros.types import Intrinsics
 
 W, H = 32, 24

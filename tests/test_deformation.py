@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import torch
 
-from splat_slam_ros.deformation import deform_gaussians
+from splat_slam_ros.mapping.deformation import deform_gaussians
 from splat_slam_ros.geometry import quat_to_matrix
-from splat_slam_ros.mapper import Mapper
+from splat_slam_ros.mapping.mapper import Mapper
 from test_mapper import K, pose_at, psnr, render_view, scene_gaussians, small_cfg
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from splat_slam_ros.dense_ba import (_edge_terms, ba_cost, ba_step, bundle_adjust,
+from splat_slam_ros.tracking.dense_ba import (_edge_terms, ba_cost, ba_step, bundle_adjust,
                                      disparity_normal_equations, induced_flow_distance,
                                      pose_only_refine, reproject)
 from splat_slam_ros.geometry import pixel_grid, project_homogeneous, se3_exp, se3_inverse

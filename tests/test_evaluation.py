@@ -19,7 +19,7 @@ import torch
 from splat_slam_ros import evaluation as ev
 from splat_slam_ros.cli.eval import main as eval_main
 from splat_slam_ros.geometry import apply_sim3_to_poses, so3_exp
-from splat_slam_ros.trajectory_io import read_trajectory, write_tum
+from splat_slam_ros.io.trajectory_io import read_trajectory, write_tum
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 # the tests build TorchScript backbones themselves; torch 2.13 flags torch.jit as deprecated

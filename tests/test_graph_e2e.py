@@ -50,7 +50,7 @@ SUBS = [["/splat/keyframes", "splat_slam_msgs/msg/Keyframe", "keyframe"],
 
 def _loop_available() -> bool:
     try:
-        from splat_slam_ros.loop_closure import LoopCloser  # noqa: F401
+        from splat_slam_ros.tracking.loop_closure import LoopCloser  # noqa: F401
         return True
     except ImportError:
         return False
@@ -59,9 +59,9 @@ def _loop_available() -> bool:
 @pytest.fixture(scope="module")
 def tiny_bag(tmp_path_factory):
     need_ros()
-    from splat_slam_ros.bagio import write_bag
-    from splat_slam_ros.datasets import open_dataset
-    from splat_slam_ros.synth import generate_sequence
+    from splat_slam_ros.io.bagio import write_bag
+    from splat_slam_ros.io.datasets import open_dataset
+    from splat_slam_ros.io.synth import generate_sequence
     d = tmp_path_factory.mktemp("graph_bag")
     traj = REPO.parent / "shared" / "data" / "trajectories" / "freiburg1_xyz-groundtruth.txt"
     generate_sequence(str(traj) if traj.is_file() else "builtin", 40, (192, 144), d / "seq",
@@ -131,10 +131,10 @@ def test_graph_end_to_end(graph_run):
               ("tracker", "saved"), ("mapper", "saved")]:
         assert k in kinds, kinds
     # the map loads back from its PLY and renders
-    from splat_slam_ros.bagio import BagDataset
+    from splat_slam_ros.io.bagio import BagDataset
     from splat_slam_ros.config import load_config
-    from splat_slam_ros.mapper import Mapper
-    from splat_slam_ros.trajectory_io import read_trajectory
+    from splat_slam_ros.mapping.mapper import Mapper
+    from splat_slam_ros.io.trajectory_io import read_trajectory
     ds = BagDataset(graph_run_bag(d))
     mp = Mapper.load_ply(out / "map.ply", load_config(None), ds.intrinsics)
     assert len(mp.map) > 0

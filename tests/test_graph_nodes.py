@@ -180,7 +180,7 @@ def test_depth_and_mapper_nodes(tmp_path):
         assert (saved / f).is_file(), f
     assert json.loads((saved / "metrics.json").read_text())["views"] == 3
     from splat_slam_ros.config import load_config
-    from splat_slam_ros.mapper import Mapper
+    from splat_slam_ros.mapping.mapper import Mapper
     from splat_slam_ros.types import Intrinsics
     mp = Mapper.load_ply(saved / "map.ply", load_config(cfg), Intrinsics(50, 50, 31.5, 23.5, 64, 48))
     assert len(mp.map) > 0

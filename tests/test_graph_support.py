@@ -67,7 +67,7 @@ def write_tiny_bag(path: Path, n: int = 12, w: int = 64, h: int = 48, with_depth
     """A rosbag2 MCAP with n frames of camera_info + rgb8 image (+ depth, gt pose)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    from splat_slam_ros import bagio
+    from splat_slam_ros.io import bagio
     from splat_slam_ros.types import Intrinsics
     ts = bagio.make_typestore(project_types=False)
     K = Intrinsics(0.8 * w, 0.8 * w, (w - 1) / 2, (h - 1) / 2, w, h)

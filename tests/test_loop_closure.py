@@ -86,7 +86,7 @@ def end_gap_cm(P: np.ndarray, gt: np.ndarray) -> float:
 
 
 def test_loop_edges_detected_on_a_revisit():
-    from splat_slam_ros.loop_closure import LoopCloser
+    from splat_slam_ros.tracking.loop_closure import LoopCloser
     data = loop_keyframes()
     gt = np.stack([d[1] for d in data])
     est = drifted(gt)
@@ -109,7 +109,7 @@ def test_loop_edges_detected_on_a_revisit():
 
 
 def test_global_ba_reduces_drift_on_a_loop():
-    from splat_slam_ros.loop_closure import LoopCloser
+    from splat_slam_ros.tracking.loop_closure import LoopCloser
     data = loop_keyframes()
     gt = np.stack([d[1] for d in data])
     est = drifted(gt)
@@ -129,7 +129,7 @@ def test_global_ba_reduces_drift_on_a_loop():
 
 def test_loop_closer_events_list_exactly_the_changed_keyframes():
     from splat_slam_ros.geometry import se3_log
-    from splat_slam_ros.loop_closure import LoopCloser
+    from splat_slam_ros.tracking.loop_closure import LoopCloser
     data = loop_keyframes()
     gt = np.stack([d[1] for d in data])
     est = gt.copy()
@@ -163,7 +163,7 @@ def test_loop_closer_events_list_exactly_the_changed_keyframes():
 
 
 def test_tracker_applies_loop_events_and_moves_later_keyframes_rigidly():
-    from splat_slam_ros.tracker import Tracker
+    from splat_slam_ros.tracking.tracker import Tracker
     tr = Tracker(small_cfg(), INTR)
     eye = np.eye(4)
     for k in range(4):

@@ -5,12 +5,12 @@ import pytest
 import torch
 
 from splat_slam_ros.config import MappingConfig, SlamConfig
-from splat_slam_ros.gaussian_map import GaussianMap
+from splat_slam_ros.mapping.gaussian_map import GaussianMap
 from splat_slam_ros.geometry import se3_exp, se3_inverse
-from splat_slam_ros.keyframe_window import (KeyframeWindow, covisibility_iou,
+from splat_slam_ros.mapping.keyframe_window import (KeyframeWindow, covisibility_iou,
                                             overlap_coefficient)
-from splat_slam_ros.map_init import init_gaussians, nn_scale
-from splat_slam_ros.mapper import MapError, Mapper, map_sequence
+from splat_slam_ros.mapping.map_init import init_gaussians, nn_scale
+from splat_slam_ros.mapping.mapper import MapError, Mapper, map_sequence
 from splat_slam_ros.types import Frame, Intrinsics
 
 W, H, F = 48, 36, 42.0
@@ -42,7 +42,7 @@ def pose_at(tx=0.0, ty=0.0, tz=0.0, yaw=0.0):
 
 
 def render_view(scene, pose):
-    from splat_slam_ros.rasterizer import rasterize
+    from splat_slam_ros.mapping.rasterizer import rasterize
     V = se3_inverse(torch.as_tensor(pose)).float()
     out = rasterize(*scene, V, (K.fx, K.fy, K.cx, K.cy), W, H)
     img = (out.rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()

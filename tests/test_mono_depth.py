@@ -6,7 +6,7 @@ import pytest
 import torch
 import yaml
 
-from splat_slam_ros.mono_depth import (MonoDepthError, MonoDepthModel, load_mono_depth,
+from splat_slam_ros.depth.mono_depth import (MonoDepthError, MonoDepthModel, load_mono_depth,
                                        read_sidecar)
 
 pytest.importorskip("onnxruntime")
@@ -204,7 +204,7 @@ def test_unsupported_suffix(tmp_path):
 def test_proxy_depth_estimator_runs_the_configured_model(models):
     """depth.mono_model -> ProxyDepthEstimator loads the ONNX file and fills holes with it."""
     from splat_slam_ros.config import SlamConfig
-    from splat_slam_ros.proxy_depth import SOURCE_MONO, ProxyDepthEstimator
+    from splat_slam_ros.depth.proxy_depth import SOURCE_MONO, ProxyDepthEstimator
     from splat_slam_ros.types import Intrinsics, KeyframeData
     p = models["dynamic"]
     write_sidecar(p, output="depth", resize="dynamic", size_multiple=8)
@@ -234,7 +234,7 @@ def test_proxy_depth_estimator_runs_the_configured_model(models):
 
 def test_estimator_checks_model_file_at_start_and_loads_lazily(models, tmp_path):
     from splat_slam_ros.config import SlamConfig
-    from splat_slam_ros.proxy_depth import ProxyDepthEstimator
+    from splat_slam_ros.depth.proxy_depth import ProxyDepthEstimator
     from splat_slam_ros.types import Intrinsics
     intr = Intrinsics(100.0, 100.0, 79.5, 59.5, 160, 120)
     cfg = SlamConfig()

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from splat_slam_ros.ply_io import SH_C0, PlyError, load_gaussians_ply, save_gaussians_ply
+from splat_slam_ros.mapping.ply_io import SH_C0, PlyError, load_gaussians_ply, save_gaussians_ply
 
 
 def random_gaussians(n=257, seed=0):

@@ -19,11 +19,11 @@ from pathlib import Path
 import pytest
 import torch
 
-from splat_slam_ros.rasterizer import (RasterizerBuildError, RasterizerInputError, RasterOutput,
+from splat_slam_ros.mapping.rasterizer import (RasterizerBuildError, RasterizerInputError, RasterOutput,
                                        rasterize)
-from splat_slam_ros.rasterizer import kernel as rkernel
-from splat_slam_ros.rasterizer.projection import project_gaussians
-from splat_slam_ros.rasterizer.reference import rasterize_reference
+from splat_slam_ros.mapping.rasterizer import kernel as rkernel
+from splat_slam_ros.mapping.rasterizer.projection import project_gaussians
+from splat_slam_ros.mapping.rasterizer.reference import rasterize_reference
 
 W, H = 61, 45  # not multiples of the tile size: partial edge tiles
 TOL = 1e-4
@@ -295,7 +295,7 @@ def test_kernel_cache_second_load_is_fast(ext):
     mtime = so.stat().st_mtime_ns
     code = """
         import time
-        from splat_slam_ros.rasterizer import kernel
+        from splat_slam_ros.mapping.rasterizer import kernel
         t = time.perf_counter(); kernel.load_extension(); print(time.perf_counter() - t)
     """
     r = _run_py(code, {})
@@ -307,7 +307,7 @@ def test_kernel_cache_second_load_is_fast(ext):
 def test_build_failure_is_a_clear_error(tmp_path):
     code = """
         import warnings, torch
-        from splat_slam_ros.rasterizer import kernel, rasterize, RasterizerBuildError
+        from splat_slam_ros.mapping.rasterizer import kernel, rasterize, RasterizerBuildError
         try:
             kernel.load_extension()
         except RasterizerBuildError as e:
@@ -337,7 +337,7 @@ def test_build_failure_is_a_clear_error(tmp_path):
 
 def test_compile_error_is_reported(tmp_path):
     code = """
-        from splat_slam_ros.rasterizer import kernel
+        from splat_slam_ros.mapping.rasterizer import kernel
         try:
             kernel.load_extension()
         except kernel.RasterizerBuildError as e:

@@ -1,4 +1,4 @@
-"""Tests for the synthetic RGB-D sequence generator (splat_slam_ros.synth, splat-slam-synth)."""
+"""Tests for the synthetic RGB-D sequence generator (splat_slam_ros.io.synth, splat-slam-synth)."""
 from __future__ import annotations
 
 import math
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from splat_slam_ros import synth
+from splat_slam_ros.io import synth
 from splat_slam_ros.cli.synth import main as synth_main
-from splat_slam_ros.trajectory_io import read_trajectory
+from splat_slam_ros.io.trajectory_io import read_trajectory
 from splat_slam_ros.types import Intrinsics
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -475,7 +475,7 @@ def test_cli_unreadable_trajectory(tmp_path, capsys):
 def test_cli_too_many_frames_says_max(tmp_path, capsys):
     t, P = jittery_trajectory(duration=2.0)
     f = tmp_path / "t.txt"
-    from splat_slam_ros.trajectory_io import write_tum
+    from splat_slam_ros.io.trajectory_io import write_tum
     write_tum(f, t[:150], P[:150])           # ~1.49 s of trajectory
     ts = read_trajectory(f)[0]
     expect = int(math.floor((ts[-1] - ts[0]) * 30 + 1e-6)) + 1

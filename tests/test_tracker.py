@@ -150,7 +150,7 @@ def ate_cm(frames_or_ts, gt, ts, poses) -> float:
 
 def true_flow(fa: Frame, fb: Frame, ds: int):
     """Flow a -> b at the BA grid from the renderer's depth and poses."""
-    from splat_slam_ros.dense_ba import reproject
+    from splat_slam_ros.tracking.dense_ba import reproject
     from splat_slam_ros.geometry import pixel_grid
     h, w = fa.gt_depth.shape[0] // ds, fa.gt_depth.shape[1] // ds
     d = 1.0 / torch.from_numpy(cv2.resize(fa.gt_depth, (w, h), interpolation=cv2.INTER_AREA))
@@ -163,7 +163,7 @@ def true_flow(fa: Frame, fb: Frame, ds: int):
 
 # ------------------------------------------------------------------- front end
 def test_dis_predictor_matches_true_flow_and_is_a_flow_predictor():
-    from splat_slam_ros.flow_frontend import DISFlowPredictor, FlowPredictor
+    from splat_slam_ros.tracking.flow_frontend import DISFlowPredictor, FlowPredictor
     frames, _ = sequence()
     pred = DISFlowPredictor(ba_downsample=4, method="dis_medium", flow_downsample=2)
     assert isinstance(pred, FlowPredictor)
@@ -180,7 +180,7 @@ def test_dis_predictor_matches_true_flow_and_is_a_flow_predictor():
 
 
 def test_preprocessor_undistorts_with_a_map_built_once():
-    from splat_slam_ros.flow_frontend import ImagePreprocessor
+    from splat_slam_ros.tracking.flow_frontend import ImagePreprocessor
     K = Intrinsics(458.654, 457.296, 367.215, 248.375, 752, 480, "plumb_bob",
                    [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05])
     pre = ImagePreprocessor(K, 8)
@@ -200,7 +200,7 @@ def test_preprocessor_undistorts_with_a_map_built_once():
 
 # ------------------------------------------------------------------- tracking
 def test_tracks_a_synthetic_sequence_accurately():
-    from splat_slam_ros.tracker import track_sequence
+    from splat_slam_ros.tracking.tracker import track_sequence
     frames, gt = sequence()
     res = track_sequence(frames, small_cfg(), INTR, progress=False)
     assert res.n_frames == 50 and res.n_lost == 0
@@ -213,7 +213,7 @@ def test_tracks_a_synthetic_sequence_accurately():
 
 def test_track_sequence_with_loop_closer_in_process():
     """Tracker + LoopCloser exchange events as the ROS nodes do; one increasing seq."""
-    from splat_slam_ros.tracker import track_sequence
+    from splat_slam_ros.tracking.tracker import track_sequence
     frames, gt = sequence()
     cfg = small_cfg(loop_closure=True, global_ba=True, global_ba_every=3, loop_time_gap=4,
                     loop_window=4)
@@ -227,7 +227,7 @@ def test_track_sequence_with_loop_closer_in_process():
 
 
 def test_update_events_report_exactly_the_changed_keyframes():
-    from splat_slam_ros.tracker import Tracker
+    from splat_slam_ros.tracking.tracker import Tracker
     frames, _ = sequence()
     cfg = small_cfg()
     tr = Tracker(cfg, INTR)
@@ -276,7 +276,7 @@ class OraclePredictor:
 
 
 def test_a_custom_flow_predictor_replaces_dis_without_touching_ba():
-    from splat_slam_ros.tracker import Tracker
+    from splat_slam_ros.tracking.tracker import Tracker
     frames, gt = sequence()
     tr = Tracker(small_cfg(), INTR, flow_predictor=OraclePredictor(frames))
     for f in frames:
@@ -286,7 +286,7 @@ def test_a_custom_flow_predictor_replaces_dis_without_touching_ba():
 
 
 def test_tracking_loss_black_duplicate_and_alien_frames_are_handled(caplog):
-    from splat_slam_ros.tracker import Tracker
+    from splat_slam_ros.tracking.tracker import Tracker
     frames, gt = sequence()
     alien_pose = gt[25].copy()
     alien_pose[:3, :3] = alien_pose[:3, :3] @ cv2.Rodrigues(np.array([0.0, np.pi, 0.0]))[0]
@@ -320,7 +320,7 @@ def test_tracking_loss_black_duplicate_and_alien_frames_are_handled(caplog):
 
 def test_static_camera_does_not_drift():
     """Moving start (initialisation), then 30 identical-pose frames with sensor noise."""
-    from splat_slam_ros.tracker import Tracker
+    from splat_slam_ros.tracking.tracker import Tracker
     frames, gt = sequence()
     rng = np.random.default_rng(0)
     static = []
@@ -341,7 +341,7 @@ def test_static_camera_does_not_drift():
 
 def _euroc_frames(root: Path, n: int):
     try:
-        from splat_slam_ros.datasets import open_dataset
+        from splat_slam_ros.io.datasets import open_dataset
         ds = open_dataset(root, keep_mono=True)
         return ds.intrinsics, [f for _, f in zip(range(n), ds)]
     except ImportError:
@@ -359,7 +359,7 @@ def test_euroc_static_camera_real_images(shared_data):
     root = shared_data / "euroc_v1_01_first95"
     if not root.is_dir():
         pytest.skip(f"{root} not found")
-    from splat_slam_ros.tracker import Tracker
+    from splat_slam_ros.tracking.tracker import Tracker
     K, frames = _euroc_frames(root, 95)
     cfg = SlamConfig()
     cfg.tracking.loop_closure = cfg.tracking.global_ba = False
@@ -376,7 +376,7 @@ def test_euroc_static_camera_real_images(shared_data):
 
 def test_depth_prior_hook_runs_after_each_local_ba_and_its_disparities_are_used():
     """The DSPO hook (paper Eq. 2) alternates with DBA: it sees the window and the edges."""
-    from splat_slam_ros.tracker import BAState, Tracker
+    from splat_slam_ros.tracking.tracker import BAState, Tracker
     frames, _ = sequence()
     calls = []
 

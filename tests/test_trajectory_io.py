@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from splat_slam_ros import geometry as g
-from splat_slam_ros.trajectory_io import TrajectoryFormatError, detect_format, read_trajectory, write_tum
+from splat_slam_ros.io.trajectory_io import TrajectoryFormatError, detect_format, read_trajectory, write_tum
 
 
 def _random_poses(n, seed=0):

@@ -10,14 +10,14 @@ def user_errors() -> Tuple[Type[BaseException], ...]:
     names = [
         ("splat_slam_ros.config", "ConfigError"),
         ("splat_slam_ros.types", "IntrinsicsError"),
-        ("splat_slam_ros.trajectory_io", "TrajectoryFormatError"),
-        ("splat_slam_ros.datasets", "DatasetError"),
+        ("splat_slam_ros.io.trajectory_io", "TrajectoryFormatError"),
+        ("splat_slam_ros.io.datasets", "DatasetError"),
         ("splat_slam_ros.evaluation", "MetricError"),
-        ("splat_slam_ros.mono_depth", "MonoDepthError"),
-        ("splat_slam_ros.synth", "SynthError"),
-        ("splat_slam_ros.rasterizer", "RasterizerBuildError"),
-        ("splat_slam_ros.mapper", "MapError"),
-        ("splat_slam_ros.ply_io", "PlyError"),
+        ("splat_slam_ros.depth.mono_depth", "MonoDepthError"),
+        ("splat_slam_ros.io.synth", "SynthError"),
+        ("splat_slam_ros.mapping.rasterizer", "RasterizerBuildError"),
+        ("splat_slam_ros.mapping.mapper", "MapError"),
+        ("splat_slam_ros.mapping.ply_io", "PlyError"),
     ]
     out: List[Type[BaseException]] = []
     for mod, name in names:
@@ -48,7 +48,7 @@ def parse_overrides(items: List[str]) -> Dict[str, object]:
     """`--set key=value` items -> dict with YAML-parsed values (ConfigError if malformed)."""
     import yaml
 
-    from ..config import ConfigError
+    from splat_slam_ros.config import ConfigError
     out: Dict[str, object] = {}
     for it in items or []:
         if "=" not in it:

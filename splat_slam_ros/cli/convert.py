@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..datasets import FORMATS, DatasetError, open_dataset
+from splat_slam_ros.io.datasets import FORMATS, DatasetError, open_dataset
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -74,7 +74,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if not args.info and not args.out:
         ap.error("--out is required (or use --info to only describe INPUT)")
-    from ..bagio import write_bag
+    from splat_slam_ros.io.bagio import write_bag
     try:
         if args.info:
             with open_dataset(args.input, fmt=args.format, intrinsics=args.intrinsics,

@@ -16,8 +16,8 @@ from typing import List, Optional
 
 import numpy as np
 
-from ..evaluation import ALIGN_MODES, RPE_UNITS, MetricError, ate, rpe
-from ..trajectory_io import FORMATS, TrajectoryFormatError, detect_format, read_trajectory
+from splat_slam_ros.evaluation import ALIGN_MODES, RPE_UNITS, MetricError, ate, rpe
+from splat_slam_ros.io.trajectory_io import FORMATS, TrajectoryFormatError, detect_format, read_trajectory
 
 RUN_DIR_TRAJECTORY = "trajectory_full.txt"
 

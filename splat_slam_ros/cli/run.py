@@ -5,7 +5,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from .common import parse_overrides, run_main
+from splat_slam_ros.cli.common import parse_overrides, run_main
 
 EPILOG = """\
 modes:
@@ -52,9 +52,9 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
 
     def body() -> int:
-        from ..config import load_config
-        from ..datasets import open_dataset
-        from ..pipeline import StageUnavailable, run
+        from splat_slam_ros.config import load_config
+        from splat_slam_ros.io.datasets import open_dataset
+        from splat_slam_ros.pipeline import StageUnavailable, run
 
         if args.gt_poses != args.gt_depth:
             print("error: --gt-poses and --gt-depth go together (mapping in isolation on ground "

@@ -5,7 +5,7 @@ import argparse
 import sys
 from typing import List, Optional
 
-from .common import run_main
+from splat_slam_ros.cli.common import run_main
 
 EPILOG = """\
 output (TUM RGB-D layout):
@@ -100,7 +100,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
 
     def body() -> int:
-        from ..synth import generate_sequence
+        from splat_slam_ros.io.synth import generate_sequence
         stats: dict = {}
         out = generate_sequence(
             args.trajectory, args.frames, args.size, args.out, fps=args.fps, start=args.start,

@@ -23,7 +23,7 @@ from typing import Optional
 
 import torch
 
-from .geometry import matrix_to_quat, project, quat_multiply, se3_inverse, transform_points
+from splat_slam_ros.geometry import matrix_to_quat, project, quat_multiply, se3_inverse, transform_points
 
 
 @dataclass

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..geometry import quat_to_matrix
+from splat_slam_ros.geometry import quat_to_matrix
 
 LOW_PASS = 0.3          # added to the 2D covariance diagonal (anti-aliasing low-pass, in px^2)
 SIGMA_EXTENT = 3.0      # footprint / radius in standard deviations

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .flow_frontend import mean_flow
+from splat_slam_ros.tracking.flow_frontend import mean_flow
 
 
 @dataclass

@@ -15,7 +15,7 @@ manifest (and stray temporaries) are removed at the next commit / open.
 :class:`KeyframeStore` adds keyframe helpers on top: per keyframe an ``image`` record
 (written once), a ``state`` record (pose, disparity, confidence, mono depth; rewritten on
 updates) and a ``depth`` record (proxy depth + source mask). :func:`mapper_state` /
-:func:`restore_mapper` turn a :class:`~splat_slam_ros.mapper.Mapper` into arrays and back
+:func:`restore_mapper` turn a :class:`~splat_slam_ros.mapping.mapper.Mapper` into arrays and back
 (Gaussians with their bookkeeping, mapped keyframes, window, exposures).
 """
 from __future__ import annotations
@@ -29,7 +29,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from .types import Intrinsics, KeyframeData
+from splat_slam_ros.types import Intrinsics, KeyframeData
 
 MANIFEST = "manifest.json"
 _REC = re.compile(r"^r_(?P<name>.+)\.(?P<n>\d+)\.npz$")
@@ -342,7 +342,7 @@ def restore_mapper(arrays: Dict[str, np.ndarray], meta: Dict[str, Any], cfg, int
     keyframe's H x W x 3 uint8 image, ``depth_of(kf_id)`` what :func:`keyframe_depth` gave."""
     import torch
 
-    from .mapper import MappedKeyframe, Mapper
+    from splat_slam_ros.mapping.mapper import MappedKeyframe, Mapper
     mp = Mapper(cfg, intrinsics)
     dev = mp.device
     g = mp.map

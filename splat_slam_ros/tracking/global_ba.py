@@ -14,8 +14,8 @@ from typing import List, Optional, Sequence, Tuple
 
 import torch
 
-from .dense_ba import BAInfo, bundle_adjust
-from .factor_graph import proximity_pairs
+from splat_slam_ros.tracking.dense_ba import BAInfo, bundle_adjust
+from splat_slam_ros.tracking.factor_graph import proximity_pairs
 
 
 def temporal_pairs(ids: Sequence[int], radius: int) -> List[Tuple[int, int]]:

@@ -42,10 +42,10 @@ from typing import Dict, Optional, Tuple
 import numpy as np
 import torch
 
-from .config import SlamConfig
-from .dense_ba import MIN_DISP, disparity_normal_equations
-from .proxy_depth import multiview_filter, sample_at_grid
-from .types import Intrinsics
+from splat_slam_ros.config import SlamConfig
+from splat_slam_ros.tracking.dense_ba import MIN_DISP, disparity_normal_equations
+from splat_slam_ros.depth.proxy_depth import multiview_filter, sample_at_grid
+from splat_slam_ros.types import Intrinsics
 
 FLOW_SCALE = 1000.0
 DSPO_NEIGHBORS = 4        # nearest window keyframes used (besides edges) for the high/low split
@@ -161,7 +161,7 @@ class DspoPrior:
         self.dc = cfg.depth
         self.intrinsics = intrinsics
         if mono_model is None:
-            from .mono_depth import load_mono_depth
+            from splat_slam_ros.depth.mono_depth import load_mono_depth
             mono_model = load_mono_depth(self.dc.mono_model, self.dc.mono_provider)
         self.mono = mono_model
         self._mono_ba: Dict[int, torch.Tensor] = {}

@@ -17,8 +17,8 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 import torch
 
-from .dense_ba import pose_only_refine
-from .geometry import pixel_grid, se3_exp, se3_inverse, se3_log
+from splat_slam_ros.tracking.dense_ba import pose_only_refine
+from splat_slam_ros.geometry import pixel_grid, se3_exp, se3_inverse, se3_log
 
 
 @dataclass

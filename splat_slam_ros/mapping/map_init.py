@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from .geometry import transform_points, unproject
+from splat_slam_ros.geometry import transform_points, unproject
 
 # Neighbours used for the initial scale (MonoGS/3DGS use the 3 nearest).
 N_NEIGHBOURS = 3

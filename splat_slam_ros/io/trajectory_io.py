@@ -14,7 +14,7 @@ from typing import Tuple
 import numpy as np
 import torch
 
-from .geometry import pose_from_tq, pose_to_tq
+from splat_slam_ros.geometry import pose_from_tq, pose_to_tq
 
 
 class TrajectoryFormatError(ValueError):

@@ -25,7 +25,7 @@ from typing import Optional, Tuple, Union
 
 import torch
 
-from .geometry import pixel_grid, project_homogeneous, se3_exp, se3_inverse
+from splat_slam_ros.geometry import pixel_grid, project_homogeneous, se3_exp, se3_inverse
 
 MIN_DISP = 1e-3
 

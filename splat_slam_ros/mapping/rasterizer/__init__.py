@@ -15,9 +15,9 @@ from typing import Optional, Sequence, Union
 
 import torch
 
-from .kernel import RasterizerBuildError, RasterizerError, RasterizeCpp, load_extension
-from .projection import Projected, project_gaussians
-from .reference import rasterize_reference
+from splat_slam_ros.mapping.rasterizer.kernel import RasterizerBuildError, RasterizerError, RasterizeCpp, load_extension
+from splat_slam_ros.mapping.rasterizer.projection import Projected, project_gaussians
+from splat_slam_ros.mapping.rasterizer.reference import rasterize_reference
 
 __all__ = ["rasterize", "RasterOutput", "RasterizerError", "RasterizerBuildError",
            "RasterizerInputError", "project_gaussians", "available_backends"]

@@ -13,8 +13,8 @@ from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 
 import torch
 
-from .dense_ba import induced_flow_distance
-from .geometry import pixel_grid
+from splat_slam_ros.tracking.dense_ba import induced_flow_distance
+from splat_slam_ros.geometry import pixel_grid
 
 
 class FactorGraph:

@@ -38,9 +38,9 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from .config import SlamConfig
-from .geometry import pixel_grid, se3_inverse
-from .types import Intrinsics, KeyframeData, UpdateEvent
+from splat_slam_ros.config import SlamConfig
+from splat_slam_ros.geometry import pixel_grid, se3_inverse
+from splat_slam_ros.types import Intrinsics, KeyframeData, UpdateEvent
 
 SOURCE_EMPTY = 0
 SOURCE_MULTIVIEW = 1
@@ -547,7 +547,7 @@ class ProxyDepthEstimator:
             # have run it for DSPO and passed the result along)
             from pathlib import Path
 
-            from .mono_depth import MonoDepthError, read_sidecar
+            from splat_slam_ros.depth.mono_depth import MonoDepthError, read_sidecar
             p = Path(self.dc.mono_model).expanduser()
             if not p.is_file():
                 raise MonoDepthError(f"mono depth model not found: {p}")
@@ -673,7 +673,7 @@ class ProxyDepthEstimator:
         elif self.mono is not None or self._mono_path is not None:
             import time
             if self.mono is None:
-                from .mono_depth import load_mono_depth
+                from splat_slam_ros.depth.mono_depth import load_mono_depth
                 self.mono = load_mono_depth(self._mono_path, self.dc.mono_provider)
             t0 = time.perf_counter()
             mono = self.mono.predict(np.asarray(kf.image))

@@ -24,14 +24,14 @@ from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from .config import SlamConfig
-from .deformation import deform_gaussians
-from .gaussian_map import GaussianMap
-from .geometry import quat_to_matrix, se3_inverse
-from .keyframe_window import KeyframeDecision, KeyframeWindow
-from .map_init import init_gaussians
-from .ply_io import load_gaussians_ply, save_gaussians_ply
-from .types import Intrinsics
+from splat_slam_ros.config import SlamConfig
+from splat_slam_ros.mapping.deformation import deform_gaussians
+from splat_slam_ros.mapping.gaussian_map import GaussianMap
+from splat_slam_ros.geometry import quat_to_matrix, se3_inverse
+from splat_slam_ros.mapping.keyframe_window import KeyframeDecision, KeyframeWindow
+from splat_slam_ros.mapping.map_init import init_gaussians
+from splat_slam_ros.mapping.ply_io import load_gaussians_ply, save_gaussians_ply
+from splat_slam_ros.types import Intrinsics
 
 
 class MapError(ValueError):
@@ -40,7 +40,7 @@ class MapError(ValueError):
 
 def _rasterizer():
     try:
-        from .rasterizer import rasterize
+        from splat_slam_ros.mapping.rasterizer import rasterize
     except ImportError as e:
         raise MapError(f"the Gaussian rasterizer is not available: {e}") from None
     return rasterize
@@ -539,7 +539,7 @@ class Mapper:
     @classmethod
     def load_ply(cls, path, cfg: SlamConfig, intrinsics: Intrinsics) -> "Mapper":
         """A mapper holding the Gaussians of a PLY file (no keyframes): render/evaluate it."""
-        from .ply_io import PlyError
+        from splat_slam_ros.mapping.ply_io import PlyError
         try:
             d = load_gaussians_ply(path)
         except PlyError as e:
@@ -574,7 +574,7 @@ class Mapper:
         Otherwise ``frames`` are :class:`~splat_slam_ros.types.Frame` objects rendered at
         ``poses`` (default: their ``gt_pose``) against ``frame.image`` / ``frame.gt_depth``.
         Also reports the Gaussian count and map size (MB)."""
-        from . import evaluation as ev
+        from splat_slam_ros import evaluation as ev
         views = []
         if frames is None:
             for k, kf in sorted(self.keyframes.items()):

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import torch
 
-from .types import Intrinsics
+from splat_slam_ros.types import Intrinsics
 
 
 class FrontendError(ValueError):

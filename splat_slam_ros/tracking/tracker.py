@@ -27,16 +27,16 @@ import cv2
 import numpy as np
 import torch
 
-from .config import SlamConfig
-from .dense_ba import (bundle_adjust, induced_flow_distance, intr_tensor, pose_only_refine,
+from splat_slam_ros.config import SlamConfig
+from splat_slam_ros.tracking.dense_ba import (bundle_adjust, induced_flow_distance, intr_tensor, pose_only_refine,
                        reproject)
-from .factor_graph import FactorGraph, proximity_pairs
-from .flow_frontend import (ImagePreprocessor, compose_flows, image_is_degenerate,
+from splat_slam_ros.tracking.factor_graph import FactorGraph, proximity_pairs
+from splat_slam_ros.tracking.flow_frontend import (ImagePreprocessor, compose_flows, image_is_degenerate,
                             make_flow_predictor, predict_both)
-from .geometry import pixel_grid, pose_from_tq, pose_to_tq, se3_exp, se3_inverse, se3_log
-from .motion_filter import MotionFilter
-from .trajectory_filler import FrameRecord, fill_trajectory
-from .types import Frame, Intrinsics, KeyframeData, UpdateEvent
+from splat_slam_ros.geometry import pixel_grid, pose_from_tq, pose_to_tq, se3_exp, se3_inverse, se3_log
+from splat_slam_ros.tracking.motion_filter import MotionFilter
+from splat_slam_ros.tracking.trajectory_filler import FrameRecord, fill_trajectory
+from splat_slam_ros.types import Frame, Intrinsics, KeyframeData, UpdateEvent
 
 log = logging.getLogger(__name__)
 
@@ -186,7 +186,7 @@ class Tracker:
         if not (self.cfg.depth.mono_model and self.tc.dspo):
             return None
         try:
-            from . import dspo  # noqa: WPS433 (optional stage, written separately)
+            from splat_slam_ros import dspo  # noqa: WPS433 (optional stage, written separately)
             return dspo.make_depth_prior(self.cfg, self.intrinsics)
         except (ImportError, AttributeError) as e:
             log.warning("DSPO requested (depth.mono_model set) but unavailable (%s); "
@@ -708,7 +708,7 @@ def track_sequence(frames: Iterable[Frame], cfg: SlamConfig, intrinsics: Intrins
     use_loop = (tc.loop_closure or tc.global_ba) if loop_closure is None else loop_closure
     closer = None
     if use_loop:
-        from .loop_closure import LoopCloser
+        from splat_slam_ros.tracking.loop_closure import LoopCloser
         closer = LoopCloser(cfg, intrinsics, seq_counter=seq)
     events: List[UpdateEvent] = []
     timings: Dict[str, float] = defaultdict(float)

@@ -33,9 +33,9 @@ import cv2
 import numpy as np
 import torch
 
-from .geometry import pose_from_tq, pose_to_tq, quat_slerp
-from .trajectory_io import detect_format, read_trajectory, write_tum
-from .types import Intrinsics
+from splat_slam_ros.geometry import pose_from_tq, pose_to_tq, quat_slerp
+from splat_slam_ros.io.trajectory_io import detect_format, read_trajectory, write_tum
+from splat_slam_ros.types import Intrinsics
 
 DEPTH_SCALE = 5000.0          # uint16 units per metre (TUM)
 TEX_SIZE = 512                # texture tile size (texels, power of two)

@@ -49,9 +49,9 @@ import numpy as np
 import torch
 import yaml
 
-from .geometry import interpolate_pose, pose_from_tq
-from .trajectory_io import TrajectoryFormatError, read_trajectory
-from .types import Frame, Intrinsics, IntrinsicsError
+from splat_slam_ros.geometry import interpolate_pose, pose_from_tq
+from splat_slam_ros.io.trajectory_io import TrajectoryFormatError, read_trajectory
+from splat_slam_ros.types import Frame, Intrinsics, IntrinsicsError
 
 
 class DatasetError(ValueError):
@@ -887,7 +887,7 @@ def open_dataset(path, fmt: str = "auto", intrinsics: Union[None, str, Path, Int
     if fmt not in FORMATS:
         raise DatasetError(f"unknown format {fmt!r}; use one of auto, {', '.join(FORMATS)}")
     if fmt == "bag":
-        from .bagio import BagDataset
+        from splat_slam_ros.io.bagio import BagDataset
         return BagDataset(p, max_frames=max_frames, stride=stride, keep_mono=keep_mono,
                           **options)
     K, extra = _as_intrinsics(intrinsics)
