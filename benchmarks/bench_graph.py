@@ -132,22 +132,6 @@ def main(argv=None) -> int:
         work.mkdir(parents=True, exist_ok=True)
         cfg = str(work / "cpu_config.yaml")
         Path(cfg).write_text(CPU_CONFIG)
-    from splat_slam_ros.pipeline import stage_available
-    loop_note = None
-    if not stage_available("loop_closure"):       # both runs without it, same config
-        import yaml
-
-        from splat_slam_ros.config import load_config
-        c = load_config(cfg or None)
-        c.tracking.loop_closure = False
-        c.tracking.global_ba = False
-        d = json.loads(json.dumps(c.to_dict()))
-        d.pop("dataset", None)
-        work.mkdir(parents=True, exist_ok=True)
-        cfg = str(work / "bench_config.yaml")
-        Path(cfg).write_text(yaml.safe_dump(d, sort_keys=False))
-        loop_note = "loop closure stage not available: both runs without loop closure / global BA"
-        print("note:", loop_note)
     w, h = (int(x) for x in a.size.lower().split("x"))
     traj = a.trajectory if Path(a.trajectory).is_file() else "builtin"
     if not (seq / "groundtruth.txt").is_file():
@@ -160,7 +144,7 @@ def main(argv=None) -> int:
         from splat_slam_ros.ros_env import random_domain_id
         env["ROS_DOMAIN_ID"] = str(random_domain_id())
     res = {"order": "graph first" if a.graph_first else "in-process first", "frames": a.frames, "size": a.size, "trajectory": str(traj), "config": cfg or None,
-           "cpu_count": os.cpu_count(), "loadavg_start": _loadavg(), "note": loop_note}
+           "cpu_count": os.cpu_count(), "loadavg_start": _loadavg()}
 
     def run_inprocess():
         if not a.skip_inprocess:

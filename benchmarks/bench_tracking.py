@@ -102,7 +102,7 @@ def run_child(args) -> None:
     from splat_slam_ros.config import load_config
     from splat_slam_ros.io.datasets import open_dataset
     from splat_slam_ros.evaluation import ate
-    from splat_slam_ros.tracking.tracker import track_sequence
+    from splat_slam_ros.coordinator import track_sequence
     overrides = {}
     for kv in args.set or []:
         k, v = kv.split("=", 1)

@@ -11,7 +11,6 @@ float32, poses camera-to-world 4x4 float64, quaternions (x, y, z, w), stamps flo
 from __future__ import annotations
 
 import array
-from dataclasses import dataclass
 from typing import Optional, Sequence, Tuple
 
 import numpy as np
@@ -19,7 +18,7 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, Quaternion
 from sensor_msgs.msg import CameraInfo, Image
 
-from splat_slam_ros.types import Intrinsics, KeyframeData, UpdateEvent
+from splat_slam_ros.types import Intrinsics, KeyframeData, ProxyDepth, UpdateEvent
 
 
 class ConversionError(ValueError):
@@ -304,6 +303,8 @@ def keyframe_to_msg(kf: KeyframeData, frame_id: str = "map"):
     m.disparity = _f32(disp)
     m.confidence = _f32(conf)
     m.disp_height, m.disp_width = int(disp.shape[0]), int(disp.shape[1])
+    m.batch_id = int(kf.kf_id if kf.batch_id < 0 else kf.batch_id)
+    m.batch_size = max(1, int(kf.batch_size))
     if kf.mono_depth is not None:
         md = np.asarray(kf.mono_depth, dtype=np.float32)
         if md.ndim != 2:
@@ -334,7 +335,8 @@ def msg_to_keyframe(msg, copy: bool = True) -> KeyframeData:
     return KeyframeData(kf_id=int(msg.kf_id), frame_index=int(msg.frame_index),
                         timestamp=from_stamp(msg.header.stamp), pose=msg_to_pose(msg.pose),
                         image=img, intrinsics=intr, disparity=disp, confidence=conf,
-                        mono_depth=mono)
+                        mono_depth=mono, batch_id=int(msg.batch_id),
+                        batch_size=max(1, int(msg.batch_size)))
 
 
 # ------------------------------------------------------------------ pose-graph updates
@@ -399,60 +401,38 @@ def frame_ack_msg(frame_index: int, consumer: str, stamp: float = 0.0,
 
 
 # ------------------------------------------------------------------ proxy depth
-@dataclass
-class ProxyDepthData:
-    """Contents of splat_slam_msgs/ProxyDepth."""
-    kf_id: int
-    depth: np.ndarray           # H x W float32 metres, 0 = none
-    source: np.ndarray          # H x W uint8: SOURCE_EMPTY=0, SOURCE_MULTIVIEW=1, SOURCE_MONO=2
-    pose: np.ndarray            # 4x4 camera-to-world the depth was computed with
-    update_seq: int = 0         # PoseGraphUpdate.seq it reflects, 0 for new
-    is_update: bool = False
-    timestamp: float = 0.0      # keyframe image stamp, seconds
-
-    SOURCE_EMPTY = 0
-    SOURCE_MULTIVIEW = 1
-    SOURCE_MONO = 2
-
-
-def proxy_depth_to_msg(kf_id: int, depth: np.ndarray, source: np.ndarray, pose: np.ndarray,
-                       update_seq: int = 0, is_update: bool = False, stamp: float = 0.0,
-                       frame_id: str = "map"):
-    """Arrays -> splat_slam_msgs/ProxyDepth (``source`` is cast to uint8)."""
-    from splat_slam_msgs.msg import ProxyDepth
-    d = np.asarray(depth, dtype=np.float32)
-    s = np.asarray(source)
+def proxy_depth_to_msg(pd: ProxyDepth, frame_id: str = "map"):
+    """ProxyDepth -> splat_slam_msgs/ProxyDepth (``source`` is cast to uint8)."""
+    from splat_slam_msgs.msg import ProxyDepth as ProxyDepthMsg
+    d = np.asarray(pd.depth, dtype=np.float32)
+    s = np.asarray(pd.source)
     if d.ndim != 2:
         raise ConversionError(f"proxy depth must be H x W, got shape {d.shape}")
     if s.shape != d.shape:
         raise ConversionError(f"proxy depth source mask shape {s.shape} != depth shape {d.shape}")
     if s.size and (s.min() < 0 or s.max() > 2):
         raise ConversionError("proxy depth source mask values must be 0 (empty), 1 (multi-view) or 2 (mono)")
-    m = ProxyDepth()
-    m.header.stamp = to_stamp(stamp)
+    m = ProxyDepthMsg()
+    m.header.stamp = to_stamp(pd.timestamp)
     m.header.frame_id = frame_id
-    m.kf_id = int(kf_id)
+    m.kf_id = int(pd.kf_id)
     m.depth = _f32(d)
     m.height, m.width = int(d.shape[0]), int(d.shape[1])
     m.source = _u8(s.astype(np.uint8, copy=False))
-    m.pose = pose_to_msg(pose)
-    m.update_seq = int(update_seq)
-    m.is_update = bool(is_update)
+    m.pose = pose_to_msg(pd.pose)
+    m.update_seq = int(pd.update_seq)
+    m.is_update = bool(pd.is_update)
+    m.revision = int(pd.revision)
     return m
 
 
-def proxy_depth_data_to_msg(pd: ProxyDepthData, frame_id: str = "map"):
-    """ProxyDepthData -> splat_slam_msgs/ProxyDepth."""
-    return proxy_depth_to_msg(pd.kf_id, pd.depth, pd.source, pd.pose, pd.update_seq,
-                              pd.is_update, pd.timestamp, frame_id)
-
-
-def msg_to_proxy_depth(msg, copy: bool = True) -> ProxyDepthData:
-    """splat_slam_msgs/ProxyDepth -> ProxyDepthData."""
+def msg_to_proxy_depth(msg, copy: bool = True) -> ProxyDepth:
+    """splat_slam_msgs/ProxyDepth -> ProxyDepth."""
     shp = (int(msg.height), int(msg.width))
-    return ProxyDepthData(
+    return ProxyDepth(
         kf_id=int(msg.kf_id),
         depth=_from(msg.depth, np.float32, shp, f"proxy depth {msg.kf_id}", copy),
         source=_from(msg.source, np.uint8, shp, f"proxy depth {msg.kf_id} source", copy),
         pose=msg_to_pose(msg.pose), update_seq=int(msg.update_seq),
-        is_update=bool(msg.is_update), timestamp=from_stamp(msg.header.stamp))
+        is_update=bool(msg.is_update), timestamp=from_stamp(msg.header.stamp),
+        revision=int(msg.revision))

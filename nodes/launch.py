@@ -16,14 +16,15 @@ Supervision: a node that dies is restarted (``--max-restarts``) when it can resu
 crash-safe store in ``OUT/state/<node>`` (depth, loop_closure, mapper); the tracker and the
 player cannot resume, so their death stops the graph with a non-zero exit status.
 
-End-of-stream / finalisation protocol (graph events on /splat/graph_events):
+End-of-stream / finalisation protocol (graph events on /splat/graph_events; the rules are
+the stage roles' in splat_slam_ros/roles.py, the same the in-process coordinator runs):
   player  end_of_stream -> tracker finalize() (local BA), ``finalized`` {last_seq}
   -> loop_closure (after applying the tracker's updates up to last_seq) finalize() (final
      global BA), ``finalized`` {last_seq}
   -> tracker applies those updates, writes the trajectories, ``saved``
-  -> depth (after both update streams) ``finalized`` {digest of the last ProxyDepth per kf}
-  -> mapper (after applying that digest) final_refine(), writes map.ply / renders /
-     mapper_metrics.json, ``saved``
+  -> depth (after both update streams) ``finalized`` {digest: last ProxyDepth revision per kf}
+  -> mapper (after taking every revision of the digest) final_refine(), writes map.ply /
+     renders / mapper_metrics.json, ``saved``
   -> launcher: metrics.json, summary, clean stop.
 """
 from __future__ import annotations
@@ -39,9 +40,6 @@ import threading
 import time
 from pathlib import Path
 from typing import Dict, List, Optional
-
-# Set once the whole graph runs end to end (./run.sh demo picks the graph then).
-GRAPH_AVAILABLE = True
 
 NODE_MODULES = {
     "tracker": "splat_slam_nodes.tracker_node",
@@ -189,12 +187,6 @@ class Launcher:
                 raise LaunchError(str(e)) from None
         tc = self.cfg.tracking
         self.with_loop = bool(tc.loop_closure or tc.global_ba) and not a.no_loop_closure
-        if self.with_loop:
-            from splat_slam_ros.pipeline import stage_available
-            if not stage_available("loop_closure"):
-                self.say("warning: the loop closure stage is not available in this build; "
-                         "running without the loop_closure node")
-                self.with_loop = False
         self.with_mapping = not a.tracking_only
         self.nodes = ["tracker"] + (["loop_closure"] if self.with_loop else []) + \
             (["depth", "mapper"] if self.with_mapping else [])

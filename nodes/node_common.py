@@ -137,6 +137,7 @@ class SplatNode:
         self._event_handlers: List[Callable[[dict], None]] = []
         self._events_sub = None
         self.worker = Worker(self)
+        self.pubs: Dict[str, Any] = {}
 
     # ------------------------------------------------------------ helpers
     @property
@@ -148,6 +149,11 @@ class SplatNode:
     def state_dir(self) -> Optional[Path]:
         d = self.opts.get("state_dir") or ""
         return Path(d) if d else None
+
+    def store(self):
+        """The node's crash-safe KeyframeStore (``node.state_dir``), or None."""
+        from splat_slam_ros.io.keyframe_store import KeyframeStore
+        return KeyframeStore(self.state_dir) if self.state_dir is not None else None
 
     def now(self) -> float:
         return self.node.get_clock().now().nanoseconds * 1e-9
@@ -180,6 +186,66 @@ class SplatNode:
                 self.warn_throttled(f"cb:{topic}", f"error handling a {what} message on {topic}: "
                                     f"{type(e).__name__}: {e}")
         return self.node.create_subscription(msg_type, topic, cb, qos_profile, raw=True)
+
+    # ------------------------------------------------------------ stage roles
+    def publishers(self, *kinds: str) -> None:
+        """Publishers for the protocol channels an Outbox may fill (see :meth:`emit`)."""
+        from splat_slam_msgs.msg import FrameAck, Keyframe, PoseGraphUpdate, ProxyDepth
+
+        from . import qos as Q
+        spec = {"updates": (PoseGraphUpdate, TOPICS["updates"], Q.pose_graph_qos()),
+                "keyframes": (Keyframe, TOPICS["keyframes"], Q.keyframe_qos()),
+                "proxy_depth": (ProxyDepth, TOPICS["proxy_depth"], Q.proxy_depth_qos()),
+                "ack": (FrameAck, TOPICS["ack"], Q.ack_qos())}
+        for k in kinds:
+            self.pubs[k] = self.node.create_publisher(*spec[k])
+
+    def emit(self, out) -> None:
+        """Publish a role's Outbox: updates, keyframes, proxy depths, acks, ``finalized``."""
+        from .convert import (frame_ack_msg, keyframe_to_msg, proxy_depth_to_msg, to_stamp,
+                              update_to_msg)
+        for ev in out.updates:
+            self.pubs["updates"].publish(update_to_msg(ev, self.now(), self.frame_id))
+        for kf in out.keyframes:
+            self.pubs["keyframes"].publish(keyframe_to_msg(kf, self.frame_id))
+        for pd in out.proxy_depths:
+            self.pubs["proxy_depth"].publish(proxy_depth_to_msg(pd, self.frame_id))
+        for frame_index, kf_id, stamp in out.acks:
+            m = frame_ack_msg(frame_index, self.name, 0.0, kf_id)
+            m.header.stamp = to_stamp(stamp)
+            self.pubs["ack"].publish(m)
+        if out.final is not None:
+            self.publish_event("finalized", **out.final)
+
+    def route(self, role, keyframes: bool = False, updates: bool = False,
+              proxy_depth: bool = False, after: Optional[Callable] = None) -> None:
+        """Subscribe the protocol channels to ``role``'s handlers (on the worker thread) and
+        the ``finalized`` graph events to ``role.on_final``; each Outbox is emitted, then
+        ``after(out)`` runs (node-specific outputs)."""
+        from splat_slam_msgs.msg import Keyframe, PoseGraphUpdate, ProxyDepth
+
+        from . import qos as Q
+        from .convert import msg_to_keyframe, msg_to_proxy_depth, msg_to_update
+
+        def handle(fn, convert, msg):
+            out = fn(convert(msg))
+            self.emit(out)
+            if after is not None:
+                after(out)
+
+        def sub(kind, topic, qos, fn, convert):
+            self.subscribe(kind, TOPICS[topic], qos,
+                           lambda m, raw: self.worker.submit(handle, fn, convert, m),
+                           kind.__name__)
+        if updates:        # first: an update and a keyframe both waiting -> the update first
+            sub(PoseGraphUpdate, "updates", Q.pose_graph_qos(), role.on_update, msg_to_update)
+        if keyframes:
+            sub(Keyframe, "keyframes", Q.keyframe_qos(), role.on_keyframe, msg_to_keyframe)
+        if proxy_depth:
+            sub(ProxyDepth, "proxy_depth", Q.proxy_depth_qos(), role.on_proxy_depth,
+                msg_to_proxy_depth)
+        self.on_events(lambda d: d.get("event") == "finalized" and self.worker.submit(
+            handle, lambda info: role.on_final(str(info.get("node")), info), lambda d: d, d))
 
     # ------------------------------------------------------------ graph events
     def publish_event(self, event: str, **fields) -> None:

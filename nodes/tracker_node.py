@@ -21,7 +21,7 @@ import sys
 import threading
 from typing import List, Optional
 
-from .node_common import TOPICS, TRACKER_REASONS, SplatNode, run_node
+from .node_common import TOPICS, SplatNode, run_node
 
 
 class TrackerNode(SplatNode):
@@ -32,14 +32,12 @@ class TrackerNode(SplatNode):
         from geometry_msgs.msg import PoseStamped
         from nav_msgs.msg import Path as PathMsg
         from sensor_msgs.msg import CameraInfo, Image
-        from splat_slam_msgs.msg import FrameAck, Keyframe, PoseGraphUpdate
+        from splat_slam_msgs.msg import PoseGraphUpdate
 
         from . import qos as Q
         from .node_common import tf_available
         n = self.node
-        self.pub_kf = n.create_publisher(Keyframe, TOPICS["keyframes"], Q.keyframe_qos())
-        self.pub_upd = n.create_publisher(PoseGraphUpdate, TOPICS["updates"], Q.pose_graph_qos())
-        self.pub_ack = n.create_publisher(FrameAck, TOPICS["ack"], Q.ack_qos())
+        self.publishers("keyframes", "updates", "ack")
         self.pub_pose = n.create_publisher(PoseStamped, TOPICS["camera_pose"], Q.pose_qos())
         self.pub_path = n.create_publisher(PathMsg, TOPICS["trajectory"], Q.status_qos())
         self.pub_tf = None
@@ -51,13 +49,14 @@ class TrackerNode(SplatNode):
                           f"{TOPICS['camera_pose']} (PoseStamped) only, not on /tf")
         in_qos = Q.image_qos() if self.opts["input_qos"] == "reliable" else Q.sensor_qos()
         # updates first: when an update and a frame are both ready, the update runs first
-        self.subscribe(PoseGraphUpdate, TOPICS["updates"], Q.pose_graph_qos(), self._on_update,
+        self.subscribe(PoseGraphUpdate, TOPICS["updates"], Q.pose_graph_qos(),
+                       lambda m, raw: self.worker.submit(self._apply_update, m),
                        "PoseGraphUpdate")
         self.subscribe(CameraInfo, self.cfg.ros.camera_info_topic, in_qos, self._on_info,
                        "CameraInfo")
         self.subscribe(Image, self.cfg.ros.image_topic, in_qos, self._on_image, "Image")
         self.on_events(self._on_event)
-        self.tracker = None
+        self.role = None                    # splat_slam_ros.roles.TrackerRole, on the first frame
         self.size = None
         self.intr = None
         self.cam_info = None
@@ -65,10 +64,7 @@ class TrackerNode(SplatNode):
         self.n_frames = 0
         self.n_dropped = 0
         self.queued = 0
-        self.last_seq = 0
-        self.loop_seq = 0
-        self.loop_final: Optional[dict] = None
-        self.finalized = False
+        self.eos = False
         self.saved = False
         self.stamps: List[float] = []
         self.poses: List = []
@@ -93,7 +89,7 @@ class TrackerNode(SplatNode):
             self.warn_throttled("info", f"ignoring camera_info: {e}")
             return
         with self.info_lock:
-            if self.cam_info is not None and self.tracker is not None and \
+            if self.cam_info is not None and self.role is not None and \
                     (intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height) != \
                     (self.cam_info.fx, self.cam_info.fy, self.cam_info.cx, self.cam_info.cy,
                      self.cam_info.width, self.cam_info.height):
@@ -117,25 +113,18 @@ class TrackerNode(SplatNode):
         self.queued += 1
         self.worker.submit(self._process, msg, index)
 
-    def _on_update(self, msg, raw) -> None:
-        from .convert import msg_to_update
-        ev = msg_to_update(msg)
-        if ev.reason in TRACKER_REASONS:          # our own local-BA updates
-            return
-        self.worker.submit(self._apply_update, ev)
-
     def _on_event(self, d: dict) -> None:
         if d.get("event") == "end_of_stream" and d.get("node") in ("player", "launch"):
             self.worker.submit(self._finalize)
-        elif d.get("node") == "loop_closure" and d.get("event") == "finalized":
-            self.worker.submit(self._loop_finalized, d)
+        elif d.get("event") == "finalized":
+            self.worker.submit(self._on_final, d)
 
     # ------------------------------------------------------------ work (worker thread)
     def _ack(self, index: int, stamp, kf_id: Optional[int]) -> None:
         from .convert import frame_ack_msg
         m = frame_ack_msg(index, "tracker", 0.0, kf_id)
         m.header.stamp = stamp
-        self.pub_ack.publish(m)
+        self.pubs["ack"].publish(m)
 
     def _intrinsics(self, index: int):
         if self.intr is not None and self.cam_info is None:
@@ -161,8 +150,7 @@ class TrackerNode(SplatNode):
         from splat_slam_ros.tracking.tracker import TrackingError
         from splat_slam_ros.types import Frame
 
-        from .convert import (ConversionError, from_stamp, keyframe_to_msg, msg_to_rgb,
-                              update_to_msg)
+        from .convert import ConversionError, from_stamp, msg_to_rgb
         from .node_common import pose_stamped
         try:
             rgb = msg_to_rgb(msg)
@@ -170,7 +158,7 @@ class TrackerNode(SplatNode):
             self._drop(index, f"{e}")
             return None
         h, w = rgb.shape[:2]
-        if self.tracker is not None and (w, h) != self.size:
+        if self.role is not None and (w, h) != self.size:
             self._drop(index, f"image size changed: {w}x{h}, the tracker runs on "
                               f"{self.size[0]}x{self.size[1]} (restart the graph for a new size)")
             return None
@@ -184,30 +172,26 @@ class TrackerNode(SplatNode):
             self._drop(index, f"image size: the image is {w}x{h} but camera_info says "
                               f"{intr.width}x{intr.height}")
             return None
-        if self.tracker is None:
-            from splat_slam_ros.tracking.tracker import Tracker
+        if self.role is None:
+            from splat_slam_ros.roles import TrackerRole
             try:
-                self.tracker = Tracker(self.cfg, intr, seq_start=1)
+                self.role = TrackerRole(self.cfg, intr, bool(self.opts["loop_closure"]))
             except (TrackingError, ValueError) as e:
                 self.log.fatal(f"cannot start the tracker: {e}")
                 raise SystemExit(2)
             self.size = (w, h)
+            ti = self.role.tracker.intrinsics
             self.log.info(f"tracker started on {w}x{h} frames (tracking at "
-                          f"{self.tracker.intrinsics.width}x{self.tracker.intrinsics.height})")
+                          f"{ti.width}x{ti.height})")
         stamp = from_stamp(msg.header.stamp)
         try:
-            step = self.tracker.track(Frame(index=index, timestamp=stamp, image=rgb,
-                                            intrinsics=intr))
+            step, out = self.role.on_frame(Frame(index=index, timestamp=stamp, image=rgb,
+                                                 intrinsics=intr))
         except TrackingError as e:
             self._drop(index, f"{e}")
             return None
-        now = self.now()
-        for ev in step.events:                    # local BA first, then the new keyframe(s)
-            self.pub_upd.publish(update_to_msg(ev, now, self.frame_id))
-            self.last_seq = max(self.last_seq, int(ev.seq))
-        for kd in step.keyframes:
-            self.pub_kf.publish(keyframe_to_msg(kd, self.frame_id))
-        if self.tracker.initialized and not step.lost:
+        self.emit(out)                            # local BA first, then the new keyframe(s)
+        if self.role.tracker.initialized and not step.lost:
             self.pub_pose.publish(pose_stamped(step.pose, stamp, self.frame_id))
             if self.pub_tf is not None:
                 from .node_common import tf_message
@@ -226,58 +210,51 @@ class TrackerNode(SplatNode):
         if self.stamps:
             self.pub_path.publish(path_msg(self.stamps, np.stack(self.poses), self.frame_id, stamp))
 
-    def _apply_update(self, ev) -> None:
-        if self.tracker is not None:
-            self.tracker.apply_update(ev)
-        self.loop_seq = max(self.loop_seq, int(ev.seq))
+    def _apply_update(self, msg) -> None:
+        from .convert import msg_to_update
+        if self.role is not None:
+            self.emit(self.role.on_update(msg_to_update(msg)))
+        self._maybe_save()
+
+    def _on_final(self, d: dict) -> None:
+        if self.role is not None:
+            self.role.on_final(str(d.get("node")), d)
         self._maybe_save()
 
     def _finalize(self) -> None:
-        from .convert import update_to_msg
-        if self.finalized:
+        if self.eos:
             return
-        evs = self.tracker.finalize() if self.tracker is not None else []
-        for ev in evs:
-            self.pub_upd.publish(update_to_msg(ev, self.now(), self.frame_id))
-            self.last_seq = max(self.last_seq, int(ev.seq))
-        self.finalized = True
-        kfs = len(self.tracker.published) if self.tracker is not None else 0
+        self.eos = True
+        from splat_slam_ros.roles import Outbox
+        out = self.role.finalize() if self.role is not None else \
+            Outbox(final={"last_seq": 0, "keyframes": 0})
+        kfs = out.final.get("keyframes", 0) if out.final else 0
         self.log.info(f"finalized: {self.n_frames} frames, {kfs} keyframes, "
                       f"{self.n_dropped} dropped")
-        self.publish_event("finalized", last_seq=self.last_seq, keyframes=kfs,
-                           frames=self.n_frames, dropped=self.n_dropped)
-        self._maybe_save()
-
-    def _loop_finalized(self, d: dict) -> None:
-        self.loop_final = d
+        out.final = dict(out.final or {}, frames=self.n_frames, dropped=self.n_dropped)
+        self.emit(out)
         self._maybe_save()
 
     def _maybe_save(self) -> None:
-        if not self.finalized or self.saved:
+        if not self.eos or self.saved or (self.role is not None and not self.role.complete):
             return
-        if self.opts["loop_closure"]:
-            if self.loop_final is None:
-                return
-            if self.loop_seq < int(self.loop_final.get("last_seq", -1)):
-                return
         self.saved = True
-        files = []
-        if self.output_dir is not None and self.tracker is not None:
+        files, trk = [], (self.role.tracker if self.role is not None else None)
+        if self.output_dir is not None and trk is not None:
             from splat_slam_ros.io.trajectory_io import write_tum
             self.output_dir.mkdir(parents=True, exist_ok=True)
-            ts, P = self.tracker.trajectory_full()
+            ts, P = trk.trajectory_full()
             write_tum(self.output_dir / "trajectory_full.txt", ts, P)
-            kts, kP = self.tracker.trajectory_keyframes()
+            kts, kP = trk.trajectory_keyframes()
             write_tum(self.output_dir / "trajectory_keyframes.txt", kts, kP)
             files = ["trajectory_full.txt", "trajectory_keyframes.txt"]
             if len(kts):
                 self.stamps, self.poses = list(ts), list(P)
                 self._publish_path(float(ts[-1]) if len(ts) else 0.0)
-        kfs = len(self.tracker.published) if self.tracker is not None else 0
-        self.publish_event("saved", files=files, keyframes=kfs, frames=self.n_frames,
-                           dropped=self.n_dropped,
+        self.publish_event("saved", files=files, frames=self.n_frames, dropped=self.n_dropped,
+                           keyframes=len(trk.published) if trk is not None else 0,
                            timings={k: round(float(v), 3) for k, v in
-                                    (self.tracker.timings.items() if self.tracker else [])})
+                                    (trk.timings.items() if trk is not None else [])})
 
 
 def main(argv=None) -> int:

@@ -25,9 +25,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="trajectory file (TUM/KITTI/EuRoC) or 'builtin' (default)")
     p.add_argument("--realism", default="realistic", choices=["clean", "realistic"],
                    help="camera realism preset of the generator (default realistic)")
-    p.add_argument("--mode", default="auto", choices=["auto", "graph", "inprocess"],
-                   help="run the ROS 2 node graph, or all stages in one process "
-                        "(auto: the graph when it is available)")
+    p.add_argument("--mode", default="graph", choices=["graph", "inprocess"],
+                   help="run the ROS 2 node graph (default), or all stages in one process")
     p.add_argument("--config", default=None, help="SLAM config YAML (default config/demo.yaml)")
     p.add_argument("--fresh", action="store_true", help="regenerate the sequence and the bag")
     return p
@@ -66,21 +65,11 @@ def main(argv=None) -> int:
         cfg_path = args.config or str(config_dir() / "demo.yaml")
         cfg = load_config(cfg_path if Path(cfg_path).is_file() else None)
 
-        mode = args.mode
-        graph = None
-        if mode in ("auto", "graph"):
-            try:
-                from splat_slam_nodes import launch as graph  # noqa: F811
-                if not getattr(graph, "GRAPH_AVAILABLE", False):
-                    graph = None
-            except ImportError:
-                graph = None
-            if graph is None and mode == "graph":
-                print("error: the ROS 2 node graph is not available in this build", file=sys.stderr)
-                return 3
         t_run = time.perf_counter()
-        if graph is not None:
+        if args.mode == "graph":
             import os
+
+            from splat_slam_nodes import launch as graph
             from splat_slam_ros.ros_env import random_domain_id
             # an isolated DDS domain, so another ROS graph on this machine or LAN cannot
             # cross-talk with the demo (set ROS_DOMAIN_ID yourself to choose one)

@@ -125,18 +125,62 @@ class KeyframeData:
     disparity: np.ndarray                     # h x w float32, 1/m (scale of the map)
     confidence: np.ndarray                    # h x w float32 in [0, 1]
     mono_depth: Optional[np.ndarray] = None   # H x W float32 relative depth, optional
+    # Keyframes published together (the end of the tracker's warm-up) form one batch: the
+    # same batch_id (the first one's kf_id), batch_size of them. Consumers process a batch
+    # as a whole, so that each keyframe sees the others (Eq. 5 views, loop candidates).
+    batch_id: int = -1                        # -1: a batch of its own
+    batch_size: int = 1
 
 
 @dataclass
 class UpdateEvent:
     """A change of keyframe poses/disparities made by BA, loop closure or global BA.
 
-    This is what ``splat_slam_msgs/PoseGraphUpdate`` carries between nodes.
+    This is what ``splat_slam_msgs/PoseGraphUpdate`` carries between nodes. Each source
+    numbers its updates in its own range (TRACKER_SEQ_START.., LOOP_SEQ_START..), strictly
+    increasing, so a consumer recognises a replayed update by ``seq <= last seen``.
     """
-    seq: int                                 # monotonically increasing
+    seq: int                                 # strictly increasing per source
     reason: str                              # one of REASONS
     kf_ids: Sequence[int]
     poses: np.ndarray                        # N x 4 x 4 camera-to-world
     disparities: Optional[np.ndarray] = None  # N x h x w (BA resolution) or None = poses only
 
     REASONS = ("local_ba", "loop_closure", "global_ba", "final")
+
+    @property
+    def source(self) -> str:
+        """``"tracker"`` (local BA) or ``"loop"`` (loop closure, global BA, final)."""
+        return "tracker" if self.reason in TRACKER_REASONS else "loop"
+
+
+# Update sequence numbers: the tracker's from 1, the loop closer's from 1e9 (0 = none).
+TRACKER_SEQ_START = 1
+LOOP_SEQ_START = 1_000_000_000
+TRACKER_REASONS = ("local_ba",)
+LOOP_REASONS = ("loop_closure", "global_ba", "final")
+
+
+@dataclass
+class ProxyDepth:
+    """Proxy depth of one keyframe as the depth stage hands it on (``splat_slam_msgs/ProxyDepth``).
+
+    ``revision`` counts the depths sent for this keyframe (0 = the first); a consumer applies
+    a ProxyDepth only if its revision is newer than the last one it took for that keyframe.
+    """
+    kf_id: int
+    depth: np.ndarray           # H x W float32 metres, 0 = none
+    source: np.ndarray          # H x W uint8: SOURCE_EMPTY=0, SOURCE_MULTIVIEW=1, SOURCE_MONO=2
+    pose: np.ndarray            # 4x4 camera-to-world the depth was computed with
+    update_seq: int = 0         # PoseGraphUpdate.seq it reflects, 0 for a new keyframe
+    is_update: bool = False     # replaces an earlier depth of the same keyframe
+    timestamp: float = 0.0      # keyframe image stamp, seconds
+    revision: int = 0
+
+    SOURCE_EMPTY = 0
+    SOURCE_MULTIVIEW = 1
+    SOURCE_MONO = 2
+
+    @property
+    def valid(self) -> np.ndarray:
+        return np.asarray(self.source) > 0

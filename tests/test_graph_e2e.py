@@ -48,14 +48,6 @@ SUBS = [["/splat/keyframes", "splat_slam_msgs/msg/Keyframe", "keyframe"],
         ["/clock", "rosgraph_msgs/msg/Clock", "image"]]
 
 
-def _loop_available() -> bool:
-    try:
-        from splat_slam_ros.tracking.loop_closure import LoopCloser  # noqa: F401
-        return True
-    except ImportError:
-        return False
-
-
 @pytest.fixture(scope="module")
 def tiny_bag(tmp_path_factory):
     need_ros()
@@ -68,7 +60,7 @@ def tiny_bag(tmp_path_factory):
                       overwrite=True, progress=False, realism="clean", fps=10)
     write_bag(open_dataset(d / "seq"), d / "bag", progress=False)
     cfg = d / "cfg.yaml"
-    cfg.write_text(CFG.format(loop="true" if _loop_available() else "false"))
+    cfg.write_text(CFG.format(loop="true"))
     return d / "bag", cfg
 
 
@@ -110,7 +102,8 @@ def test_graph_end_to_end(graph_run):
     m = json.loads((out / "metrics.json").read_text())
     assert m["frames"] == 40 and m["frames_tracked"] == 40 and m["frames_dropped"] == 0
     assert m["keyframes"] >= 4
-    assert np.isfinite(m["ate_rmse_cm_full"]) and np.isfinite(m["psnr"]) and m["fps"] > 0
+    # 40 clean 192x144 frames, fast mapping schedule: measured 0.86 cm / 21.3 dB
+    assert m["ate_rmse_cm_full"] < 3.0 and m["psnr"] > 17.0 and m["fps"] > 0, m
     for n in ("tracker", "depth", "mapper", "player"):
         assert m["nodes"][n]["cpu_s"] > 0 and m["nodes"][n]["peak_rss_mb"] > 30, m["nodes"]
     assert "ate_rmse_cm_full" in log and "frames/s" in log and "[tracker]" in log
@@ -173,7 +166,7 @@ def test_resumable_nodes_killed_mid_run_resume(tiny_bag, graph_run, tmp_path):
                         victims[name] = int(k)
             except OSError:
                 pass
-        assert len(victims) == (3 if _loop_available() else 2)
+        assert len(victims) == 3
         for pid in victims.values():             # every resumable node goes down at once
             os.kill(pid, signal.SIGKILL)
         rc = launch.wait(timeout=900)
@@ -186,9 +179,8 @@ def test_resumable_nodes_killed_mid_run_resume(tiny_bag, graph_run, tmp_path):
     assert "[mapper]" in log and "resumed from" in log
     m = json.loads((out / "metrics.json").read_text())
     assert m["nodes"]["mapper"]["restarts"] == 1 and m["nodes"]["depth"]["restarts"] == 1
-    if _loop_available():
-        assert m["nodes"]["loop_closure"]["restarts"] == 1
-        assert "loop_closure died (exit status -9); restarting it" in log
+    assert m["nodes"]["loop_closure"]["restarts"] == 1
+    assert "loop_closure died (exit status -9); restarting it" in log
     assert m["keyframes"] == k_ref                     # same lockstep run, same keyframes
     offered = json.loads(manifest.read_text())["meta"]["offered"]
     assert sorted(int(k) for k in offered) == list(range(k_ref))   # no keyframe lost

@@ -3,6 +3,7 @@
 Every round trip goes through real CDR serialisation, as between two processes.
 """
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -20,6 +21,7 @@ except ImportError as e:  # pragma: no cover - depends on the environment
 
 from splat_slam_nodes import convert as C
 from splat_slam_ros.types import Intrinsics, KeyframeData, UpdateEvent
+from splat_slam_ros.types import ProxyDepth as CoreProxyDepth
 
 
 def wire(msg):
@@ -215,12 +217,15 @@ def make_keyframe(rng, mono=True, H=24, W=32):
 @pytest.mark.parametrize("mono", [True, False])
 def test_keyframe_round_trip(mono):
     kf = make_keyframe(np.random.default_rng(2), mono)
+    kf.batch_id, kf.batch_size = 5, 3                  # third of the warm-up batch 5, 6, 7
     m = wire(C.keyframe_to_msg(kf, frame_id="world"))
     assert isinstance(m, Keyframe) and m.header.frame_id == "world" and m.image.encoding == "rgb8"
     assert (m.disp_width, m.disp_height, m.width, m.height) == (8, 6, 32, 24)
     assert m.has_mono_depth == mono
     k2 = C.msg_to_keyframe(m)
-    assert (k2.kf_id, k2.frame_index) == (7, 41)
+    assert (k2.kf_id, k2.frame_index, k2.batch_id, k2.batch_size) == (7, 41, 5, 3)
+    single = C.msg_to_keyframe(wire(C.keyframe_to_msg(make_keyframe(np.random.default_rng(2)))))
+    assert (single.batch_id, single.batch_size) == (7, 1)       # a batch of its own
     assert abs(k2.timestamp - kf.timestamp) < 5e-7
     np.testing.assert_allclose(k2.pose, kf.pose, atol=1e-12)
     np.testing.assert_array_equal(k2.image, kf.image)
@@ -295,20 +300,21 @@ def test_proxy_depth_round_trip_and_errors():
     d = rng.random((12, 16), dtype=np.float32) * 4
     s = rng.integers(0, 3, (12, 16)).astype(np.uint8)
     T = random_pose(rng)
-    m = wire(C.proxy_depth_to_msg(4, d, s, T, update_seq=9, is_update=True, stamp=2.25))
+    pd = CoreProxyDepth(4, d, s, T, update_seq=9, is_update=True, timestamp=2.25, revision=7)
+    m = wire(C.proxy_depth_to_msg(pd))
     assert isinstance(m, ProxyDepth) and (m.width, m.height) == (16, 12)
-    assert ProxyDepth.SOURCE_MULTIVIEW == C.ProxyDepthData.SOURCE_MULTIVIEW == 1
+    assert ProxyDepth.SOURCE_MULTIVIEW == CoreProxyDepth.SOURCE_MULTIVIEW == 1
     p = C.msg_to_proxy_depth(m)
-    assert (p.kf_id, p.update_seq, p.is_update, p.timestamp) == (4, 9, True, 2.25)
+    assert (p.kf_id, p.update_seq, p.is_update, p.timestamp, p.revision) == (4, 9, True, 2.25, 7)
     np.testing.assert_array_equal(p.depth, d)
     np.testing.assert_array_equal(p.source, s)
     np.testing.assert_allclose(p.pose, T, atol=1e-12)
-    m2 = wire(C.proxy_depth_data_to_msg(p))
+    m2 = wire(C.proxy_depth_to_msg(p))
     assert bytes(m2.source) == bytes(m.source) and m2.update_seq == 9
     with pytest.raises(C.ConversionError, match="source mask values"):
-        C.proxy_depth_to_msg(4, d, s + 5, T)
+        C.proxy_depth_to_msg(replace(pd, source=s + 5))
     with pytest.raises(C.ConversionError, match="source mask shape"):
-        C.proxy_depth_to_msg(4, d, s[:-1], T)
+        C.proxy_depth_to_msg(replace(pd, source=s[:-1]))
     m.source = bytes(m.source)[:-2]
     with pytest.raises(C.ConversionError, match="source: 190 values, expected 192"):
         C.msg_to_proxy_depth(m)

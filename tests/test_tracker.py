@@ -200,7 +200,7 @@ def test_preprocessor_undistorts_with_a_map_built_once():
 
 # ------------------------------------------------------------------- tracking
 def test_tracks_a_synthetic_sequence_accurately():
-    from splat_slam_ros.tracking.tracker import track_sequence
+    from splat_slam_ros.coordinator import track_sequence
     frames, gt = sequence()
     res = track_sequence(frames, small_cfg(), INTR, progress=False)
     assert res.n_frames == 50 and res.n_lost == 0
@@ -212,16 +212,20 @@ def test_tracks_a_synthetic_sequence_accurately():
 
 
 def test_track_sequence_with_loop_closer_in_process():
-    """Tracker + LoopCloser exchange events as the ROS nodes do; one increasing seq."""
-    from splat_slam_ros.tracking.tracker import track_sequence
+    """Tracker + LoopCloser exchange updates as the ROS nodes do: each source numbers its
+    updates in its own range, strictly increasing."""
+    from splat_slam_ros.coordinator import track_sequence
     frames, gt = sequence()
     cfg = small_cfg(loop_closure=True, global_ba=True, global_ba_every=3, loop_time_gap=4,
                     loop_window=4)
     res = track_sequence(frames, cfg, INTR, progress=False)
     reasons = {e.reason for e in res.events}
     assert {"local_ba", "global_ba", "final"} <= reasons
-    seqs = [e.seq for e in res.events]
-    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+    from splat_slam_ros.types import LOOP_SEQ_START, TRACKER_SEQ_START
+    for src, lo, hi in (("tracker", TRACKER_SEQ_START, LOOP_SEQ_START),
+                        ("loop", LOOP_SEQ_START, 2 * LOOP_SEQ_START)):
+        seqs = [e.seq for e in res.events if e.source == src]
+        assert seqs and seqs == sorted(set(seqs)) and lo <= seqs[0] and seqs[-1] < hi
     path = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum()
     assert ate_cm(frames, gt, res.timestamps, res.poses) < 0.03 * path * 100
 

@@ -17,6 +17,9 @@ outputs in --out: trajectory_full.txt, trajectory_keyframes.txt (TUM format), ma
 metrics.json (ATE when the input has ground truth, PSNR/SSIM/depth L1 on keyframes),
 renders/ (rendered keyframes).
 
+exit status: 0 done, 2 a user error (bad input, config), 3 the tracker never initialised (no
+keyframe: too little camera motion for the thresholds; the message says which to lower).
+
 examples:
   splat-slam-run data/fr1_xyz --out runs/fr1 --config config/tum.yaml
   splat-slam-run bags/synth --out runs/synth --tracking-only
@@ -54,7 +57,7 @@ def main(argv=None) -> int:
     def body() -> int:
         from splat_slam_ros.config import load_config
         from splat_slam_ros.io.datasets import open_dataset
-        from splat_slam_ros.pipeline import StageUnavailable, run
+        from splat_slam_ros.pipeline import NotInitializedError, run
 
         if args.gt_poses != args.gt_depth:
             print("error: --gt-poses and --gt-depth go together (mapping in isolation on ground "
@@ -80,8 +83,8 @@ def main(argv=None) -> int:
         try:
             res = run(ds, cfg, out, mode=mode, progress=not args.no_progress,
                       max_frames=args.max_frames)
-        except StageUnavailable as e:
-            print(f"error: {e}", file=sys.stderr)
+        except NotInitializedError as e:
+            print(f"error: {e} (metrics.json in {out})", file=sys.stderr)
             return 3
         m = res.metrics
         print(f"frames {res.frames}  keyframes {res.keyframes}  wall {res.wall_s:.1f} s  "

@@ -39,7 +39,7 @@ from splat_slam_ros.tracking.flow_frontend import make_flow_predictor
 from splat_slam_ros.geometry import pixel_grid, se3_inverse, se3_log
 from splat_slam_ros.tracking.global_ba import normalized_global_ba, spatial_pairs, temporal_pairs
 from splat_slam_ros.tracking.motion_filter import MotionFilter
-from splat_slam_ros.types import Intrinsics, KeyframeData, UpdateEvent
+from splat_slam_ros.types import LOOP_SEQ_START, Intrinsics, KeyframeData, UpdateEvent
 
 log = logging.getLogger(__name__)
 
@@ -48,7 +48,7 @@ class LoopCloser:
     """Loop closure + global BA over its own keyframe store (see module docstring)."""
 
     def __init__(self, cfg: SlamConfig, intrinsics: Optional[Intrinsics] = None,
-                 flow_predictor=None, seq_start: int = 0, seq_counter=None):
+                 flow_predictor=None, seq_start: int = LOOP_SEQ_START):
         from splat_slam_ros.tracking.tracker import resolve_device
         self.cfg = cfg
         self.tc = tc = cfg.tracking
@@ -66,7 +66,7 @@ class LoopCloser:
         self.loop_pairs: set = set()           # accepted loop edges (i, j)
         self.checked: set = set()              # candidate pairs already measured (rejected)
         self.new_since_gba: List[int] = []
-        self._seq = seq_counter if seq_counter is not None else itertools.count(seq_start)
+        self._seq = itertools.count(seq_start)      # update numbers (types.LOOP_SEQ_START)
         self.motion = MotionFilter(tc.motion_filter_thresh, min_valid_frac=tc.lost_min_valid)
         self.huber = tc.robust_huber_px / tc.ba_downsample if tc.robust_huber_px > 0 else None
         self.gate = tc.edge_gate_px / tc.ba_downsample

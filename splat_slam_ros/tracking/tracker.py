@@ -11,7 +11,7 @@ published keyframe is reported as an :class:`UpdateEvent`.
 
 Loop closure and global BA live in :mod:`loop_closure` (their own node in the
 ROS graph); their events come back through :meth:`Tracker.apply_update`.
-:func:`track_sequence` runs tracker + loop closer over a frame iterable.
+:func:`splat_slam_ros.coordinator.track_sequence` runs tracker + loop closer over a sequence.
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ import logging
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, Iterable, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -36,7 +36,7 @@ from splat_slam_ros.tracking.flow_frontend import (ImagePreprocessor, compose_fl
 from splat_slam_ros.geometry import pixel_grid, pose_from_tq, pose_to_tq, se3_exp, se3_inverse, se3_log
 from splat_slam_ros.tracking.motion_filter import MotionFilter
 from splat_slam_ros.tracking.trajectory_filler import FrameRecord, fill_trajectory
-from splat_slam_ros.types import Frame, Intrinsics, KeyframeData, UpdateEvent
+from splat_slam_ros.types import TRACKER_SEQ_START, Frame, Intrinsics, KeyframeData, UpdateEvent
 
 log = logging.getLogger(__name__)
 
@@ -137,11 +137,9 @@ class TrackingResult:
 class Tracker:
     """Frame-by-frame tracker. ``Tracker(cfg, intrinsics)``; see module docstring."""
 
-    owns_loop_closure = False
-
     def __init__(self, cfg: SlamConfig, intrinsics: Intrinsics, flow_predictor=None,
                  depth_prior: Optional[Callable[[BAState], Optional[torch.Tensor]]] = None,
-                 seq_start: int = 0, seq_counter=None):
+                 seq_start: int = TRACKER_SEQ_START):
         self.cfg = cfg
         tc = self.tc = cfg.tracking
         self.device = resolve_device(tc.device)
@@ -169,9 +167,7 @@ class Tracker:
         self.records: List[FrameRecord] = []
         self.initialized = False
         self.next_kf = 0
-        # event sequence numbers; pass one shared itertools.count to the tracker and
-        # the loop closer for a single increasing sequence in one process
-        self._seq = seq_counter if seq_counter is not None else itertools.count(seq_start)
+        self._seq = itertools.count(seq_start)      # update numbers (types.TRACKER_SEQ_START)
         self.last_pose = torch.eye(4, dtype=torch.float64, device=self.device)
         self.velocity = torch.eye(4, dtype=torch.float64, device=self.device)
         self.lost_count = 0
@@ -691,76 +687,3 @@ class Tracker:
                                         iters=self.tc.filler_iters, huber=self.huber)
         self.timings["filler"] += time.perf_counter() - t0
         return ts, poses
-
-
-# ----------------------------------------------------------------- driver
-def track_sequence(frames: Iterable[Frame], cfg: SlamConfig, intrinsics: Intrinsics,
-                   progress: bool = True, loop_closure: Optional[bool] = None,
-                   total: Optional[int] = None) -> TrackingResult:
-    """Track a whole sequence in-process: tracker + loop closer (loop closure and
-    online/final global BA when enabled in ``cfg.tracking``). The loop closer's
-    events are applied to the tracker, the tracker's to the loop closer, exactly
-    as the ROS nodes exchange them."""
-    t_start = time.perf_counter()
-    seq = itertools.count()
-    tracker = Tracker(cfg, intrinsics, seq_counter=seq)
-    tc = cfg.tracking
-    use_loop = (tc.loop_closure or tc.global_ba) if loop_closure is None else loop_closure
-    closer = None
-    if use_loop:
-        from splat_slam_ros.tracking.loop_closure import LoopCloser
-        closer = LoopCloser(cfg, intrinsics, seq_counter=seq)
-    events: List[UpdateEvent] = []
-    timings: Dict[str, float] = defaultdict(float)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        if total is None and hasattr(frames, "__len__"):
-            total = len(frames)  # type: ignore[arg-type]
-        bar = tqdm(total=total, unit="frame", desc="tracking", dynamic_ncols=True)
-    n = 0
-    for frame in frames:
-        step = tracker.track(frame)
-        n += 1
-        events.extend(step.events)
-        if closer is not None:
-            t0 = time.perf_counter()
-            for ev in step.events:
-                closer.apply_update(ev)
-            for kd in step.keyframes:
-                closer.add_keyframe(kd)
-            if step.keyframes:
-                lev = closer.step()
-                for ev in lev:
-                    tracker.apply_update(ev)
-                events.extend(lev)
-            timings["loop_closure"] += time.perf_counter() - t0
-        if bar is not None:
-            bar.update(1)
-            el = time.perf_counter() - t_start
-            bar.set_postfix(fps=f"{n / max(el, 1e-9):.1f}", kf=len(tracker.published),
-                            lost=tracker.n_lost, refresh=False)
-    fin = tracker.finalize()
-    events.extend(fin)
-    if closer is not None:
-        t0 = time.perf_counter()
-        for ev in fin:
-            closer.apply_update(ev)
-        lev = closer.finalize()
-        for ev in lev:
-            tracker.apply_update(ev)
-        events.extend(lev)
-        timings["loop_closure"] += time.perf_counter() - t0
-    if bar is not None:
-        bar.close()
-    ts, poses = tracker.trajectory_full()
-    kts, kposes = tracker.trajectory_keyframes()
-    wall = time.perf_counter() - t_start
-    timings.update({k: v for k, v in tracker.timings.items()})
-    if closer is not None:
-        for k, v in closer.timings.items():
-            timings["loop_" + k] = v
-    timings["wall"] = wall
-    timings["fps"] = n / max(wall, 1e-9)
-    return TrackingResult(ts, poses, kts, kposes, tracker.keyframe_ids(), events, dict(timings),
-                          n, len(tracker.published), tracker.n_lost, wall)

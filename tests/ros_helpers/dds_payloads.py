@@ -1,7 +1,7 @@
 """Deterministic test payloads shared by the DDS test's publisher and subscriber scripts."""
 import numpy as np
 
-from splat_slam_ros.types import Intrinsics, KeyframeData, UpdateEvent
+from splat_slam_ros.types import Intrinsics, KeyframeData, ProxyDepth, UpdateEvent
 
 H, W = 480, 640          # image / mono depth / proxy depth resolution
 h, w = 60, 80            # BA resolution
@@ -33,11 +33,11 @@ def update(i: int) -> UpdateEvent:
                        disparities=rng.random((n, h, w), dtype=np.float32) if i % 2 == 0 else None)
 
 
-def proxy(i: int):
+def proxy(i: int) -> ProxyDepth:
     rng = np.random.default_rng(3000 + i)
-    return dict(kf_id=i, depth=rng.random((H, W), dtype=np.float32) * 5,
-                source=rng.integers(0, 3, (H, W)).astype(np.uint8), pose=_pose(rng),
-                update_seq=i, is_update=i > 0, stamp=100.0 + i / 30)
+    return ProxyDepth(kf_id=i, depth=rng.random((H, W), dtype=np.float32) * 5,
+                      source=rng.integers(0, 3, (H, W)).astype(np.uint8), pose=_pose(rng),
+                      update_seq=i, is_update=i > 0, timestamp=100.0 + i / 30, revision=i % 3)
 
 
 def image(i: int) -> np.ndarray:
@@ -52,7 +52,7 @@ def build(topic_kind: str, i: int):
     if topic_kind == "pose_graph":
         return C.update_to_msg(update(i), stamp=50.0 + i)
     if topic_kind == "proxy_depth":
-        return C.proxy_depth_to_msg(**proxy(i))
+        return C.proxy_depth_to_msg(proxy(i))
     if topic_kind == "image":
         return C.image_to_msg(image(i), "rgb8", stamp=100.0 + i / 30, frame_id=f"cam{i}")
     raise KeyError(topic_kind)
@@ -87,9 +87,10 @@ def contents_equal(topic_kind: str, msg, i: int) -> bool:
                 and np.allclose(a.poses, b.poses, atol=1e-12) and same_d)
     if topic_kind == "proxy_depth":
         a, b = C.msg_to_proxy_depth(msg), proxy(i)
-        return (a.kf_id == b["kf_id"] and np.array_equal(a.depth, b["depth"])
-                and np.array_equal(a.source, b["source"]) and np.allclose(a.pose, b["pose"], atol=1e-12)
-                and a.update_seq == b["update_seq"] and a.is_update == b["is_update"])
+        return (a.kf_id == b.kf_id and np.array_equal(a.depth, b.depth)
+                and np.array_equal(a.source, b.source) and np.allclose(a.pose, b.pose, atol=1e-12)
+                and (a.update_seq, a.is_update, a.revision) == (b.update_seq, b.is_update,
+                                                                b.revision))
     if topic_kind == "image":
         return msg.encoding == "rgb8" and np.array_equal(C.msg_to_image(msg), image(i))
     raise KeyError(topic_kind)

@@ -1,0 +1,512 @@
+"""The four stage endpoints of the update protocol, ROS-free.
+
+Each role wraps one stage of the paper and owns everything about its messages that is not
+transport: which inputs it takes, in which order, what it recognises as a replay, how it
+groups the tracker's warm-up batch, what it persists for a restart and when it is final.
+A role never publishes; every handler returns an :class:`Outbox` of what the stage sends
+on. The in-process :class:`~splat_slam_ros.coordinator.Coordinator` routes outboxes between
+the four roles; each ROS node wraps one role and turns outboxes into messages.
+
+Identity of a message (replays after a restart are skipped, never applied twice):
+  keyframe        its ``kf_id``                     (dense from 0, never reused)
+  PoseGraphUpdate its ``seq`` within its source     (tracker from TRACKER_SEQ_START,
+                                                     loop closer from LOOP_SEQ_START)
+  ProxyDepth      ``(kf_id, revision)``             (revision 0, 1, 2, ... per keyframe)
+
+Finalisation (each ``final`` dict becomes a ``finalized`` graph event):
+  tracker.finalize() -> {last_seq} -> loop closer, once it applied the tracker's updates
+  up to last_seq: final global BA -> {last_seq} -> tracker complete once it applied those;
+  depth, once both streams reached their last_seq -> {digest: kf_id -> last revision} ->
+  mapper, once it took every revision in the digest: final refinement -> {metrics}.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Tuple
+
+import numpy as np
+
+from splat_slam_ros.config import SlamConfig
+from splat_slam_ros.depth.proxy_depth import ProxyDepthEstimator, ProxyDepthResult
+from splat_slam_ros.io.keyframe_store import (KeyframeStore, keyframe_depth, mapper_state,
+                                              restore_mapper)
+from splat_slam_ros.io.trajectory_io import write_tum
+from splat_slam_ros.mapping.mapper import Mapper
+from splat_slam_ros.tracking.loop_closure import LoopCloser
+from splat_slam_ros.tracking.tracker import Tracker, TrackStep
+from splat_slam_ros.types import (LOOP_SEQ_START, Frame, Intrinsics, KeyframeData, ProxyDepth,
+                                  UpdateEvent)
+
+
+@dataclass
+class Outbox:
+    """What a stage sends on after handling one input."""
+    updates: List[UpdateEvent] = field(default_factory=list)
+    keyframes: List[KeyframeData] = field(default_factory=list)
+    proxy_depths: List[ProxyDepth] = field(default_factory=list)
+    acks: List[Tuple[int, int, float]] = field(default_factory=list)  # frame, kf_id, stamp
+    mapped: List[dict] = field(default_factory=list)    # mapper: status of mapped keyframes
+    final: Optional[dict] = None                        # the stage became final
+
+    def extend(self, other: "Outbox") -> "Outbox":
+        self.updates += other.updates
+        self.keyframes += other.keyframes
+        self.proxy_depths += other.proxy_depths
+        self.acks += other.acks
+        self.mapped += other.mapped
+        if other.final is not None:
+            self.final = other.final
+        return self
+
+
+class KeyframeBatcher:
+    """Groups the keyframes of one batch (``KeyframeData.batch_id``/``batch_size``); a batch
+    is handed on once all its members arrived, without the ones ``known`` already (replays)."""
+
+    def __init__(self):
+        self._parts: Dict[int, Dict[int, KeyframeData]] = {}
+
+    def add(self, kf: KeyframeData, known: Callable[[int], bool]) -> List[KeyframeData]:
+        if kf.batch_size <= 1:
+            return [] if known(kf.kf_id) else [kf]
+        parts = self._parts.setdefault(int(kf.batch_id), {})
+        parts[int(kf.kf_id)] = kf
+        if len(parts) < kf.batch_size:
+            return []
+        del self._parts[int(kf.batch_id)]
+        return [parts[k] for k in sorted(parts) if not known(k)]
+
+    def waiting(self) -> int:
+        return sum(len(p) for p in self._parts.values())
+
+
+def _ack(kf: KeyframeData) -> Tuple[int, int, float]:
+    return int(kf.frame_index), int(kf.kf_id), float(kf.timestamp)
+
+
+def _persist_events(store: Optional[KeyframeStore], events, meta: dict) -> None:
+    """New poses / disparities of stored keyframes, committed with ``meta`` in one step."""
+    if store is None:
+        return
+    staged = {}
+    for ev in events:
+        for i, k in enumerate(ev.kf_ids):
+            staged.update(store.update_keyframe(
+                k, pose=ev.poses[i],
+                disparity=None if ev.disparities is None else ev.disparities[i], commit=False))
+    store.commit(staged, meta)
+
+
+# ============================================================================ tracker
+class TrackerRole:
+    """Frames -> local-BA updates + keyframes (§3.1); applies the loop closer's updates."""
+    name = "tracker"
+
+    def __init__(self, cfg: SlamConfig, intrinsics: Intrinsics, loop_closure: bool):
+        self.tracker = Tracker(cfg, intrinsics)
+        self.wait_loop = bool(loop_closure)
+        self.last_seq = 0                   # our newest update
+        self.loop_seq = 0                   # the loop closer's newest update applied
+        self.loop_final: Optional[int] = None
+        self.finalized = False
+
+    def on_frame(self, frame: Frame) -> Tuple[TrackStep, Outbox]:
+        step = self.tracker.track(frame)
+        kfs = list(step.keyframes)
+        if len(kfs) > 1:                    # the warm-up's keyframes: one batch
+            for kf in kfs:
+                kf.batch_id, kf.batch_size = int(kfs[0].kf_id), len(kfs)
+        self.last_seq = max([self.last_seq] + [int(e.seq) for e in step.events])
+        return step, Outbox(updates=list(step.events), keyframes=kfs)
+
+    def on_update(self, ev: UpdateEvent) -> Outbox:
+        if ev.source == "tracker" or ev.seq <= self.loop_seq:      # ours, or a replay
+            return Outbox()
+        self.tracker.apply_update(ev)
+        self.loop_seq = int(ev.seq)
+        return Outbox()
+
+    def finalize(self) -> Outbox:
+        """End of the input: last local BA and the trajectory filler's final pass."""
+        if self.finalized:
+            return Outbox()
+        evs = list(self.tracker.finalize())
+        self.last_seq = max([self.last_seq] + [int(e.seq) for e in evs])
+        self.finalized = True
+        return Outbox(updates=evs, final={"last_seq": self.last_seq,
+                                          "keyframes": len(self.tracker.published)})
+
+    def on_final(self, node: str, info: dict) -> Outbox:
+        if node == "loop_closure":
+            self.loop_final = int(info.get("last_seq", 0))
+        return Outbox()
+
+    @property
+    def complete(self) -> bool:
+        """Final, and every update of the loop closer's final global BA applied."""
+        if not self.finalized:
+            return False
+        return not self.wait_loop or (self.loop_final is not None and
+                                      self.loop_seq >= self.loop_final)
+
+
+# ============================================================================ loop closure
+class LoopRole:
+    """Keyframes -> loop closure, online global BA and final global BA updates (§3.1)."""
+    name = "loop_closure"
+
+    def __init__(self, cfg: SlamConfig, store: Optional[KeyframeStore] = None):
+        self.cfg = cfg
+        self.loop: Optional[LoopCloser] = None
+        self.kf_ids: Dict[int, float] = {}
+        self.trk_seq = 0                     # the tracker's newest update applied
+        self.last_seq = 0                    # our newest update
+        self.trk_final: Optional[int] = None
+        self.finalized = False
+        self.batcher = KeyframeBatcher()
+        self.store = store
+        if store is not None and store.exists:
+            self._resume()
+
+    def _make(self, intr: Intrinsics) -> LoopCloser:
+        return LoopCloser(self.cfg, intr, seq_start=max(LOOP_SEQ_START, self.last_seq + 1))
+
+    def _resume(self) -> None:
+        meta = self.store.meta
+        self.trk_seq = int(meta.get("trk_seq", 0))
+        self.last_seq = int(meta.get("last_seq", 0))
+        kfs = self.store.keyframes()
+        if kfs:
+            self.loop = self._make(kfs[0].intrinsics)
+            for kf in kfs:
+                self.loop.add_keyframe(kf)
+                self.kf_ids[kf.kf_id] = kf.timestamp
+
+    def meta(self) -> dict:
+        return {"trk_seq": self.trk_seq, "last_seq": self.last_seq}
+
+    def on_keyframe(self, kf: KeyframeData) -> Outbox:
+        batch = self.batcher.add(kf, lambda k: k in self.kf_ids)
+        if not batch:
+            return Outbox()
+        for k in batch:
+            if self.loop is None:
+                self.loop = self._make(k.intrinsics)
+            self.loop.add_keyframe(k)
+            self.kf_ids[k.kf_id] = k.timestamp
+        events = self.loop.step()           # loop detection + loop BA / online global BA
+        self.last_seq = max([self.last_seq] + [int(e.seq) for e in events])
+        if self.store is not None:
+            for k in batch:
+                self.store.put_keyframe(k, meta=self.meta())
+            _persist_events(self.store, events, self.meta())
+        return Outbox(updates=events, acks=[_ack(k) for k in batch])
+
+    def on_update(self, ev: UpdateEvent) -> Outbox:
+        if ev.source != "tracker" or ev.seq <= self.trk_seq:
+            return Outbox()
+        if self.loop is not None:
+            self.loop.apply_update(ev)
+        self.trk_seq = int(ev.seq)
+        _persist_events(self.store, [ev], self.meta())
+        return self._check_final()
+
+    def on_final(self, node: str, info: dict) -> Outbox:
+        if node == "tracker":
+            self.trk_final = int(info.get("last_seq", 0))
+            return self._check_final()
+        return Outbox()
+
+    def _check_final(self) -> Outbox:
+        if self.finalized or self.trk_final is None or self.trk_seq < self.trk_final:
+            return Outbox()
+        self.finalized = True
+        events = self.loop.finalize() if self.loop is not None else []   # final global BA
+        self.last_seq = max([self.last_seq] + [int(e.seq) for e in events])
+        _persist_events(self.store, events, self.meta())
+        return Outbox(updates=list(events), final={"last_seq": self.last_seq,
+                                                   "keyframes": len(self.kf_ids)})
+
+
+# ============================================================================ proxy depth
+class DepthRole:
+    """Keyframes + updates -> proxy depth (Eq. 4-5), one ordered stream per keyframe (§3.2)."""
+    name = "depth"
+
+    def __init__(self, cfg: SlamConfig, loop_closure: bool,
+                 store: Optional[KeyframeStore] = None):
+        self.cfg = cfg
+        self.wait_loop = bool(loop_closure)
+        self.est: Optional[ProxyDepthEstimator] = None
+        self.kf_stamp: Dict[int, float] = {}
+        self.pending: Dict[int, tuple] = {}       # updates that overtook their keyframe
+        self.revision: Dict[int, int] = {}        # kf_id -> last revision sent
+        self.seq = {"tracker": 0, "loop": 0}
+        self.final: Dict[str, Optional[int]] = {"tracker": None, "loop": None}
+        self.finalized = False
+        self.batcher = KeyframeBatcher()
+        self.store = store
+        if store is not None and store.exists:
+            self._resume()
+
+    def meta(self) -> dict:
+        return {"seq": self.seq, "revision": {str(k): v for k, v in self.revision.items()}}
+
+    def _resume(self) -> None:
+        meta = self.store.meta
+        self.seq.update(meta.get("seq", {}))
+        self.revision = {int(k): int(v) for k, v in meta.get("revision", {}).items()}
+        kfs = self.store.keyframes()
+        if kfs:
+            self.est = ProxyDepthEstimator(self.cfg, kfs[0].intrinsics)
+            self.est.add_keyframes(kfs)
+            self.est.take_refreshed()
+            self.kf_stamp = {kf.kf_id: kf.timestamp for kf in kfs}
+
+    def current(self) -> Outbox:
+        """The latest proxy depth of every keyframe at its current revision (after a restart
+        this node's earlier messages left with its DDS history; consumers skip what they have)."""
+        out = Outbox()
+        if self.est is not None:
+            for k in sorted(self.kf_stamp):
+                res = self.est.get(k)
+                if res is not None and k in self.revision:
+                    out.proxy_depths.append(self._wrap(res, True, self.revision[k]))
+        return out
+
+    def _wrap(self, res: ProxyDepthResult, is_update: bool, revision: int) -> ProxyDepth:
+        return ProxyDepth(kf_id=int(res.kf_id), depth=res.depth, source=res.source,
+                          pose=res.pose, update_seq=int(res.update_seq), is_update=is_update,
+                          timestamp=self.kf_stamp.get(int(res.kf_id), 0.0), revision=revision)
+
+    def _send(self, res: ProxyDepthResult, is_update: bool) -> ProxyDepth:
+        k = int(res.kf_id)
+        self.revision[k] = self.revision.get(k, -1) + 1
+        return self._wrap(res, is_update, self.revision[k])
+
+    def on_keyframe(self, kf: KeyframeData) -> Outbox:
+        batch = self.batcher.add(kf, lambda k: k in self.kf_stamp)
+        if not batch:
+            return Outbox()
+        for k in batch:
+            if k.kf_id in self.pending:
+                k.pose, disp = self.pending.pop(k.kf_id)
+                if disp is not None:
+                    k.disparity = disp
+            self.kf_stamp[k.kf_id] = k.timestamp
+        if self.est is None:
+            self.est = ProxyDepthEstimator(self.cfg, batch[0].intrinsics)
+        results = self.est.add_keyframes(batch)       # each sees the others as views (Eq. 5)
+        out = Outbox()
+        # earlier keyframes that gained a view: their deformation before the new mapping
+        out.proxy_depths += [self._send(new, True) for _old, new in self.est.take_refreshed()]
+        out.proxy_depths += [self._send(res, False) for res in results]
+        if self.store is not None:
+            for k in batch:
+                self.store.put_keyframe(k, with_image=False, meta=self.meta())
+        return out.extend(self._check_final())
+
+    def on_update(self, ev: UpdateEvent) -> Outbox:
+        src = ev.source
+        if ev.seq <= self.seq[src]:
+            return Outbox()
+        known_max = max(self.kf_stamp) if self.kf_stamp else -1
+        for i, k in enumerate(ev.kf_ids):
+            if k > known_max:
+                self.pending[int(k)] = (ev.poses[i], None if ev.disparities is None
+                                        else ev.disparities[i])
+        changed = self.est.apply_update(ev) if self.est is not None else []
+        self.seq[src] = int(ev.seq)
+        out = Outbox(proxy_depths=[self._send(new, True) for _old, new in changed])
+        _persist_events(self.store, [ev], self.meta())
+        return out.extend(self._check_final())
+
+    def on_final(self, node: str, info: dict) -> Outbox:
+        if node == "tracker":
+            self.final["tracker"] = int(info.get("last_seq", 0))
+        elif node == "loop_closure":
+            self.final["loop"] = int(info.get("last_seq", 0))
+        return self._check_final()
+
+    def _check_final(self) -> Outbox:
+        if self.finalized or self.final["tracker"] is None:
+            return Outbox()
+        if self.seq["tracker"] < self.final["tracker"]:
+            return Outbox()
+        if self.wait_loop and (self.final["loop"] is None or self.seq["loop"] < self.final["loop"]):
+            return Outbox()
+        self.finalized = True
+        return Outbox(final={"digest": {str(k): v for k, v in self.revision.items()},
+                             "keyframes": len(self.kf_stamp)})
+
+
+# ============================================================================ mapper
+class MapperRole:
+    """Keyframes + proxy depths -> Gaussian map (Eq. 8), deformed by every newer depth (§3.2)."""
+    name = "mapper"
+
+    def __init__(self, cfg: SlamConfig, store: Optional[KeyframeStore] = None,
+                 snapshot_every: int = 1):
+        self.cfg = cfg
+        self.mapper: Optional[Mapper] = None
+        self.intr: Optional[Intrinsics] = None
+        self.pending_kf: Dict[int, KeyframeData] = {}
+        self.pending_depth: Dict[int, ProxyDepth] = {}
+        self.offered: Dict[int, bool] = {}          # kf_id -> mapped?
+        self.taken: Dict[int, int] = {}             # kf_id -> last revision taken
+        self.last_update_seq = 0
+        self.digest: Optional[Dict[int, int]] = None
+        self.finalized = False
+        self.dirty: set = set()                     # keyframes whose depth changed
+        self.snapshot_every = max(1, int(snapshot_every))
+        self.n_since_snapshot = 0
+        self.timings: Dict[str, float] = {"mapping": 0.0, "deformation": 0.0, "refine": 0.0}
+        self.store = store
+        if store is not None and store.exists:
+            self._resume()
+
+    # ------------------------------------------------------------ persistence
+    def _resume(self) -> None:
+        meta = self.store.meta
+        self.offered = {int(k): bool(v) for k, v in meta.get("offered", {}).items()}
+        self.taken = {int(k): int(v) for k, v in meta.get("taken", {}).items()}
+        self.last_update_seq = int(meta.get("last_update_seq", 0))
+        if self.store.has("map") and meta.get("intrinsics"):
+            i = meta["intrinsics"]
+            self.intr = Intrinsics(i[0], i[1], i[2], i[3], int(i[4]), int(i[5]))
+            self.mapper = restore_mapper(self.store.get("map"), meta["map"], self.cfg, self.intr,
+                                         lambda k: self.store.get(f"kf{k}_image")["image"],
+                                         lambda k: self.store.get(f"kf{k}_mdepth"))
+
+    def snapshot(self) -> None:
+        """Commit the map with exactly the inputs it reflects (offered, taken revisions)."""
+        if self.store is None or self.mapper is None:
+            return
+        arrays, meta = mapper_state(self.mapper)
+        staged = {f"kf{k}_mdepth": self.store.stage(f"kf{k}_mdepth",
+                                                     **keyframe_depth(self.mapper, k))
+                  for k in sorted(self.dirty) if k in self.mapper.keyframes}
+        self.dirty.clear()
+        i = self.intr
+        staged["map"] = self.store.stage("map", **arrays)
+        self.store.commit(staged, {"map": meta,
+                                   "offered": {str(k): v for k, v in self.offered.items()},
+                                   "taken": {str(k): v for k, v in self.taken.items()},
+                                   "intrinsics": [i.fx, i.fy, i.cx, i.cy, i.width, i.height],
+                                   "last_update_seq": self.last_update_seq})
+        self.n_since_snapshot = 0
+
+    def reset(self) -> None:
+        """Drop the map and everything it consumed; the next keyframes start a new map."""
+        self.mapper = None
+        for d in (self.pending_kf, self.pending_depth, self.offered, self.taken):
+            d.clear()
+        self.dirty.clear()
+        if self.store is not None:
+            self.store.clear()
+
+    def save(self, directory: Path, final: bool = False) -> dict:
+        """map.ply, renders/ and metrics of the map now (``final``: mapper_metrics.json, the
+        tracker writes the run's trajectories; else also trajectory_keyframes + metrics.json)."""
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        metrics: dict = {}
+        if self.mapper is None:
+            return metrics
+        self.mapper.save_ply(d / "map.ply")
+        metrics.update(self.mapper.evaluate_keyframes(d / "renders"))
+        metrics["map"] = self.mapper.stats()
+        if final:
+            (d / "mapper_metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
+        else:
+            write_tum(d / "trajectory_keyframes.txt", *self.mapper.keyframe_trajectory())
+            (d / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
+        return metrics
+
+    # ------------------------------------------------------------ inputs
+    def on_keyframe(self, kf: KeyframeData) -> Outbox:
+        if kf.kf_id in self.offered or kf.kf_id in self.pending_kf:
+            return Outbox()
+        self.pending_kf[kf.kf_id] = kf
+        return self._try_map()
+
+    def on_proxy_depth(self, pd: ProxyDepth) -> Outbox:
+        k = int(pd.kf_id)
+        if pd.revision <= self.taken.get(k, -1):        # a replay
+            return Outbox()
+        if self.mapper is not None and k in self.mapper.keyframes:
+            # Map deformation (§3.2): the keyframe's Gaussians follow its new pose and depth
+            t0 = time.perf_counter()
+            self.mapper.apply_update(k, pd.pose, pd.depth, pd.valid)
+            self.timings["deformation"] += time.perf_counter() - t0
+            self.taken[k] = int(pd.revision)
+            self.dirty.add(k)
+            self.last_update_seq = max(self.last_update_seq, int(pd.update_seq))
+            out = Outbox()
+        elif k in self.offered:                         # consumed, not mapped (redundant view)
+            self.taken[k] = int(pd.revision)
+            out = Outbox()
+        else:
+            old = self.pending_depth.get(k)
+            if old is None or pd.revision > old.revision:
+                self.pending_depth[k] = pd
+            out = self._try_map()
+        return out.extend(self._check_final())
+
+    def on_update(self, ev: UpdateEvent) -> Outbox:
+        # the deformation itself follows the depth stage's ProxyDepth stream
+        self.last_update_seq = max(self.last_update_seq, int(ev.seq))
+        return Outbox()
+
+    def on_final(self, node: str, info: dict) -> Outbox:
+        if node == "depth":
+            self.digest = {int(k): int(v) for k, v in (info.get("digest") or {}).items()}
+            return self._check_final()
+        return Outbox()
+
+    # ------------------------------------------------------------ work
+    def _try_map(self) -> Outbox:
+        out = Outbox()
+        for k in sorted(self.pending_kf):
+            if k in self.pending_depth:
+                out.extend(self._map(self.pending_kf.pop(k), self.pending_depth.pop(k)))
+        return out.extend(self._check_final())
+
+    def _map(self, kf: KeyframeData, pd: ProxyDepth) -> Outbox:
+        t0 = time.perf_counter()
+        if self.mapper is None:
+            self.intr = kf.intrinsics
+            self.mapper = Mapper(self.cfg, kf.intrinsics)
+        st = self.mapper.add_keyframe(kf.kf_id, kf.image, pd.pose, pd.depth, pd.valid,
+                                      timestamp=kf.timestamp)
+        self.timings["mapping"] += time.perf_counter() - t0
+        mapped = bool(st.get("mapped"))
+        self.offered[kf.kf_id] = mapped
+        self.taken[kf.kf_id] = int(pd.revision)
+        if mapped:
+            self.dirty.add(kf.kf_id)
+            if self.store is not None and not self.store.has(f"kf{kf.kf_id}_image"):
+                self.store.put(f"kf{kf.kf_id}_image", image=np.asarray(kf.image, np.uint8))
+        self.n_since_snapshot += 1
+        if self.n_since_snapshot >= self.snapshot_every:
+            self.snapshot()
+        info = dict(st, kf_id=int(kf.kf_id), pose=pd.pose, timestamp=float(kf.timestamp),
+                    n_mapped=sum(self.offered.values()))
+        return Outbox(acks=[_ack(kf)], mapped=[info])
+
+    def _check_final(self) -> Outbox:
+        if self.digest is None or self.finalized:
+            return Outbox()
+        if any(self.taken.get(k, -1) < rev for k, rev in self.digest.items()):
+            return Outbox()
+        self.finalized = True
+        info: dict = {"keyframes": sum(self.offered.values())}
+        if self.mapper is not None:
+            t0 = time.perf_counter()
+            info["refine"] = self.mapper.final_refine(self.cfg.mapping.final_refine_iters)
+            self.timings["refine"] += time.perf_counter() - t0
+            self.snapshot()
+        return Outbox(final=info)

@@ -1,0 +1,215 @@
+"""The update protocol on its own: stage roles (splat_slam_ros.roles) and the in-process
+coordinator that routes them as the ROS graph does (event order, update numbering, warm-up
+batches, replays, finalisation), and splat-slam-run end to end with an accuracy bound."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import replace
+from functools import lru_cache
+
+import numpy as np
+import pytest
+
+from splat_slam_ros.config import MappingConfig
+from splat_slam_ros.coordinator import Coordinator
+from splat_slam_ros.roles import DepthRole, KeyframeBatcher, LoopRole, MapperRole, Outbox
+from splat_slam_ros.types import (LOOP_SEQ_START, TRACKER_SEQ_START, KeyframeData, ProxyDepth,
+                                  UpdateEvent)
+
+from test_tracker import INTR, ate_cm, sequence, small_cfg
+
+
+def cfg_full(loop: bool = True):
+    cfg = small_cfg(loop_closure=loop, global_ba=loop, global_ba_every=3, loop_time_gap=4,
+                    loop_window=4, warmup=4)
+    cfg.mapping = MappingConfig.fast(iters_first=40, iters_per_keyframe=5, final_refine_iters=10)
+    return cfg
+
+
+class Recording(Coordinator):
+    """Logs every delivery (receiver, kind, what) in the order the coordinator makes it."""
+
+    def __init__(self, *a, **k):
+        super().__init__(*a, **k)
+        self.log = []
+
+    def _deliver(self, out: Outbox, origin) -> None:
+        for ev in out.updates:
+            self.log.append((origin.name, "update", ev.seq))
+        for kf in out.keyframes:
+            self.log.append((origin.name, "keyframe", kf.kf_id))
+        for pd in out.proxy_depths:
+            self.log.append((origin.name, "proxy_depth", (pd.kf_id, pd.revision)))
+        if out.final is not None:
+            self.log.append((origin.name, "final", None))
+        super()._deliver(out, origin)
+
+
+@lru_cache(maxsize=1)
+def full_run():
+    frames, gt = sequence(40)
+    co = Recording(cfg_full(), INTR)
+    for f in frames:
+        co.on_frame(f)
+    co.finalize()
+    return co, frames, gt
+
+
+def kf(k: int, batch_id: int = -1, batch_size: int = 1) -> KeyframeData:
+    return KeyframeData(kf_id=k, frame_index=k, timestamp=float(k), pose=np.eye(4),
+                        image=np.zeros((8, 8, 3), np.uint8), intrinsics=INTR,
+                        disparity=np.ones((2, 2), np.float32),
+                        confidence=np.ones((2, 2), np.float32),
+                        batch_id=batch_id, batch_size=batch_size)
+
+
+# ------------------------------------------------------------------ units
+def test_batcher_waits_for_the_whole_batch_and_drops_replays():
+    b = KeyframeBatcher()
+    assert [k.kf_id for k in b.add(kf(5), lambda k: False)] == [5]
+    assert b.add(kf(5), lambda k: k == 5) == []               # a replayed single keyframe
+    assert b.add(kf(2, 0, 3), lambda k: False) == []           # out of order
+    assert b.add(kf(0, 0, 3), lambda k: False) == [] and b.waiting() == 2
+    got = b.add(kf(1, 0, 3), lambda k: False)
+    assert [k.kf_id for k in got] == [0, 1, 2] and b.waiting() == 0
+    # a batch replayed after a restart: members already known are not handed on again
+    for k in (0, 1):
+        assert b.add(kf(k, 0, 3), lambda k: k in (0, 1)) == []
+    assert [k.kf_id for k in b.add(kf(2, 0, 3), lambda k: k in (0, 1))] == [2]
+
+
+def test_update_sources_and_ranges():
+    assert UpdateEvent(1, "local_ba", [], np.zeros((0, 4, 4))).source == "tracker"
+    for r in ("loop_closure", "global_ba", "final"):
+        assert UpdateEvent(LOOP_SEQ_START, r, [], np.zeros((0, 4, 4))).source == "loop"
+    assert 0 < TRACKER_SEQ_START < LOOP_SEQ_START
+
+
+def test_loop_role_takes_each_tracker_update_once_and_finalises_after_the_last():
+    role = LoopRole(cfg_full())
+    ev = UpdateEvent(3, "local_ba", [], np.zeros((0, 4, 4)))
+    assert role.on_update(ev).final is None and role.trk_seq == 3
+    assert role.on_final("tracker", {"last_seq": 4}).final is None      # 4 not seen yet
+    role.on_update(replace(ev, seq=2))                                   # older: a replay
+    assert role.trk_seq == 3 and not role.finalized
+    out = role.on_update(replace(ev, seq=4))
+    assert role.finalized and out.final == {"last_seq": 0, "keyframes": 0}
+    assert role.on_update(replace(ev, seq=5)).final is None             # final only once
+
+
+def test_mapper_role_skips_old_revisions_and_waits_for_the_digest():
+    cfg = cfg_full()
+    role = MapperRole(cfg)
+    frames, _ = sequence(40)
+    f = frames[0]
+    k0 = replace(kf(0), image=f.image, disparity=np.ones((30, 40), np.float32),
+                 confidence=np.ones((30, 40), np.float32))
+    depth = f.gt_depth.astype(np.float32)
+    pd = ProxyDepth(0, depth, np.ones_like(depth, np.uint8), f.gt_pose, revision=0)
+    assert role.on_keyframe(k0).mapped == []               # waits for its depth
+    out = role.on_proxy_depth(pd)
+    assert [m["kf_id"] for m in out.mapped] == [0] and out.acks == [(0, 0, 0.0)]
+    assert role.on_proxy_depth(pd).mapped == [] and role.timings["deformation"] == 0.0
+    assert role.on_final("depth", {"digest": {"0": 1}}).final is None    # revision 1 missing
+    out = role.on_proxy_depth(replace(pd, revision=1, is_update=True))
+    assert role.timings["deformation"] > 0 and role.taken[0] == 1
+    assert out.final is not None and role.finalized                       # then the refinement
+
+
+# ------------------------------------------------------------------ in-process graph
+def test_coordinator_routes_like_the_graph():
+    co, frames, gt = full_run()
+    log = co.log
+    # warm-up keyframes go out as one batch, later ones alone
+    kfs = co.tracker.tracker.published
+    batch = [e for e in log if e[:2] == ("tracker", "keyframe")]
+    assert len(kfs) >= 6 and len(batch) == len(kfs)
+    # update numbering: per source strictly increasing, in its own range
+    for src, lo, hi in (("tracker", TRACKER_SEQ_START, LOOP_SEQ_START),
+                        ("loop_closure", LOOP_SEQ_START, 2 * LOOP_SEQ_START)):
+        seqs = [e[2] for e in log if e[0] == src and e[1] == "update"]
+        assert seqs and seqs == sorted(set(seqs)) and lo <= seqs[0] < hi and seqs[-1] < hi
+    # depth sends revision 0 first for each keyframe, then increasing revisions
+    revs = {}
+    for name, kind, what in log:
+        if kind == "proxy_depth":
+            k, r = what
+            assert r == revs.get(k, -1) + 1
+            revs[k] = r
+    assert set(revs) == set(kfs)
+    # finalisation order: tracker -> loop closure -> depth -> mapper, each exactly once
+    finals = [e[0] for e in log if e[1] == "final"]
+    assert finals == ["tracker", "loop_closure", "depth", "mapper"]
+    assert co.tracker.complete and co.mapper.finalized
+    # the mapper took the last revision of every keyframe the depth stage announced
+    assert all(co.mapper.taken[k] == r for k, r in revs.items())
+    assert ate_cm(frames, gt, *co.tracker.tracker.trajectory_full()) < 3.0
+
+
+def test_depth_role_handles_a_warmup_batch_as_one():
+    co, _, _ = full_run()
+    est = co.depth.est
+    first = sorted(co.tracker.tracker.published)[:4]
+    # each warm-up keyframe was filtered against the others of its batch (Eq. 5 views)
+    assert all(len(est.neighbours(k)) >= 2 for k in first)
+    # replaying the stage's inputs changes nothing
+    k0 = first[0]
+    n_rev = dict(co.depth.revision)
+    out = co.depth.on_update(co.updates[0])
+    assert out.proxy_depths == [] and co.depth.revision == n_rev
+    assert co.depth.on_keyframe(kf(k0)).proxy_depths == [] and co.depth.revision == n_rev
+
+
+def test_tracking_only_needs_no_depth_or_mapper():
+    frames, gt = sequence(40)
+    co = Coordinator(cfg_full(loop=False), INTR, mapping=False)
+    assert co.run(frames, progress=False) == 40
+    assert co.depth is None and co.mapper is None and co.tracker.complete
+    assert all(e.source == "tracker" for e in co.updates)
+
+
+# ------------------------------------------------------------------ splat-slam-run
+@pytest.fixture(scope="module")
+def synth_seq(tmp_path_factory):
+    from splat_slam_ros.io.synth import generate_sequence
+    d = tmp_path_factory.mktemp("coord") / "seq"
+    generate_sequence("builtin", 36, (160, 120), d, overwrite=True, progress=False,
+                      realism="clean", fps=10)
+    return d
+
+
+RUN_CFG = """
+tracking: {warmup: 4, motion_filter_thresh: 2.0, keyframe_thresh: 2.0, ba_downsample: 4}
+mapping: {iters_first: 60, iters_per_keyframe: 10, final_refine_iters: 30,
+          random_views_per_iter: 1, window_views_per_iter: 3}
+"""
+
+
+def test_splat_slam_run_end_to_end(synth_seq, tmp_path):
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(RUN_CFG)
+    out = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "splat_slam_ros.cli.run", str(synth_seq),
+                        "--out", str(out), "--config", str(cfg), "--no-progress"],
+                       capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-2000:]
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["keyframes"] >= 5 and m["frames"] == 36
+    assert m["ate_rmse_cm_full"] < 5.0, m
+    assert m["psnr"] > 18.0, m
+    assert (out / "map.ply").stat().st_size > 1000
+    assert set(m["timings_s"]) >= {"tracking", "loop_closure", "depth", "mapping"}
+
+
+def test_splat_slam_run_without_motion_fails_clearly(synth_seq, tmp_path):
+    out = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "splat_slam_ros.cli.run", str(synth_seq),
+                        "--out", str(out), "--max-frames", "3", "--no-progress"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 3, (r.returncode, r.stderr[-2000:])
+    assert "never initialised" in r.stderr and "tracking.motion_filter_thresh" in r.stderr
+    assert "Traceback" not in r.stderr
+    assert "error" in json.loads((out / "metrics.json").read_text())
+    assert not (out / "trajectory_full.txt").exists()
