@@ -1,0 +1,124 @@
+"""The tracker node's camera intake: sensor_msgs/Image + CameraInfo -> core Frames.
+
+Decodes every image on the executor-independent worker, checks it against the calibration
+(camera_info, or ``node.intrinsics_file`` when no camera_info is published) and the size the
+tracker started with, and drops what it cannot use with a logged reason; every frame, used
+or dropped, is acknowledged on /splat/frame_ack (lockstep). ``node.max_queue`` bounds the
+frames waiting for the tracker (a live camera stays current; 0 = never drop).
+"""
+from __future__ import annotations
+
+import threading
+from typing import Callable, Optional, Tuple
+
+
+class CameraInput:
+    def __init__(self, owner, on_frame: Callable):
+        """``on_frame(frame)`` runs on the owner's worker; it returns the kf_id made or None."""
+        from sensor_msgs.msg import CameraInfo, Image
+
+        from . import qos as Q
+        self.owner, self.on_frame = owner, on_frame
+        o, self.opts, self.cfg = owner, owner.opts, owner.cfg
+        self.size: Optional[Tuple[int, int]] = None
+        self.intr = None
+        self.cam_info = None
+        self.info_lock = threading.Condition()
+        self.n_frames = self.n_dropped = self.queued = 0
+        if self.opts["intrinsics_file"]:
+            from splat_slam_ros.types import Intrinsics, IntrinsicsError
+            try:
+                self.intr = Intrinsics.from_yaml(self.opts["intrinsics_file"])
+            except IntrinsicsError as e:
+                o.log.fatal(str(e))
+                raise SystemExit(2)
+        in_qos = Q.image_qos() if self.opts["input_qos"] == "reliable" else Q.sensor_qos()
+        o.subscribe(CameraInfo, self.cfg.ros.camera_info_topic, in_qos, self._on_info,
+                    "CameraInfo")
+        o.subscribe(Image, self.cfg.ros.image_topic, in_qos, self._on_image, "Image")
+
+    # ------------------------------------------------------------ callbacks (executor)
+    def _on_info(self, msg, raw) -> None:
+        from .convert import ConversionError, camera_info_to_intrinsics
+        try:
+            intr = camera_info_to_intrinsics(msg)
+        except ConversionError as e:
+            self.owner.warn_throttled("info", f"ignoring camera_info: {e}")
+            return
+        key = lambda i: (i.fx, i.fy, i.cx, i.cy, i.width, i.height)  # noqa: E731
+        with self.info_lock:
+            if self.cam_info is not None and self.size is not None and \
+                    key(intr) != key(self.cam_info):
+                self.owner.warn_throttled("info-change", "camera_info changed while tracking; "
+                                          "the tracker keeps its initial calibration",
+                                          error=False)
+                return
+            self.cam_info = intr
+            self.info_lock.notify_all()
+
+    def _on_image(self, msg, raw) -> None:
+        mq = int(self.opts["max_queue"])
+        index = self.n_frames
+        self.n_frames += 1
+        if mq > 0 and self.queued >= mq:          # realtime: a slow tracker drops frames
+            self.n_dropped += 1
+            self._ack(index, msg.header.stamp, None)
+            self.owner.warn_throttled("drop", f"tracker busy: dropped frame {index} "
+                                      f"({self.n_dropped} so far)", error=False)
+            return
+        self.queued += 1
+        self.owner.worker.submit(self._process, msg, index)
+
+    # ------------------------------------------------------------ worker thread
+    def _ack(self, index: int, stamp, kf_id: Optional[int]) -> None:
+        from .convert import frame_ack_msg
+        m = frame_ack_msg(index, "tracker", 0.0, kf_id)
+        m.header.stamp = stamp
+        self.owner.pubs["ack"].publish(m)
+
+    def _intrinsics(self):
+        if self.intr is not None and self.cam_info is None:
+            return self.intr
+        with self.info_lock:
+            if self.cam_info is None:
+                self.info_lock.wait(timeout=float(self.opts["camera_info_timeout"]))
+            return self.cam_info
+
+    def _process(self, msg, index: int) -> None:
+        self.queued -= 1
+        kf_id = None
+        try:
+            frame = self._frame(msg, index)
+            if frame is not None:
+                kf_id = self.on_frame(frame)
+        finally:
+            self._ack(index, msg.header.stamp, kf_id)
+
+    def drop(self, index: int, why: str) -> None:
+        self.n_dropped += 1
+        self.owner.warn_throttled(why.split(":")[0], f"frame {index} dropped: {why}")
+
+    def _frame(self, msg, index: int):
+        from splat_slam_ros.types import Frame
+
+        from .convert import ConversionError, from_stamp, msg_to_rgb
+        try:
+            rgb = msg_to_rgb(msg)
+        except ConversionError as e:
+            return self.drop(index, f"{e}")
+        h, w = rgb.shape[:2]
+        if self.size is not None and (w, h) != self.size:
+            return self.drop(index, f"image size changed: {w}x{h}, the tracker runs on "
+                                    f"{self.size[0]}x{self.size[1]} (restart the graph for a "
+                                    "new size)")
+        intr = self._intrinsics()
+        if intr is None:
+            return self.drop(index, f"no camera_info received on {self.cfg.ros.camera_info_topic}"
+                                    f" within {float(self.opts['camera_info_timeout']):g} s "
+                                    "(publish it, or set node.intrinsics_file)")
+        if (w, h) != (intr.width, intr.height):
+            return self.drop(index, f"image size: the image is {w}x{h} but camera_info says "
+                                    f"{intr.width}x{intr.height}")
+        self.size = (w, h)
+        return Frame(index=index, timestamp=from_stamp(msg.header.stamp), image=rgb,
+                     intrinsics=intr)
