@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 import torch
 
+from splat_slam_ros.tracking.droid_flow import make_droid_predictor
 from splat_slam_ros.types import Intrinsics
 
 
@@ -347,8 +348,11 @@ class DISFlowPredictor:
         return f_ij, w_ij
 
 
-def make_flow_predictor(tcfg) -> DISFlowPredictor:
-    """The default (classical) predictor from a TrackingConfig."""
+def make_flow_predictor(tcfg):
+    """The predictor a TrackingConfig selects: the DROID-SLAM network when
+    ``flow_model`` names a checkpoint, else the classical DIS predictor."""
+    if getattr(tcfg, "flow_model", ""):
+        return make_droid_predictor(tcfg)
     return DISFlowPredictor(ba_downsample=tcfg.ba_downsample, method=tcfg.flow_method,
                             flow_downsample=getattr(tcfg, "flow_downsample", 2),
                             fb_px=tcfg.fb_consistency_px,
