@@ -61,10 +61,14 @@ class LoopClosureNode(SplatNode):
 
     def _make(self, intr):
         from splat_slam_ros.tracking.loop_closure import LoopCloser
+        from splat_slam_ros.config import ConfigError
         try:
             return LoopCloser(self.cfg, intr, seq_start=self.next_seq)
         except TypeError:                     # a LoopCloser without seq_start
             return LoopCloser(self.cfg, intr)
+        except ConfigError as e:              # e.g. a bad tracking.flow_model checkpoint
+            self.log.fatal(f"cannot start loop closure: {e}")
+            raise SystemExit(2)
 
     def _resume(self) -> None:
         meta = self.store.meta

@@ -321,3 +321,85 @@ def test_tracker_node_rejects_a_bad_checkpoint_path(tmp_path):
     assert rc == 2, log[-3000:]
     assert "cannot start the tracker: tracking.flow_model: checkpoint not found" in log, log[-3000:]
     assert "Traceback" not in log
+
+
+FEED_KF = r'''
+import json, sys, time
+from splat_slam_ros.ros_env import apply_ros_environment
+apply_ros_environment()
+import numpy as np, rclpy
+from splat_slam_msgs.msg import FrameAck, Keyframe
+from splat_slam_nodes import convert, qos as Q
+from splat_slam_nodes.node_common import TOPICS
+from splat_slam_ros.types import Intrinsics, KeyframeData
+n_kf, timeout = int(sys.argv[1]), float(sys.argv[2])
+rclpy.init()
+node = rclpy.create_node("droid_kf_feed")
+acks = []
+node.create_subscription(FrameAck, TOPICS["ack"],
+                         lambda m: acks.append(m) if m.consumer == "loop_closure" else None,
+                         Q.ack_qos())
+pk = node.create_publisher(Keyframe, TOPICS["keyframes"], Q.keyframe_qos())
+def spin_until(cond, t):
+    t0 = time.monotonic()
+    while not cond() and time.monotonic() - t0 < t:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    return bool(cond())
+ok = spin_until(lambda: pk.get_subscription_count() >= 1, 120)
+spin_until(lambda: False, 0.5)
+intr = Intrinsics(90.0, 90.0, 63.5, 47.5, 128, 96)
+rng = np.random.default_rng(0)
+big = np.repeat(np.repeat(rng.integers(0, 256, (24, 48, 3), dtype=np.uint8), 4, 0), 4, 1)
+for k in range(n_kf):
+    P = np.eye(4); P[0, 3] = 0.02 * k
+    kf = KeyframeData(k, 3 * k, 1.0 + 0.1 * k, P, np.ascontiguousarray(big[:, 4 * k: 4 * k + 128]),
+                      intr, np.full((12, 16), 0.5, np.float32), np.ones((12, 16), np.float32))
+    pk.publish(convert.keyframe_to_msg(kf))
+    spin_until(lambda: False, 0.3)
+spin_until(lambda: len(acks) >= n_kf, timeout)
+print("RESULT " + json.dumps({"matched": ok, "acks": len(acks)}), flush=True)
+rclpy.try_shutdown()
+'''
+
+
+def _loop_node(tmp_path, flow_model, timeout, expect_exit=False):
+    from test_graph_support import PY, isolated_env, need_ros, start, stop, wait_for
+    need_ros()
+    env = isolated_env()
+    log = tmp_path / "loop.log"
+    node = start([PY, "-m", "splat_slam_nodes.loop_closure_node", "--ros-args",
+                  "-p", f"tracking.flow_model:={flow_model}", "-p", "tracking.flow_device:=cpu",
+                  "-p", "tracking.flow_model_iters:=1", "-p", "tracking.global_ba_every:=100"],
+                 env, log)
+    feed = start([PY, "-c", FEED_KF, "2", str(timeout)], env, tmp_path / "feed.log")
+    try:
+        assert feed.wait(timeout=300) == 0, (tmp_path / "feed.log").read_text()[-3000:]
+        if expect_exit:
+            wait_for(lambda: node.poll() is not None, 30)
+        rc = node.poll()
+    finally:
+        stop(feed)
+        stop(node)
+    res = [json.loads(x[7:]) for x in (tmp_path / "feed.log").read_text().splitlines()
+           if x.startswith("RESULT ")]
+    assert res, (tmp_path / "feed.log").read_text()[-3000:]
+    return res[0], rc, log.read_text(errors="replace")
+
+
+@pytest.mark.ros
+def test_loop_closure_node_takes_the_flow_model_parameter(tmp_path, ckpt):
+    res, rc, log = _loop_node(tmp_path, ckpt, 120)
+    assert res["matched"] and res["acks"] == 2 and rc is None, log[-3000:]
+    assert "Traceback" not in log and "dropped input" not in log, log[-3000:]
+
+
+@pytest.mark.ros
+def test_loop_closure_node_rejects_a_bad_checkpoint(tmp_path):
+    bad = tmp_path / "bad.pth"
+    sd = public_state_dict()
+    sd["module.update.agg.conv1.weight"] = torch.zeros(1)
+    torch.save(sd, bad)
+    res, rc, log = _loop_node(tmp_path, bad, 15, expect_exit=True)
+    assert rc == 2 and res["acks"] == 0, log[-3000:]
+    assert "cannot start loop closure: tracking.flow_model:" in log, log[-3000:]
+    assert "'update.agg.conv1.weight' has shape (1,)" in log, log[-3000:]
