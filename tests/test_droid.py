@@ -133,10 +133,11 @@ def test_correlation_lookup_matches_the_volume_and_finds_a_shift():
     C, h, w = 16, 12, 16
     fa = torch.randn(C, h, w)
     fb = torch.roll(fa, shifts=2, dims=2)             # b(x + 2) = a(x)
-    p_ab, p_ba = CorrPyramid.pair(fa, fb)
+    pyr = CorrPyramid.pair(fa, fb)                     # edges a -> b, b -> a
     vol = CorrPyramid.volume(fa[None], fb[None])[0].view(h, w, h, w)
     c0 = coords_grid(h, w)[None]
-    feats = p_ab.lookup(c0)                            # (1, 196, h, w)
+    both = pyr.lookup(torch.cat([c0, c0]))             # (2, 196, h, w)
+    feats = both[:1]
     y, x = 5, 6
     for dx in (-3, 0, 2, 3):
         for dy in (-1, 0, 3):
@@ -145,15 +146,19 @@ def test_correlation_lookup_matches_the_volume_and_finds_a_shift():
     # sub-pixel coordinates interpolate bilinearly; outside the image the samples are 0
     c = c0.clone()
     c[0, y, x] += torch.tensor([0.5, 0.0])
-    half = p_ab.lookup(c)[0, 3 * 7 + 3, y, x]
+    half = pyr.lookup(torch.cat([c, c0]))[0, 3 * 7 + 3, y, x]
     assert torch.allclose(half, 0.5 * (vol[y, x, y, x] + vol[y, x, y, x + 1]), atol=1e-5)
     assert float(feats[0, :3 * 7, :, 0].abs().max()) < 1e-6   # dx = -3..-1: left of column 0
     # the best match in the level-0 window of a is 2 px to the right; b -> a is the transpose
     best = feats[0, :49, 3:-3, 3:-3].argmax(0)
     assert (best == (2 + 3) * 7 + 3).float().mean() > 0.95
-    back = p_ba.lookup(c0)[0, :49, 3:-3, 3:-3].argmax(0)
+    back = both[1, :49, 3:-3, 3:-3].argmax(0)
     assert (back == (-2 + 3) * 7 + 3).float().mean() > 0.95
-    assert len(p_ab.levels) == 4 and p_ab.levels[3].shape[-2:] == (h // 8, w // 8)
+    assert len(pyr.levels) == 4 and pyr.levels[3].shape[-2:] == (h // 8, w // 8)
+    # the level-k volume is the 2^k average over the target pixels
+    lvl1 = vol[y, x].view(1, 1, h, w)
+    assert torch.allclose(pyr.levels[1][y * w + x, 0],
+                          torch.nn.functional.avg_pool2d(lvl1, 2)[0, 0], atol=1e-5)
 
 
 # ----------------------------------------------------------------------------- predictor

@@ -223,8 +223,7 @@ class DroidFlowPredictor:
                     h, w, self.device))
             else:
                 c_ji = self._start(init_ji, h, w)
-            p_ij, p_ji = CorrPyramid.pair(A.fmap.float(), B.fmap.float())
-            corr = CorrPyramid.cat([p_ij, p_ji])
+            corr = CorrPyramid.pair(A.fmap.float(), B.fmap.float())   # edges i->j, j->i
             net = torch.stack([A.net, B.net]).float()
             inp = torch.stack([A.inp, B.inp]).float()
             ii = torch.tensor([0, 1], device=self.device)

@@ -144,14 +144,16 @@ class CorrPyramid:
         return cls(levels)
 
     @classmethod
-    def pair(cls, f_a: torch.Tensor, f_b: torch.Tensor) -> Tuple["CorrPyramid", "CorrPyramid"]:
-        """Pyramids of a -> b and b -> a from one matrix product (the volumes are transposes)."""
+    def pair(cls, f_a: torch.Tensor, f_b: torch.Tensor) -> "CorrPyramid":
+        """Pyramid of the two edges a -> b and b -> a (in that order) from one matrix
+        product: the b -> a volume is the transpose of the a -> b one."""
         C, h, w = f_a.shape
         vol = cls.volume(f_a[None], f_b[None])[0]
-        return cls.from_volume(vol[None], h, w), cls.from_volume(vol.t()[None], h, w)
+        return cls.from_volume(torch.stack([vol, vol.t()]), h, w)
 
     @staticmethod
     def cat(pyrs: List["CorrPyramid"]) -> "CorrPyramid":
+        """Edges of several pyramids in one (batched lookups)."""
         return CorrPyramid([torch.cat([p.levels[k] for p in pyrs], 0)
                             for k in range(len(pyrs[0].levels))], pyrs[0].radius)
 
