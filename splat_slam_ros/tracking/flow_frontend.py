@@ -8,8 +8,9 @@ residual after warping, local texture (aperture problem per axis) and the flow
 spread inside each BA cell. Flows are taken at the BA grid (tracking image /
 ``ba_downsample``) by confidence-weighted average pooling.
 
-Anything with the :class:`FlowPredictor` interface can replace it (e.g. a learned
-model); BA only consumes ``(flow, weight)`` at the BA grid.
+Anything with the :class:`FlowPredictor` interface can replace it; BA only consumes
+``(flow, weight)`` at the BA grid. ``tracking.flow_model`` (a DROID-SLAM checkpoint)
+selects the learned predictor of ``droid_flow.py`` in :func:`make_flow_predictor`.
 """
 from __future__ import annotations
 
