@@ -89,7 +89,8 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=1,
                     help="torch threads (the tracker runs with tracking.threads=1)")
-    ap.add_argument("--iters", type=int, default=4, help="GRU iterations (tracking.flow_model_iters)")
+    ap.add_argument("--iters", type=int, default=4,
+                    help="GRU iterations (tracking.flow_model_iters)")
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--checkpoint", default="")
     ap.add_argument("--no-dis", action="store_true")

@@ -2,7 +2,6 @@
 the FlowPredictor outputs BA consumes, determinism, the tracker / loop closer / ROS nodes
 with ``tracking.flow_model``. Checkpoints are written by the tests with random weights."""
 import json
-import sys
 from pathlib import Path
 
 import numpy as np

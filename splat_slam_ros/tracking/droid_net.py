@@ -29,7 +29,7 @@ Pieces (all at 1/8 of the input image):
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import List, Optional, Tuple
+from typing import List, Optional
 
 import torch
 import torch.nn as nn
