@@ -13,7 +13,7 @@ from splat_slam_ros.config import ConfigError, SlamConfig, TrackingConfig
 from splat_slam_ros.tracking.droid_flow import (DroidFlowPredictor, FlowModelError,
                                                 load_droid_net, resolve_flow_device)
 from splat_slam_ros.tracking.droid_net import CorrPyramid, DroidNet, coords_grid
-from splat_slam_ros.tracking.flow_frontend import make_flow_predictor
+from splat_slam_ros.tracking.flow_frontend import FlowPredictor, make_flow_predictor
 from splat_slam_ros.types import Intrinsics
 
 HEADS = ("update.weight.2", "update.delta.2")
@@ -36,6 +36,15 @@ def public_state_dict(seed: int = 0, head_bias: float = None):
 def write_ckpt(path: Path, **kw) -> Path:
     torch.save(public_state_dict(**kw), path)
     return path
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """One torch thread, as the tracker and the loop closer run (tracking.threads)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
 
 
 @pytest.fixture(scope="module")
@@ -164,12 +173,14 @@ def test_correlation_lookup_matches_the_volume_and_finds_a_shift():
 def test_predictor_outputs_are_what_ba_consumes(ckpt):
     pred = make_flow_predictor(TrackingConfig(flow_model=str(ckpt), flow_device="cpu"))
     assert isinstance(pred, DroidFlowPredictor) and pred.ba_downsample == 8
+    assert isinstance(pred, FlowPredictor)
     a, b = textured(), textured(shift=8)
     A, B = pred.prepare(a), pred.prepare(b)
     assert A.fmap.shape == (128, 12, 16) and A.fmap.dtype == torch.float16
     f_ij, w_ij, f_ji, w_ji = pred.predict_pair(A, B)
     for t in (f_ij, w_ij, f_ji, w_ji):
         assert t.shape == (12, 16, 2) and t.dtype == torch.float32 and torch.isfinite(t).all()
+        assert not t.requires_grad and not t.is_inference()     # BA may edit them in place
     assert float(w_ij.min()) >= 0.0 and float(w_ij.max()) <= 1.0
     assert float(f_ij.abs().max()) < 64.0
     # an initial flow (induced by the current estimate) shifts the result by about as much

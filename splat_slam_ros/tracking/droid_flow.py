@@ -174,7 +174,7 @@ class DroidFlowPredictor:
             raise FlowModelError(f"the DROID flow model needs a tracking image of at least "
                                  f"{8 * STRIDE}x{8 * STRIDE} with sides divisible by {STRIDE}, "
                                  f"got {W}x{H}")
-        with torch.inference_mode():
+        with torch.no_grad():
             fmap, net, inp = self.net.features(img[None].to(self.device))
         return DroidFeatures(fmap[0].half(), net[0].half(), inp[0].half())
 
@@ -216,7 +216,7 @@ class DroidFlowPredictor:
         if tuple(B.fmap.shape) != tuple(A.fmap.shape):
             raise FlowModelError(f"images of different sizes: {tuple(A.fmap.shape[1:])} vs "
                                  f"{tuple(B.fmap.shape[1:])} (BA grid)")
-        with torch.inference_mode():
+        with torch.no_grad():
             c_ij = self._start(init_ij, h, w)
             if init_ji is None and init_ij is not None:
                 c_ji = coords_grid(h, w, self.device) + self._invert(c_ij - coords_grid(
