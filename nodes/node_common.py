@@ -224,11 +224,17 @@ class SplatNode:
         ``after(out)`` runs (node-specific outputs)."""
         from splat_slam_msgs.msg import Keyframe, PoseGraphUpdate, ProxyDepth
 
+        from splat_slam_ros.config import ConfigError
+
         from . import qos as Q
         from .convert import msg_to_keyframe, msg_to_proxy_depth, msg_to_update
 
         def handle(fn, convert, msg):
-            out = fn(convert(msg))
+            try:
+                out = fn(convert(msg))
+            except ConfigError as e:      # e.g. a bad tracking.flow_model: the stage cannot run
+                self.log.fatal(f"cannot run the {self.name} stage: {e}")
+                raise SystemExit(2)
             self.emit(out)
             if after is not None:
                 after(out)

@@ -40,6 +40,10 @@ class TrackingConfig:
     photo_sigma: float = 30.0            # photometric residual scale for confidences (grey levels)
     texture_grad: float = 1.0            # gradient (grey/px) at which a cell counts as textured
     flow_spread_px: float = 1.5          # flow spread inside a BA cell that halves its weight
+    # learned front end (paper 3.1): DROID-SLAM checkpoint in the public layout; "" = DIS
+    flow_model: str = ""                 # path to droid.pth (needs ba_downsample 8)
+    flow_device: str = "auto"            # where the network runs: auto | cpu | cuda
+    flow_model_iters: int = 4            # GRU update iterations per flow pair
     # motion filter / keyframes; flow thresholds in BA-grid pixels, as in the reference
     motion_filter_thresh: float = 4.0    # keyframe candidate if mean flow to the last keyframe above
     keyframe_thresh: float = 4.0         # tau: candidate dropped if its BA-induced flow stays below

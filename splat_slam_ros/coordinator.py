@@ -19,6 +19,7 @@ from typing import Dict, Iterable, List, Optional
 
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.roles import DepthRole, LoopRole, MapperRole, Outbox, TrackerRole
+from splat_slam_ros.tracking.flow_frontend import make_flow_predictor
 from splat_slam_ros.tracking.tracker import TrackingResult, TrackStep
 from splat_slam_ros.types import Frame, Intrinsics, UpdateEvent
 
@@ -40,8 +41,9 @@ class Coordinator:
         use_loop = bool(tc.loop_closure or tc.global_ba) if loop_closure is None \
             else bool(loop_closure)
         self.cfg = cfg
-        self.tracker = TrackerRole(cfg, intrinsics, loop_closure=use_loop)
-        self.loop = LoopRole(cfg) if use_loop else None
+        flow = make_flow_predictor(tc)           # one front end (DIS or the network) for both
+        self.tracker = TrackerRole(cfg, intrinsics, loop_closure=use_loop, flow_predictor=flow)
+        self.loop = LoopRole(cfg, flow_predictor=flow) if use_loop else None
         self.depth = DepthRole(cfg, loop_closure=use_loop) if mapping else None
         self.mapper = MapperRole(cfg) if mapping else None
         self.roles = [r for r in (self.tracker, self.loop, self.depth, self.mapper)

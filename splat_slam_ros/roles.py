@@ -105,8 +105,9 @@ class TrackerRole:
     """Frames -> local-BA updates + keyframes (§3.1); applies the loop closer's updates."""
     name = "tracker"
 
-    def __init__(self, cfg: SlamConfig, intrinsics: Intrinsics, loop_closure: bool):
-        self.tracker = Tracker(cfg, intrinsics)
+    def __init__(self, cfg: SlamConfig, intrinsics: Intrinsics, loop_closure: bool,
+                 flow_predictor=None):
+        self.tracker = Tracker(cfg, intrinsics, flow_predictor=flow_predictor)
         self.wait_loop = bool(loop_closure)
         self.last_seq = 0                   # our newest update
         self.loop_seq = 0                   # the loop closer's newest update applied
@@ -158,8 +159,10 @@ class LoopRole:
     """Keyframes -> loop closure, online global BA and final global BA updates (§3.1)."""
     name = "loop_closure"
 
-    def __init__(self, cfg: SlamConfig, store: Optional[KeyframeStore] = None):
+    def __init__(self, cfg: SlamConfig, store: Optional[KeyframeStore] = None,
+                 flow_predictor=None):
         self.cfg = cfg
+        self.flow = flow_predictor
         self.loop: Optional[LoopCloser] = None
         self.kf_ids: Dict[int, float] = {}
         self.trk_seq = 0                     # the tracker's newest update applied
@@ -172,7 +175,8 @@ class LoopRole:
             self._resume()
 
     def _make(self, intr: Intrinsics) -> LoopCloser:
-        return LoopCloser(self.cfg, intr, seq_start=max(LOOP_SEQ_START, self.last_seq + 1))
+        return LoopCloser(self.cfg, intr, flow_predictor=self.flow,
+                          seq_start=max(LOOP_SEQ_START, self.last_seq + 1))
 
     def _resume(self) -> None:
         meta = self.store.meta

@@ -8,8 +8,9 @@ residual after warping, local texture (aperture problem per axis) and the flow
 spread inside each BA cell. Flows are taken at the BA grid (tracking image /
 ``ba_downsample``) by confidence-weighted average pooling.
 
-Anything with the :class:`FlowPredictor` interface can replace it (e.g. a learned
-model); BA only consumes ``(flow, weight)`` at the BA grid.
+Anything with the :class:`FlowPredictor` interface can replace it; BA only consumes
+``(flow, weight)`` at the BA grid. ``tracking.flow_model`` (a DROID-SLAM checkpoint)
+selects the learned predictor of ``droid_flow.py`` in :func:`make_flow_predictor`.
 """
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ import cv2
 import numpy as np
 import torch
 
+from splat_slam_ros.tracking.droid_flow import make_droid_predictor
 from splat_slam_ros.types import Intrinsics
 
 
@@ -347,8 +349,11 @@ class DISFlowPredictor:
         return f_ij, w_ij
 
 
-def make_flow_predictor(tcfg) -> DISFlowPredictor:
-    """The default (classical) predictor from a TrackingConfig."""
+def make_flow_predictor(tcfg):
+    """The predictor a TrackingConfig selects: the DROID-SLAM network when
+    ``flow_model`` names a checkpoint, else the classical DIS predictor."""
+    if getattr(tcfg, "flow_model", ""):
+        return make_droid_predictor(tcfg)
     return DISFlowPredictor(ba_downsample=tcfg.ba_downsample, method=tcfg.flow_method,
                             flow_downsample=getattr(tcfg, "flow_downsample", 2),
                             fb_px=tcfg.fb_consistency_px,
