@@ -225,7 +225,7 @@ def _cfg(ckpt, **tracking):
 
 def test_tracker_runs_a_synthetic_sequence_with_the_network(ckpt):
     from test_tracker import make_sequence
-    from splat_slam_ros.tracking.tracker import track_sequence
+    from splat_slam_ros.coordinator import track_sequence
     intr = Intrinsics(90.0, 90.0, 63.5, 47.5, 128, 96)
     frames, _ = make_sequence(7, intr, motion=(0.02, 0.006, 0.004), rot=0.006)
     res = track_sequence(frames, _cfg(ckpt, lost_min_valid=0.0), intr, progress=False)
@@ -416,5 +416,5 @@ def test_loop_closure_node_rejects_a_bad_checkpoint(tmp_path):
     torch.save(sd, bad)
     res, rc, log = _loop_node(tmp_path, bad, 15, expect_exit=True)
     assert rc == 2 and res["acks"] == 0, log[-3000:]
-    assert "cannot start loop closure: tracking.flow_model:" in log, log[-3000:]
+    assert "cannot run the loop_closure stage: tracking.flow_model:" in log, log[-3000:]
     assert "'update.agg.conv1.weight' has shape (1,)" in log, log[-3000:]
