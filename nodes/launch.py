@@ -499,6 +499,8 @@ def main(argv: Optional[List[str]] = None) -> int:
             from splat_slam_ros.pipeline import _write_json
             _write_json(L.out_dir / "metrics.json", m)
             L.summary(m)
+            from splat_slam_ros.report import write_report
+            L.say(f"report: {write_report(L.out_dir, L.cfg)[0]}")
     finally:
         L.stop_children()
         try:

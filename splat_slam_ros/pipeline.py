@@ -19,6 +19,7 @@ import numpy as np
 
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.io.trajectory_io import write_tum
+from splat_slam_ros.report import WarningRecorder, write_report
 from splat_slam_ros.types import Frame, Intrinsics, KeyframeData, UpdateEvent
 
 # Which module provides each stage, and what the user loses without it.
@@ -165,6 +166,7 @@ def evaluate_trajectories(dataset, out: Path, metrics: dict) -> Optional[float]:
     gt = dataset.gt_trajectory() if hasattr(dataset, "gt_trajectory") else None
     if gt is None:
         return None
+    write_tum(out / "groundtruth.txt", *gt)             # for the run report
     ate = stage("evaluation")
     from splat_slam_ros.io.trajectory_io import read_trajectory
     scale = None
@@ -196,6 +198,7 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
     out.mkdir(parents=True, exist_ok=True)
     (out / "renders").mkdir(exist_ok=True)
     t_start = time.perf_counter()
+    warnings = WarningRecorder()                         # logged warnings, for the report
     result = RunResult()
     metrics: Dict[str, object] = {"mode": mode, "dataset": getattr(dataset, "name", "?")}
     n_total = len(dataset) if max_frames is None else min(len(dataset), max_frames)
@@ -246,6 +249,8 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
     metrics["update_events"] = result.events
     if mode != "gt_mapping":
         evaluate_trajectories(dataset, out, metrics)
+    metrics["warnings"] = warnings.close()
     _write_json(out / "metrics.json", metrics)
+    write_report(out, cfg)                               # report.html, report.png, config.yaml
     result.metrics = metrics
     return result
