@@ -137,7 +137,7 @@ class SlamPipeline:
             self._deform(self.depth.take_refreshed())
             for kf, proxy in zip(kfs, proxies):
                 self._timed("mapping", self.mapper.add_keyframe, kf.kf_id, kf.image, proxy.pose,
-                            proxy.depth, proxy.source > 0)
+                            proxy.depth, proxy.source > 0, timestamp=kf.timestamp)
                 self.mapper_kfs.add(kf.kf_id)
 
     def finish(self) -> None:

@@ -126,8 +126,8 @@ def _pick(kfs: List[dict], n: int) -> List[dict]:
         return kfs
     idx = set(int(i) for i in np.linspace(0, len(kfs) - 1, n).round())
     worst = min(range(len(kfs)), key=lambda i: (kfs[i].get("psnr", 1e9), i))
-    if worst not in idx:
-        idx.discard(max(idx - {0, len(kfs) - 1}, default=None))
+    if worst not in idx:                        # it replaces the nearest one picked
+        idx.discard(min(idx, key=lambda i: (abs(i - worst), i)))
         idx.add(worst)
     return [kfs[i] for i in sorted(idx)]
 
@@ -221,6 +221,12 @@ def _timing(rec: RunRecord) -> str:
         rows = [(_e(k), fmt(v.get("cpu_s"), 2), fmt(v.get("peak_rss_mb"), 0, "MB"),
                  fmt(v.get("restarts"))) for k, v in nodes.items()]
         parts.append(_table(rows, ("node", "CPU time [s]", "peak RSS", "restarts")))
+        extra = [(label, fmt(m.get(k), 1, "s")) for k, label in
+                 (("wall_total_s", "wall time including start-up and saving"),
+                  ("refine_s", "final map refinement (mapper, after the last frame)"))
+                 if isinstance(m.get(k), (int, float))]
+        if extra:
+            parts.append(_table(extra))
     parts.append(f"<p>{fmt(m.get('frames'))} frames in {fmt(wall, 1, 's')}: "
                  f"<b>{fmt(m.get('fps'), 2)} frames/s</b>.</p>")
     fig, ax = rp.new_figure(7, 0.6 + 0.35 * len(stages))

@@ -147,11 +147,17 @@ def draw_map_size(ax, history: Sequence[dict], missing: str) -> None:
         _note(ax, missing)
         ax.set_title("map size", fontsize=9)
         return
-    x = np.arange(1, len(history) + 1)
+    stamps = [h.get("timestamp") for h in history]
+    if all(isinstance(t, (int, float)) for t in stamps):
+        x = np.array(stamps, dtype=np.float64) - float(stamps[0])
+        xlabel = "keyframe time [s] (each keyframe offered to the mapper)"
+    else:
+        x = np.arange(1, len(history) + 1, dtype=np.float64)
+        xlabel = "keyframes offered to the mapper"
     g = np.array([h["gaussians"] for h in history], dtype=np.float64)
     k = np.array([h["keyframes"] for h in history], dtype=np.float64)
-    ax.plot(x, g, "-", color="tab:green", lw=1.2, label="Gaussians")
-    ax.set_xlabel("keyframes offered to the mapper")
+    ax.plot(x, g, ".-", color="tab:green", lw=1.2, ms=3, label="Gaussians")
+    ax.set_xlabel(xlabel)
     ax.set_ylabel("Gaussians", color="tab:green")
     ax.grid(alpha=0.3)
     ax2 = ax.twinx()

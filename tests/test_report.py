@@ -110,6 +110,10 @@ def test_full_run_writes_a_complete_report(full_run):
     hist = kj["history"]
     assert len(hist) >= n and sum(h["mapped"] for h in hist) == n
     assert [h["keyframes"] for h in hist] == sorted(h["keyframes"] for h in hist)
+    # keyframes carry their frame timestamps (those of the tracker's keyframe trajectory)
+    kts = np.loadtxt(out / "trajectory_keyframes.txt", ndmin=2)[:, 0]
+    for k in kj["keyframes"]:
+        assert np.abs(kts - k["timestamp"]).min() < 1e-4, (k, kts)
     # configuration used, loadable back
     assert "keyframe_thresh: 2.0" in page.text["config"]
     assert load_config(out / "config.yaml").to_dict() == cfg.to_dict()
@@ -132,6 +136,9 @@ def test_fewer_keyframes_shown_when_asked(full_run, tmp_path):
     write_report(out, out_dir=tmp_path, max_keyframes=2)
     page = Page((tmp_path / "report.html").read_text())
     assert len(page.imgs["keyframes"]) == 10 and "2 of" in page.text["keyframes"]
+    kfs = json.loads((out / "renders" / "keyframes.json").read_text())["keyframes"]
+    worst = min(kfs, key=lambda k: k["psnr"])["kf_id"]       # always shown
+    assert f"kf {worst} input" in [alt for _, alt in page.imgs["keyframes"]]
 
 
 def test_no_ground_truth_and_no_map(seq, tmp_path):
