@@ -200,3 +200,36 @@ def test_cli_user_errors(tmp_path, capsys):
     (tmp_path / "metrics.json").write_text("{}")
     assert report_main([str(tmp_path), "--max-keyframes", "0"]) == 2
     assert "max_keyframes" in capsys.readouterr().err
+
+
+def test_keyframe_views_against_ground_truth_depth(seq, tmp_path):
+    """The files the report reads: 16-bit depths decode to the rendered/proxy depth, the
+    depth L1 against ground truth equals the one against a proxy depth that is the truth."""
+    from splat_slam_ros.mapping.keyframe_views import write_keyframe_views
+    from splat_slam_ros.mapping.mapper import Mapper
+    ds = open_dataset(seq)
+    fr = next(iter(ds))
+    mapper = Mapper(load_config(None, FAST), ds.intrinsics)
+    mapper.add_keyframe(0, fr.image, fr.gt_pose, fr.gt_depth, timestamp=fr.timestamp)
+    (e,) = write_keyframe_views(mapper, tmp_path, gt_depth={0: fr.gt_depth})
+    assert e["depth_l1_cm"] == pytest.approx(100 * e["depth_l1_proxy"], rel=1e-4)
+    assert e["timestamp"] == pytest.approx(fr.timestamp) and e["proxy_valid"] > 0.9
+    doc = json.loads((tmp_path / "keyframes.json").read_text())
+    scale = doc["depth_scale"]
+    rgb, depth = mapper.render(fr.gt_pose, kf_id=0)
+    got = cv2.imread(str(tmp_path / "kf_00000_depth.png"), cv2.IMREAD_UNCHANGED) / scale
+    np.testing.assert_allclose(got, depth, atol=0.6 / scale)
+    prx = cv2.imread(str(tmp_path / "kf_00000_proxy.png"), cv2.IMREAD_UNCHANGED) / scale
+    np.testing.assert_allclose(prx, np.asarray(fr.gt_depth), atol=0.6 / scale)
+    assert (cv2.imread(str(tmp_path / "kf_00000_input.png"))[..., ::-1] == fr.image).all()
+    assert doc["history"] == [{"gaussians": doc["map"]["gaussians"], "iterations": 30,
+                               "keyframes": 1, "kf_id": 0, "mapped": True,
+                               "ms": doc["history"][0]["ms"], "timestamp": fr.timestamp}]
+
+
+def test_mapping_on_ground_truth_report(seq, tmp_path):
+    cfg = load_config(None, {**FAST, "mapping.keyframe_every": 2})
+    run(open_dataset(seq), cfg, tmp_path, mode="gt_mapping", progress=False, max_frames=4)
+    page = Page((tmp_path / "report.html").read_text())
+    assert "ground-truth poses" in page.text["missing"]
+    assert len(page.imgs["keyframes"]) == 10 and "depth L1 in cm" in page.text["keyframes"]
