@@ -5,7 +5,6 @@ import json
 import logging
 import shutil
 from html.parser import HTMLParser
-from pathlib import Path
 
 import cv2
 import numpy as np
