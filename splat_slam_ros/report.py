@@ -15,13 +15,15 @@ from typing import Tuple
 
 from splat_slam_ros import report_plots as rp
 from splat_slam_ros.report_data import (CONFIG_YAML, REPORT_HTML, REPORT_PNG, TILE_NAMES,
-                                        ReportError, RunRecord, WarningRecorder, headline,
+                                        ReportError, RunRecord, WarningRecorder, WarningTee,
+                                        headline,
                                         keyframe_positions, keyframe_tiles, load_run,
                                         save_config, stage_times, worst_keyframe)
 from splat_slam_ros.report_html import build_html
 
 __all__ = ["write_report", "summary_figure", "load_run", "save_config", "ReportError",
-           "RunRecord", "WarningRecorder", "REPORT_HTML", "REPORT_PNG", "CONFIG_YAML"]
+           "RunRecord", "WarningRecorder", "WarningTee", "REPORT_HTML", "REPORT_PNG",
+           "CONFIG_YAML"]
 
 
 # ====================================================================== summary figure

@@ -12,6 +12,7 @@ import html
 import json
 import logging
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
@@ -84,6 +85,26 @@ class WarningRecorder(logging.Handler):
         super().close()
         more = [f"... and {self.n_dropped} more warnings"] if self.n_dropped else []
         return self.messages + more
+
+
+class WarningTee:
+    """A text stream (the launcher's console) that passes everything on and keeps the lines
+    that are warnings: ROS ``[WARN]``/``[ERROR]`` logs, ``warning`` lines and tracking-lost
+    messages of any node. ``lines`` holds them (at most MAX_WARNINGS)."""
+    PATTERN = re.compile(r"\[(WARN|ERROR|FATAL)\]|\bwarning\b|tracking lost", re.IGNORECASE)
+
+    def __init__(self, stream):
+        self.stream = stream
+        self.lines: List[str] = []
+
+    def write(self, text: str) -> int:
+        for line in text.splitlines():
+            if len(self.lines) < MAX_WARNINGS and self.PATTERN.search(line):
+                self.lines.append(" ".join(line.split()))
+        return self.stream.write(text)
+
+    def flush(self) -> None:
+        self.stream.flush()
 
 
 # ====================================================================== loading

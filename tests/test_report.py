@@ -15,7 +15,7 @@ from splat_slam_ros.config import load_config
 from splat_slam_ros.io.datasets import open_dataset
 from splat_slam_ros.io.synth import generate_sequence
 from splat_slam_ros.pipeline import run
-from splat_slam_ros.report import WarningRecorder, write_report
+from splat_slam_ros.report import WarningRecorder, WarningTee, write_report
 
 SECTIONS = ["summary", "warnings", "missing", "trajectory", "keyframes", "map", "timing",
             "config"]
@@ -186,6 +186,22 @@ def test_warning_recorder_collects_and_still_prints(capsys, monkeypatch):
     assert "tracking lost" in capsys.readouterr().err
     logging.getLogger("splat_slam_ros.tracking.tracker").warning("after close")
     assert got == ["warning: frame 7: tracking lost"]
+
+
+def test_warning_tee_keeps_the_graph_warnings():
+    import io
+    sink = io.StringIO()
+    tee = WarningTee(sink)
+    text = ("[tracker]  [INFO] [1.0] [tracker]: tracker started\n"
+            "[tracker]  frame 12: tracking lost (low flow confidence (0.05 valid))\n"
+            "[mapper]   [WARN] [2.0] [mapper]: render request ignored: the map is empty\n"
+            "[launch] warning: the loop closure stage is not available\n")
+    tee.write(text)
+    tee.flush()
+    assert sink.getvalue() == text
+    assert tee.lines == ["[tracker] frame 12: tracking lost (low flow confidence (0.05 valid))",
+                         "[mapper] [WARN] [2.0] [mapper]: render request ignored: the map is "
+                         "empty", "[launch] warning: the loop closure stage is not available"]
 
 
 def test_cli_user_errors(tmp_path, capsys):
