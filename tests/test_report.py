@@ -144,6 +144,11 @@ def test_no_ground_truth_and_no_map(seq, tmp_path):
     nogt = tmp_path / "nogt"
     shutil.copytree(seq, nogt)
     (nogt / "groundtruth.txt").unlink()
+    rgb = [ln.split()[1] for ln in (nogt / "rgb.txt").read_text().splitlines()
+           if ln and not ln.startswith("#")]
+    for name in rgb[20:22]:                                  # two black frames: tracking lost
+        im = cv2.imread(str(nogt / name))
+        cv2.imwrite(str(nogt / name), np.zeros_like(im))
     out = tmp_path / "out"
     run(open_dataset(nogt), load_config(None, FAST), out, mode="tracking", progress=False)
     assert not (out / "groundtruth.txt").exists()
@@ -155,6 +160,7 @@ def test_no_ground_truth_and_no_map(seq, tmp_path):
     assert "no ground-truth poses" in page.text["trajectory"]
     assert len(page.imgs["trajectory"]) == 1                  # the estimate alone
     assert "ATE" not in page.text["summary"]
+    assert "frame 20: tracking lost" in page.text["warnings"]     # logged by the tracker
 
 
 def test_tracker_never_initialised_is_a_warning(tmp_path):
