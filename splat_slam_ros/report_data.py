@@ -73,12 +73,16 @@ class WarningRecorder(logging.Handler):
         else:
             self.n_dropped += 1
         lg: Optional[logging.Logger] = logging.getLogger(record.name)
-        others = 0
+        others, recorders = 0, []
         while lg is not None:
-            others += sum(h is not self for h in lg.handlers)
+            for h in lg.handlers:
+                if isinstance(h, WarningRecorder):
+                    recorders.append(h)
+                else:
+                    others += 1
             lg = lg.parent if lg.propagate else None
-        if others == 0 and logging.lastResort is not None:
-            logging.lastResort.handle(record)     # keep the default stderr output
+        if others == 0 and recorders[0] is self and logging.lastResort is not None:
+            logging.lastResort.handle(record)     # keep the default stderr output, once
 
     def close(self) -> List[str]:
         self._logger.removeHandler(self)

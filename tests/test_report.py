@@ -192,6 +192,11 @@ def test_warning_recorder_collects_and_still_prints(capsys, monkeypatch):
     assert "tracking lost" in capsys.readouterr().err
     logging.getLogger("splat_slam_ros.tracking.tracker").warning("after close")
     assert got == ["warning: frame 7: tracking lost"]
+    capsys.readouterr()
+    a, b = WarningRecorder(), WarningRecorder()          # e.g. one left by a failed run
+    logging.getLogger("splat_slam_ros.depth").warning("twice recorded, printed once")
+    assert b.close() == a.close() == ["warning: twice recorded, printed once"]
+    assert capsys.readouterr().err.count("printed once") == 1
 
 
 def test_warning_tee_keeps_the_graph_warnings():
