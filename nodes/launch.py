@@ -468,7 +468,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.rate <= 0:
         print("error: --rate must be positive", file=sys.stderr)
         return 2
-    L = Launcher(args)
+    from splat_slam_ros.report import WarningTee, write_report
+    L = Launcher(args, out=WarningTee(sys.stdout))        # keeps warnings for the report
     try:
         L.plan()
     except LaunchError as e:
@@ -489,8 +490,10 @@ def main(argv: Optional[List[str]] = None) -> int:
             L.stop_children()
             m["nodes"] = L.node_stats()
             from splat_slam_ros.pipeline import _write_json
+            m["warnings"] = L.out.lines
             _write_json(L.out_dir / "metrics.json", m)
             L.summary(m)
+            L.say(f"report: {write_report(L.out_dir, L.cfg)[0]}")
     finally:
         L.stop_children()
         try:

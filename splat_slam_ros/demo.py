@@ -92,6 +92,8 @@ def main(argv=None) -> int:
         print(f"frames/s {m['frames'] / wall:.2f}  ({m['frames']} frames, {wall:.1f} s, "
               f"{m['keyframes']} keyframes)")
         print(f"[demo] done in {time.perf_counter() - t0:.1f} s; outputs in {run_dir}")
+        print(f"[demo] report: {run_dir / 'report.html'} (summary figure: "
+              f"{run_dir / 'report.png'})")
         return 0
 
     return run_main(body)

@@ -21,6 +21,7 @@ from splat_slam_ros.coordinator import Coordinator
 from splat_slam_ros.evaluation import ate
 from splat_slam_ros.io.trajectory_io import read_trajectory, write_tum
 from splat_slam_ros.mapping.mapper import map_sequence
+from splat_slam_ros.report import WarningRecorder, write_report
 
 
 class NotInitializedError(RuntimeError):
@@ -61,6 +62,7 @@ def evaluate_trajectories(dataset, out: Path, metrics: dict) -> Optional[float]:
     gt = dataset.gt_trajectory() if hasattr(dataset, "gt_trajectory") else None
     if gt is None:
         return None
+    write_tum(out / "groundtruth.txt", *gt)             # for the run report
     scale = None
     for name in ("full", "keyframes"):
         f = out / f"trajectory_{name}.txt"
@@ -91,6 +93,7 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
     out.mkdir(parents=True, exist_ok=True)
     (out / "renders").mkdir(exist_ok=True)
     t_start = time.perf_counter()
+    warnings = WarningRecorder()                         # logged warnings, for the report
     result = RunResult()
     metrics: Dict[str, object] = {"mode": mode, "dataset": getattr(dataset, "name", "?")}
     if mode == "gt_mapping":
@@ -106,11 +109,13 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
     metrics["update_events"] = result.events
     if mode != "gt_mapping" and result.keyframes == 0:
         metrics["error"] = not_initialized_reason(cfg, result.frames)
-        _write_json(out / "metrics.json", metrics)
-        raise NotInitializedError(metrics["error"])
-    if mode != "gt_mapping":
+    elif mode != "gt_mapping":
         evaluate_trajectories(dataset, out, metrics)
+    metrics["warnings"] = warnings.close()
     _write_json(out / "metrics.json", metrics)
+    write_report(out, cfg)                               # report.html, report.png, config.yaml
+    if "error" in metrics:
+        raise NotInitializedError(metrics["error"])
     result.metrics = metrics
     return result
 

@@ -96,7 +96,9 @@ def test_graph_end_to_end(graph_run):
     log = (d / "launch.log").read_text(errors="replace")
     assert rc == 0, log[-4000:]
     out = d / "out"
-    for f in ("trajectory_full.txt", "trajectory_keyframes.txt", "map.ply", "metrics.json"):
+    for f in ("trajectory_full.txt", "trajectory_keyframes.txt", "map.ply", "metrics.json",
+              "report.html", "report.png", "config.yaml", "groundtruth.txt",
+              "renders/keyframes.json"):
         assert (out / f).is_file(), f
     assert any((out / "renders").glob("*.png"))
     m = json.loads((out / "metrics.json").read_text())
@@ -107,6 +109,7 @@ def test_graph_end_to_end(graph_run):
     for n in ("tracker", "depth", "mapper", "player"):
         assert m["nodes"][n]["cpu_s"] > 0 and m["nodes"][n]["peak_rss_mb"] > 30, m["nodes"]
     assert "ate_rmse_cm_full" in log and "frames/s" in log and "[tracker]" in log
+    assert "report: " in log and 'id="keyframes"' in (out / "report.html").read_text()
     # every message type flowed between the processes
     recs = read_jsonl(d / "probe.log")
     count = {t[0]: 0 for t in SUBS}

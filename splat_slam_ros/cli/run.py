@@ -15,7 +15,8 @@ modes:
 
 outputs in --out: trajectory_full.txt, trajectory_keyframes.txt (TUM format), map.ply,
 metrics.json (ATE when the input has ground truth, PSNR/SSIM/depth L1 on keyframes),
-renders/ (rendered keyframes).
+renders/ (rendered keyframes), config.yaml (the configuration used), groundtruth.txt,
+report.html + report.png (the run report; splat-slam-report rebuilds them).
 
 exit status: 0 done, 2 a user error (bad input, config), 3 the tracker never initialised (no
 keyframe: too little camera motion for the thresholds; the message says which to lower).
@@ -95,6 +96,7 @@ def main(argv=None) -> int:
         if res.timings:
             print("time per stage (s): " + ", ".join(f"{k} {v:.1f}" for k, v in res.timings.items()))
         print(f"outputs in {out}")
+        print(f"report: {out / 'report.html'}")
         return 0
 
     return run_main(body)

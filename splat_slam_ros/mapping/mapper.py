@@ -28,6 +28,7 @@ from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.mapping.deformation import deform_gaussians
 from splat_slam_ros.mapping.gaussian_map import GaussianMap
 from splat_slam_ros.geometry import quat_to_matrix, se3_inverse
+from splat_slam_ros.mapping.keyframe_views import history_entry, write_keyframe_views
 from splat_slam_ros.mapping.keyframe_window import KeyframeDecision, KeyframeWindow
 from splat_slam_ros.mapping.map_init import init_gaussians
 from splat_slam_ros.mapping.ply_io import load_gaussians_ply, save_gaussians_ply
@@ -102,6 +103,7 @@ class Mapper:
         self._scene_depth = 0.0
         self.backend = "auto"
         self.progress = False          # tqdm bar for long optimisations (first keyframe)
+        self.history: List[dict] = []  # one entry per add_keyframe (the run report's map size)
 
     # ================================================================ render
     def _viewmat(self, pose_c2w: np.ndarray) -> torch.Tensor:
@@ -229,6 +231,7 @@ class Mapper:
         if not dec.mapped:
             self.last_ms = 1000 * (time.perf_counter() - t0)
             stats.update(self.stats())
+            self.history.append(history_entry(stats, timestamp))
             return stats
 
         kf = MappedKeyframe(kf_id, len(self.keyframes),
@@ -263,6 +266,7 @@ class Mapper:
         stats.update({"new_gaussians": n_new, "left_window": removed,
                       "visibility_pruned": n_vis_pruned, "loss": round(self.last_loss, 5)})
         stats.update(self.stats())
+        self.history.append(history_entry(stats, timestamp))
         return stats
 
     # =========================================================== optimisation
@@ -561,6 +565,7 @@ class Mapper:
             cv2.imwrite(str(folder / f"kf_{k:05d}.png"), rgb[..., ::-1])
             d = np.clip(depth * depth_scale, 0, 65535).astype(np.uint16)
             cv2.imwrite(str(folder / f"kf_{k:05d}_depth.png"), d)
+        write_keyframe_views(self, folder, depth_scale=depth_scale)   # for the run report
         return len(self.keyframes)
 
     # ============================================================ evaluation
@@ -610,7 +615,10 @@ class Mapper:
 
     def evaluate_keyframes(self, render_dir=None, gt_depth=None) -> dict:
         """Keyframe metrics (what the pipeline reports), renders written to ``render_dir``."""
-        return self.evaluate(None, gt_depth=gt_depth, render_dir=render_dir)
+        out = self.evaluate(None, gt_depth=gt_depth, render_dir=render_dir)
+        if render_dir is not None:                     # per-keyframe views for the report
+            write_keyframe_views(self, render_dir, gt_depth)
+        return out
 
 
 # ====================================================================== drivers
