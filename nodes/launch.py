@@ -489,11 +489,16 @@ def main(argv: Optional[List[str]] = None) -> int:
             m = L.write_metrics(end)
             L.stop_children()
             m["nodes"] = L.node_stats()
-            from splat_slam_ros.pipeline import _write_json
+            from splat_slam_ros.pipeline import _write_json, not_initialized_reason
             m["warnings"] = L.out.lines
+            if not m.get("keyframes"):                  # never a success without a keyframe
+                m["error"] = not_initialized_reason(L.cfg, int(m.get("frames") or 0))
+                rc = 3
             _write_json(L.out_dir / "metrics.json", m)
             L.summary(m)
             L.say(f"report: {write_report(L.out_dir, L.cfg)[0]}")
+            if rc == 3:
+                print(f"error: {m['error']}", file=sys.stderr)
     finally:
         L.stop_children()
         try:

@@ -270,3 +270,17 @@ def test_sigterm_stops_everything_and_tracker_death_fails(tiny_bag, tmp_path):
         stop(launch)
     log = (tmp_path / "b.log").read_text(errors="replace")
     assert rc == 1 and "tracker died unexpectedly (exit status -9)" in log, log[-3000:]
+
+
+def test_graph_without_a_keyframe_fails_clearly(tiny_bag, tmp_path):
+    """Three frames cannot initialise the tracker (warm-up 4): exit 3 with the reason, never
+    a 'successful' run with an identity trajectory."""
+    bag, cfg = tiny_bag
+    out = tmp_path / "out"
+    r = subprocess.run([PY, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out", str(out),
+                        "--config", str(cfg), "--max-frames", "3"], env=isolated_env(),
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 3, (r.returncode, r.stdout[-3000:], r.stderr[-3000:])
+    assert "never initialised" in r.stderr and "tracking.motion_filter_thresh" in r.stderr
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["keyframes"] == 0 and "never initialised" in m["error"]
