@@ -5,8 +5,9 @@ Subscribes  ros.image_topic (sensor_msgs/Image: rgb8, bgr8, mono8, rgba8, bgra8)
             /splat/pose_graph_updates (loop closure / global BA updates -> Tracker.apply_update);
             /splat/graph_events (end_of_stream -> Tracker.finalize()).
 Publishes   /splat/keyframes (Keyframe), /splat/pose_graph_updates (its local-BA updates),
-            /splat/camera_pose (PoseStamped), /splat/trajectory (Path), /tf map->camera
-            (when tf2_msgs is installed), /splat/frame_ack (FrameAck per consumed frame).
+            /splat/camera_pose (PoseStamped), /splat/trajectory (Path), /tf map->odom->camera
+            + /tf_static camera->camera_optical, /splat/keyframe_markers (MarkerArray; see
+            nodes/tf_frames.py), /splat/frame_ack (FrameAck per consumed frame).
 Bad input (unsupported encoding, no camera_info, a size change, undecodable bytes) is a
 logged error; the frame is acknowledged as consumed and dropped, the node keeps running.
 Resize / crop / undistort follow ``camera.*`` (done by the Tracker's preprocessor).
@@ -35,20 +36,14 @@ class TrackerNode(SplatNode):
         from splat_slam_msgs.msg import FrameAck, Keyframe, PoseGraphUpdate
 
         from . import qos as Q
-        from .node_common import tf_available
+        from .tf_frames import TrackerFrames
         n = self.node
         self.pub_kf = n.create_publisher(Keyframe, TOPICS["keyframes"], Q.keyframe_qos())
         self.pub_upd = n.create_publisher(PoseGraphUpdate, TOPICS["updates"], Q.pose_graph_qos())
         self.pub_ack = n.create_publisher(FrameAck, TOPICS["ack"], Q.ack_qos())
         self.pub_pose = n.create_publisher(PoseStamped, TOPICS["camera_pose"], Q.pose_qos())
         self.pub_path = n.create_publisher(PathMsg, TOPICS["trajectory"], Q.status_qos())
-        self.pub_tf = None
-        if tf_available():
-            from tf2_msgs.msg import TFMessage
-            self.pub_tf = n.create_publisher(TFMessage, "/tf", 100)
-        else:
-            self.log.info("tf2_msgs is not installed (not on PyPI): map->camera is published as "
-                          f"{TOPICS['camera_pose']} (PoseStamped) only, not on /tf")
+        self.frames = TrackerFrames(self, TRACKER_REASONS)     # /tf, /tf_static, markers
         in_qos = Q.image_qos() if self.opts["input_qos"] == "reliable" else Q.sensor_qos()
         # updates first: when an update and a frame are both ready, the update runs first
         self.subscribe(PoseGraphUpdate, TOPICS["updates"], Q.pose_graph_qos(), self._on_update,
@@ -207,12 +202,11 @@ class TrackerNode(SplatNode):
             self.last_seq = max(self.last_seq, int(ev.seq))
         for kd in step.keyframes:
             self.pub_kf.publish(keyframe_to_msg(kd, self.frame_id))
+        if step.keyframes:
+            self.frames.on_keyframes(self.tracker, stamp)
         if self.tracker.initialized and not step.lost:
             self.pub_pose.publish(pose_stamped(step.pose, stamp, self.frame_id))
-            if self.pub_tf is not None:
-                from .node_common import tf_message
-                self.pub_tf.publish(tf_message(step.pose, stamp, self.frame_id,
-                                               self.cfg.ros.camera_frame))
+            self.frames.on_pose(step.pose, stamp)
             self.stamps.append(stamp)
             self.poses.append(step.pose)
             if step.is_keyframe or len(self.stamps) % max(1, int(self.opts["path_every"])) == 0:
@@ -228,7 +222,8 @@ class TrackerNode(SplatNode):
 
     def _apply_update(self, ev) -> None:
         if self.tracker is not None:
-            self.tracker.apply_update(ev)
+            self.frames.around_update(self.tracker, ev, self.tracker.apply_update)
+            self.frames.on_keyframes(self.tracker, self.frames.last_stamp or 0.0)
         self.loop_seq = max(self.loop_seq, int(ev.seq))
         self._maybe_save()
 
