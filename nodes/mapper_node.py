@@ -8,8 +8,9 @@ Subscribes  /splat/keyframes (images), /splat/proxy_depth (new keyframes are map
             /splat/map/render_request (PoseStamped), /splat/graph_events (finalisation).
 Publishes   /splat/map/rendered_rgb + rendered_depth (at the latest keyframe, every
             ``mapping.render_every`` keyframes, when someone listens), /splat/map/view_rgb +
-            view_depth (at a requested pose), /splat/map/points (PointCloud2 of Gaussian centres
-            with colours), /splat/map/status (MapperStatus), /splat/frame_ack (consumer
+            view_depth (at a requested pose), rendered_camera_info + view_camera_info (their
+            CameraInfo; images in ros.optical_frame), /splat/map/points (PointCloud2 of
+            Gaussian centres with colours), /splat/map/status (MapperStatus), /splat/frame_ack (consumer
             "mapper", one per keyframe consumed: lockstep).
 Services    /splat/map/save (SaveMap: PLY + trajectory + metrics), /splat/map/reset (Trigger),
             /splat/map/render (RenderPose).
@@ -37,7 +38,7 @@ class MapperNode(SplatNode):
         super().__init__("mapper", {"loop_closure": True, "mapping": True, "snapshot_every": 1,
                                     "points_every": 1, "render_width": 0, "render_height": 0})
         from geometry_msgs.msg import PoseStamped
-        from sensor_msgs.msg import Image, PointCloud2
+        from sensor_msgs.msg import CameraInfo, Image, PointCloud2
         from splat_slam_msgs.msg import (FrameAck, Keyframe, MapperStatus, PoseGraphUpdate,
                                          ProxyDepth)
         from splat_slam_msgs.srv import RenderPose, SaveMap
@@ -49,6 +50,8 @@ class MapperNode(SplatNode):
         self.pub_depth = n.create_publisher(Image, TOPICS["rendered_depth"], Q.rendered_qos())
         self.pub_vrgb = n.create_publisher(Image, TOPICS["view_rgb"], Q.rendered_qos())
         self.pub_vdepth = n.create_publisher(Image, TOPICS["view_depth"], Q.rendered_qos())
+        self.pub_info = n.create_publisher(CameraInfo, TOPICS["rendered_info"], Q.rendered_qos())
+        self.pub_vinfo = n.create_publisher(CameraInfo, TOPICS["view_info"], Q.rendered_qos())
         self.pub_points = n.create_publisher(PointCloud2, TOPICS["points"], Q.status_qos())
         self.pub_status = n.create_publisher(MapperStatus, TOPICS["status"], Q.status_qos())
         self.pub_ack = n.create_publisher(FrameAck, TOPICS["ack"], Q.ack_qos())
@@ -238,10 +241,13 @@ class MapperNode(SplatNode):
         from .convert import image_to_msg
         if self.pub_rgb.get_subscription_count() + self.pub_depth.get_subscription_count() == 0:
             return
+        from .tf_frames import render_camera_info
         rgb, depth = self._render(pose)
-        self.pub_rgb.publish(image_to_msg(rgb, "rgb8", stamp, self.cfg.ros.camera_frame))
-        self.pub_depth.publish(image_to_msg(depth.astype(np.float32), "32FC1", stamp,
-                                            self.cfg.ros.camera_frame))
+        fr = self.cfg.ros.optical_frame
+        self.pub_rgb.publish(image_to_msg(rgb, "rgb8", stamp, fr))
+        self.pub_depth.publish(image_to_msg(depth.astype(np.float32), "32FC1", stamp, fr))
+        self.pub_info.publish(render_camera_info(self.mapper, rgb.shape[1], rgb.shape[0], None,
+                                                 stamp, fr))
 
     def _publish_points(self, stamp) -> None:
         from .node_common import pointcloud2
@@ -258,10 +264,13 @@ class MapperNode(SplatNode):
             self.warn_throttled("view", "render request ignored: the map is empty", error=False)
             return
         stamp = from_stamp(msg.header.stamp)
+        from .tf_frames import render_camera_info
         rgb, depth = self._render(msg_to_pose(msg.pose))
-        self.pub_vrgb.publish(image_to_msg(rgb, "rgb8", stamp, self.cfg.ros.camera_frame))
-        self.pub_vdepth.publish(image_to_msg(depth.astype(np.float32), "32FC1", stamp,
-                                             self.cfg.ros.camera_frame))
+        fr = self.cfg.ros.optical_frame
+        self.pub_vrgb.publish(image_to_msg(rgb, "rgb8", stamp, fr))
+        self.pub_vdepth.publish(image_to_msg(depth.astype(np.float32), "32FC1", stamp, fr))
+        self.pub_vinfo.publish(render_camera_info(self.mapper, rgb.shape[1], rgb.shape[0], None,
+                                                  stamp, fr))
 
     def save(self, directory: Path, final: bool = False) -> dict:
         """map.ply, trajectory_keyframes (mapped keyframes), renders/, metrics."""

@@ -205,3 +205,20 @@ class TrackerFrames:
         ts, P = tracker.trajectory_keyframes()
         self.pub_markers.publish(keyframe_markers(list(P), tracker.keyframe_ids(), stamp,
                                                   self.map))
+
+
+def render_camera_info(mapper, width: int, height: int, intrinsics, stamp: float,
+                       frame_id: str):
+    """sensor_msgs/CameraInfo of a map render of ``width`` x ``height`` (the intrinsics
+    Mapper.render used: the given (fx, fy, cx, cy) or the mapper's, rescaled; no distortion,
+    renders are ideal pinhole images)."""
+    from splat_slam_ros.types import Intrinsics
+
+    from .convert import intrinsics_to_camera_info
+    if intrinsics is not None and any(abs(float(x)) > 0 for x in intrinsics):
+        fx, fy, cx, cy = (float(x) for x in intrinsics)
+        K = Intrinsics(fx, fy, cx, cy, int(width), int(height), "plumb_bob", [])
+    else:
+        K = mapper.K.scaled(width / mapper.W, height / mapper.H)
+        K = Intrinsics(K.fx, K.fy, K.cx, K.cy, int(width), int(height), "plumb_bob", [])
+    return intrinsics_to_camera_info(K, stamp, frame_id)
