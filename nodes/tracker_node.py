@@ -120,7 +120,8 @@ class TrackerNode(SplatNode):
         self.worker.submit(self._apply_update, ev)
 
     def _on_event(self, d: dict) -> None:
-        if d.get("event") == "end_of_stream" and d.get("node") in ("player", "launch"):
+        if d.get("event") == "end_of_stream" and d.get("node") in ("player", "launch",
+                                                                   "camera"):
             self.worker.submit(self._finalize)
         elif d.get("node") == "loop_closure" and d.get("event") == "finalized":
             self.worker.submit(self._loop_finalized, d)
