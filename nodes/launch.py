@@ -225,17 +225,21 @@ class Launcher:
             param("node.state_dir", str(self.out_dir / "state" / name))
         param("node.loop_closure", self.with_loop)
         param("node.mapping", self.with_mapping)
-        if name == "tracker":
+        if name in ("tracker", "rerun"):          # the rerun logger records the input too
             if self.bag is not None:
                 roles = (self.bag.info.get("topics") or {})
                 if "ros.image_topic" not in self.overrides:
                     param("ros.image_topic", roles.get("image", "/camera/image_raw"))
                 if "ros.camera_info_topic" not in self.overrides:
                     param("ros.camera_info_topic", roles.get("camera_info", "/camera/camera_info"))
+            if self.bag is not None and name == "tracker":
                 param("node.input_qos", "reliable")
                 param("node.max_queue", 0 if a.mode == "lockstep" else 2)
         if name == "rerun":
-            param("node.rrd", str(Path(a.rerun).resolve()))
+            if a.rerun:
+                param("node.rrd", str(Path(a.rerun).resolve()))
+            if a.rerun_connect:
+                param("node.connect", a.rerun_connect)
         return py + p
 
     def _player_args(self) -> List[str]:
@@ -254,7 +258,8 @@ class Launcher:
 
     def start_all(self) -> None:
         from .camera_node import launch_args
-        names = list(self.nodes) + (["rerun"] if self.args.rerun else []) + \
+        names = list(self.nodes) + (["rerun"] if self.args.rerun or self.args.rerun_connect
+                                    else []) + \
             (["player"] if self.bag is not None else []) + (["camera"] if self.args.camera else [])
         w = max(len(n) for n in names)
         for n in names:
@@ -458,7 +463,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--mode", choices=["lockstep", "realtime"], default="lockstep",
                     help="bag playback: lockstep (no frame dropped, default) or realtime")
     ap.add_argument("--rate", type=float, default=1.0, help="realtime playback speed factor")
-    ap.add_argument("--rerun", metavar="FILE.rrd", help="also log to a rerun .rrd file")
+    ap.add_argument("--rerun", metavar="FILE.rrd", help="also record the run to a rerun .rrd file")
+    ap.add_argument("--rerun-connect", metavar="URL", help="also stream to a rerun viewer, e.g. "
+                    "rerun+http://HOST:9876/proxy")
     ap.add_argument("--max-frames", type=int, default=0, help="play at most N frames")
     ap.add_argument("--camera", metavar="SOURCE", help="start splat-slam-camera on SOURCE (device "
                     "index, /dev/videoN, video file or image folder) instead of a bag")

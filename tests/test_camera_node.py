@@ -141,7 +141,8 @@ def test_launch_with_camera_tracks_the_video(video, tmp_path):
     out = tmp_path / "out"
     launch = start([PY, "-m", "splat_slam_nodes.launch", "--camera", str(avi), "--camera-info",
                     str(cam_yaml), "--camera-rate", "4", "--out", str(out), "--config",
-                    str(tmp_path / "cfg.yaml"), "--tracking-only"], env, tmp_path / "launch.log")
+                    str(tmp_path / "cfg.yaml"), "--tracking-only", "--rerun",
+                    str(tmp_path / "run.rrd")], env, tmp_path / "launch.log")
     try:
         rc = launch.wait(timeout=600)
     finally:
@@ -155,6 +156,12 @@ def test_launch_with_camera_tracks_the_video(video, tmp_path):
     rows = [ln for ln in (out / "trajectory_full.txt").read_text().splitlines()
             if ln and not ln.startswith("#")]
     assert len(rows) >= N - m["frames_dropped"] - 2 and len(rows) >= N // 2
+    # the rerun recording of the same run: camera poses, trajectory, input images, keyframes
+    from test_graph_rerun import _read_rrd
+    arch, nrows, _ = _read_rrd(tmp_path / "run.rrd")
+    for ent in ("/world/camera", "/world/trajectory", "/world/camera/image", "/world/keyframes/0"):
+        assert ent in arch, sorted(arch)
+    assert nrows["/world/camera"] >= 10
 
 
 def test_launch_rejects_bad_camera_arguments(video, tmp_path):
