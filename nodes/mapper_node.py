@@ -10,8 +10,8 @@ Publishes   /splat/map/rendered_rgb + rendered_depth (at the latest keyframe, ev
             ``mapping.render_every`` keyframes, when someone listens), /splat/map/view_rgb +
             view_depth (at a requested pose), rendered_camera_info + view_camera_info (their
             CameraInfo; images in ros.optical_frame), /splat/map/points (PointCloud2 of
-            Gaussian centres with colours), /splat/map/status (MapperStatus), /splat/frame_ack (consumer
-            "mapper", one per keyframe consumed: lockstep).
+            Gaussian centres with colours), /splat/map/status (MapperStatus),
+            /splat/frame_ack (consumer "mapper", one per keyframe consumed: lockstep).
 Services    /splat/map/save (SaveMap: PLY + trajectory + metrics), /splat/map/reset (Trigger),
             /splat/map/render (RenderPose).
 Crash safety: after each mapped keyframe the map (Gaussians, keyframes, window) is written to

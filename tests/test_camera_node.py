@@ -4,7 +4,6 @@ tracks them."""
 import json
 import os
 import subprocess
-from pathlib import Path
 
 import cv2
 import numpy as np

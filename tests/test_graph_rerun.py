@@ -2,7 +2,6 @@
 writes is read back with rerun's own reader and holds the expected entities and data."""
 import time
 
-import numpy as np
 import pytest
 
 from test_graph_support import PY, isolated_env, need_ros, start, stop

@@ -3,14 +3,13 @@ closure nodes): a subscriber decodes /tf and /tf_static and finds map -> odom ->
 camera_optical; map -> odom is the identity until a loop closure corrects the pose and changes
 afterwards; the chain equals /splat/camera_pose; keyframe markers arrive."""
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from test_graph_support import PY, REPO, isolated_env, need_ros, read_jsonl, start, stop
+from test_graph_support import PY, isolated_env, need_ros, read_jsonl, start, stop
 
 pytestmark = pytest.mark.ros
 
