@@ -1,6 +1,8 @@
 """rerun logger node: a feed process publishes every kind of message it logs; the .rrd it
 writes is read back with rerun's own reader and holds the expected entities and data."""
+import socket
 import time
+from pathlib import Path
 
 import pytest
 
@@ -73,14 +75,26 @@ def _read_rrd(path):
     return arch, rows, batches
 
 
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def test_rerun_logger_writes_a_readable_rrd(tmp_path):
+    """The node writes the .rrd file and, at the same time, streams to a viewer address (here a
+    headless `rerun --save` server standing in for a viewer on another machine)."""
     need_ros()
     env = isolated_env()
     rrd = tmp_path / "run.rrd"
+    port = _free_port()
+    viewer = start([str(Path(PY).with_name("rerun")), "--port", str(port), "--save",
+                    str(tmp_path / "viewer.rrd")], env, tmp_path / "viewer.log")
+    time.sleep(2.0)
     node = start([PY, "-m", "splat_slam_nodes.rerun_logger", "--ros-args", "-p",
-                  f"node.rrd:={rrd}", "-p", "node.image_every:=2", "-p",
-                  "ros.image_topic:=/cam/image", "-p", "ros.camera_info_topic:=/cam/info"],
-                 env, tmp_path / "rerun.log")
+                  f"node.rrd:={rrd}", "-p", f"node.connect:=rerun+http://127.0.0.1:{port}/proxy",
+                  "-p", "node.image_every:=2", "-p", "ros.image_topic:=/cam/image",
+                  "-p", "ros.camera_info_topic:=/cam/info"], env, tmp_path / "rerun.log")
     feed = start([PY, "-c", FEED], env, tmp_path / "feed.log")
     try:
         assert feed.wait(timeout=180) == 0, (tmp_path / "feed.log").read_text()
@@ -88,6 +102,8 @@ def test_rerun_logger_writes_a_readable_rrd(tmp_path):
     finally:
         stop(feed)
         stop(node)
+        time.sleep(1.0)
+        stop(viewer)
     assert rrd.is_file(), (tmp_path / "rerun.log").read_text()
     arch, rows, batches = _read_rrd(rrd)
     want = {
@@ -114,3 +130,8 @@ def test_rerun_logger_writes_a_readable_rrd(tmp_path):
     pts = [b for b in batches["/world/map/points"] if any("positions" in n for n in b.schema.names)]
     col = [n for n in pts[0].schema.names if n.endswith("Points3D:positions")][0]
     assert len(pts[0].column(col)[0]) == 100
+    # the viewer address received the same recording
+    varch, vrows, _ = _read_rrd(tmp_path / "viewer.rrd")
+    for ent in want:
+        assert ent in varch, (ent, sorted(varch), (tmp_path / "viewer.log").read_text()[-2000:])
+    assert vrows["/world/camera"] == 4
