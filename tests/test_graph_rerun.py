@@ -88,8 +88,10 @@ def test_rerun_logger_writes_a_readable_rrd(tmp_path):
     env = isolated_env()
     rrd = tmp_path / "run.rrd"
     port = _free_port()
-    viewer = start([str(Path(PY).with_name("rerun")), "--port", str(port), "--save",
-                    str(tmp_path / "viewer.rrd")], env, tmp_path / "viewer.log")
+    import rerun_cli                      # the viewer binary itself (the script wrapper would
+    cli = Path(rerun_cli.__file__).parent / "rerun"           # leave it orphaned on terminate)
+    viewer = start([str(cli), "--port", str(port), "--save", str(tmp_path / "viewer.rrd")], env,
+                   tmp_path / "viewer.log")
     time.sleep(2.0)
     node = start([PY, "-m", "splat_slam_nodes.rerun_logger", "--ros-args", "-p",
                   f"node.rrd:={rrd}", "-p", f"node.connect:=rerun+http://127.0.0.1:{port}/proxy",
