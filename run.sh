@@ -5,7 +5,7 @@
 #   ./run.sh setup  only set up .venv
 # Set-up installs the apt packages it needs (when run as root and missing), creates .venv/
 # in the repository root, installs torch==2.13.0, the ROS 2 Jazzy wheels, builds the
-# splat_slam_msgs interface package into the venv and installs this project editable.
+# tf2_msgs + splat_slam_msgs interface packages into the venv and installs this project editable.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 cd "$ROOT"
@@ -54,10 +54,11 @@ ensure_venv() {
     "$PY" -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e .
     echo "$want" > "$VENV/.splat_deps_stamp"
   fi
-  want=$(stamp_of msg_defs/CMakeLists.txt msg_defs/package.xml msg_defs/msg/*.msg msg_defs/srv/*.srv msg_defs/build.sh)
+  want=$(stamp_of msg_defs/CMakeLists.txt msg_defs/package.xml msg_defs/msg/*.msg msg_defs/srv/*.srv msg_defs/build.sh \
+    msg_defs/cmake/*.cmake msg_defs/tf2_msgs/CMakeLists.txt msg_defs/tf2_msgs/package.xml msg_defs/tf2_msgs/*/*.*)
   have=$(cat "$VENV/.splat_msgs_stamp" 2>/dev/null || true)
   if [ "$want" != "$have" ]; then
-    log "building the splat_slam_msgs interface package into .venv"
+    log "building the tf2_msgs and splat_slam_msgs interface packages into .venv"
     VIRTUAL_ENV="$VENV" PATH="$VENV/bin:$PATH" bash msg_defs/build.sh
     echo "$want" > "$VENV/.splat_msgs_stamp"
   fi

@@ -3,6 +3,7 @@
     splat-slam-launch --bag BAG_DIR --out DIR [--config FILE] [--mode lockstep|realtime]
                       [--rate R] [--rerun FILE.rrd] [--set KEY=VALUE ...]
     splat-slam-launch --out DIR [--config FILE] [--set ros.image_topic=/cam/image ...]
+    splat-slam-launch --camera SOURCE [--camera-info CAM.yaml] [--camera-rate HZ] --out DIR
 
 Each node runs as its own process with the project's DDS profile (ros_env) and a prefix on
 every log line. With ``--bag`` the bag player feeds the graph; at the end of the bag the
@@ -47,6 +48,7 @@ NODE_MODULES = {
     "loop_closure": "splat_slam_nodes.loop_closure_node",
     "mapper": "splat_slam_nodes.mapper_node",
     "player": "splat_slam_nodes.bag_player",
+    "camera": "splat_slam_nodes.camera_node",
     "rerun": "splat_slam_nodes.rerun_logger",
 }
 RESUMABLE = ("depth", "loop_closure", "mapper")
@@ -190,11 +192,12 @@ class Launcher:
         self.with_mapping = not a.tracking_only
         self.nodes = ["tracker"] + (["loop_closure"] if self.with_loop else []) + \
             (["depth", "mapper"] if self.with_mapping else [])
-        if a.rerun:
-            import importlib.util
-            if importlib.util.find_spec("rerun") is None:
-                raise LaunchError("--rerun needs the optional rerun-sdk package "
-                                  "(pip install 'splat_slam_ros[viz]', about 790 MB)")
+        if a.camera:
+            from .camera_node import CameraError, check_camera_args
+            try:
+                check_camera_args(a.camera, a.camera_info)
+            except CameraError as e:
+                raise LaunchError(str(e)) from None
 
     def _node_args(self, name: str) -> List[str]:
         a = self.args
@@ -214,17 +217,21 @@ class Launcher:
             param("node.state_dir", str(self.out_dir / "state" / name))
         param("node.loop_closure", self.with_loop)
         param("node.mapping", self.with_mapping)
-        if name == "tracker":
+        if name in ("tracker", "rerun"):          # the rerun logger records the input too
             if self.bag is not None:
                 roles = (self.bag.info.get("topics") or {})
                 if "ros.image_topic" not in self.overrides:
                     param("ros.image_topic", roles.get("image", "/camera/image_raw"))
                 if "ros.camera_info_topic" not in self.overrides:
                     param("ros.camera_info_topic", roles.get("camera_info", "/camera/camera_info"))
+            if self.bag is not None and name == "tracker":
                 param("node.input_qos", "reliable")
                 param("node.max_queue", 0 if a.mode == "lockstep" else 2)
         if name == "rerun":
-            param("node.rrd", str(Path(a.rerun).resolve()))
+            if a.rerun:
+                param("node.rrd", str(Path(a.rerun).resolve()))
+            if a.rerun_connect:
+                param("node.connect", a.rerun_connect)
         return py + p
 
     def _player_args(self) -> List[str]:
@@ -242,11 +249,15 @@ class Launcher:
         return args
 
     def start_all(self) -> None:
-        names = list(self.nodes) + (["rerun"] if self.args.rerun else []) + \
-            (["player"] if self.bag is not None else [])
+        from .camera_node import launch_args
+        names = list(self.nodes) + (["rerun"] if self.args.rerun or self.args.rerun_connect
+                                    else []) + \
+            (["player"] if self.bag is not None else []) + (["camera"] if self.args.camera else [])
         w = max(len(n) for n in names)
         for n in names:
             args = self._player_args() if n == "player" else self._node_args(n)
+            if n == "camera":
+                args = launch_args(self.args, self.cfg, self.nodes, self.out_dir is not None)
             c = Child(n, args, self.env, self.out, w)
             self.children[n] = c
         for n in names:
@@ -322,7 +333,7 @@ class Launcher:
                 if c.alive() or c.expected_exit:
                     continue
                 rc = c.proc.returncode
-                if name == "player" and rc == 0:
+                if name in ("player", "camera") and rc == 0:
                     c.expected_exit = True
                     continue
                 if name in RESUMABLE and self.out_dir is not None and c.restarts < a.max_restarts:
@@ -444,9 +455,16 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--mode", choices=["lockstep", "realtime"], default="lockstep",
                     help="bag playback: lockstep (no frame dropped, default) or realtime")
     ap.add_argument("--rate", type=float, default=1.0, help="realtime playback speed factor")
-    ap.add_argument("--rerun", metavar="FILE.rrd", help="also log to a rerun .rrd file "
-                                                        "(needs rerun-sdk)")
+    ap.add_argument("--rerun", metavar="FILE.rrd", help="also record the run to a rerun .rrd file")
+    ap.add_argument("--rerun-connect", metavar="URL", help="also stream to a rerun viewer, e.g. "
+                    "rerun+http://HOST:9876/proxy")
     ap.add_argument("--max-frames", type=int, default=0, help="play at most N frames")
+    ap.add_argument("--camera", metavar="SOURCE", help="start splat-slam-camera on SOURCE (device "
+                    "index, /dev/videoN, video file or image folder) instead of a bag")
+    ap.add_argument("--camera-info", metavar="YAML", help="--camera intrinsics (ROS camera_info "
+                    "/ OpenCV YAML)")
+    ap.add_argument("--camera-rate", type=float, default=0.0, metavar="HZ",
+                    help="--camera frame rate (default: the source's own)")
     ap.add_argument("--tracking-only", action="store_true", help="no depth / mapper nodes")
     ap.add_argument("--no-loop-closure", action="store_true", help="no loop_closure node")
     ap.add_argument("--max-restarts", type=int, default=3,
@@ -462,6 +480,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.bag and args.camera:
+        print("error: --camera and --bag exclude each other (one input at a time)", file=sys.stderr)
+        return 2
     if args.bag and not args.out:
         print("error: --bag needs --out (where the outputs go)", file=sys.stderr)
         return 2

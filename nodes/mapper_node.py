@@ -6,9 +6,10 @@ Subscribes  /splat/keyframes (images), /splat/proxy_depth (a keyframe is mapped 
             /splat/map/render_request (PoseStamped), /splat/graph_events (depth ``finalized``).
 Publishes   /splat/map/rendered_rgb + rendered_depth (at the latest keyframe, every
             ``mapping.render_every`` keyframes, when someone listens), /splat/map/view_rgb +
-            view_depth (at a requested pose), /splat/map/points (PointCloud2 of Gaussian centres
-            with colours), /splat/map/status (MapperStatus), /splat/frame_ack (consumer
-            "mapper", one per keyframe consumed: lockstep).
+            view_depth (at a requested pose), rendered_camera_info + view_camera_info (their
+            CameraInfo; images in ros.optical_frame), /splat/map/points (PointCloud2 of
+            Gaussian centres with colours), /splat/map/status (MapperStatus),
+            /splat/frame_ack (consumer "mapper", one per keyframe consumed: lockstep).
 Services    /splat/map/save (SaveMap: PLY + trajectory + metrics), /splat/map/reset (Trigger),
             /splat/map/render (RenderPose).
 The protocol (pending keyframes/depths, replayed revisions, snapshots to ``node.state_dir``,
@@ -31,7 +32,7 @@ class MapperNode(SplatNode):
         super().__init__("mapper", {"loop_closure": True, "mapping": True, "snapshot_every": 1,
                                     "points_every": 1, "render_width": 0, "render_height": 0})
         from geometry_msgs.msg import PoseStamped
-        from sensor_msgs.msg import Image, PointCloud2
+        from sensor_msgs.msg import CameraInfo, Image, PointCloud2
         from splat_slam_msgs.msg import MapperStatus
         from splat_slam_msgs.srv import RenderPose, SaveMap
         from std_srvs.srv import Trigger
@@ -44,6 +45,8 @@ class MapperNode(SplatNode):
         self.pub_depth = n.create_publisher(Image, TOPICS["rendered_depth"], Q.rendered_qos())
         self.pub_vrgb = n.create_publisher(Image, TOPICS["view_rgb"], Q.rendered_qos())
         self.pub_vdepth = n.create_publisher(Image, TOPICS["view_depth"], Q.rendered_qos())
+        self.pub_info = n.create_publisher(CameraInfo, TOPICS["rendered_info"], Q.rendered_qos())
+        self.pub_vinfo = n.create_publisher(CameraInfo, TOPICS["view_info"], Q.rendered_qos())
         self.pub_points = n.create_publisher(PointCloud2, TOPICS["points"], Q.status_qos())
         self.pub_status = n.create_publisher(MapperStatus, TOPICS["status"], Q.status_qos())
         self.publishers("ack")
@@ -119,12 +122,19 @@ class MapperNode(SplatNode):
         return (image_to_msg(rgb, "rgb8", stamp, frame_id),
                 image_to_msg(depth.astype(np.float32), "32FC1", stamp, frame_id))
 
+    def _publish_view(self, pose, stamp, pubs) -> None:
+        """Render at ``pose``; rgb, depth and their CameraInfo in the optical frame."""
+        from .tf_frames import render_camera_info
+        fr = self.cfg.ros.optical_frame
+        rgb, depth = self._render(pose)
+        for pub, m in zip(pubs, self._images(rgb, depth, stamp, fr) + (render_camera_info(
+                self.role.mapper, rgb.shape[1], rgb.shape[0], None, stamp, fr),)):
+            pub.publish(m)
+
     def _publish_renders(self, pose, stamp) -> None:
         if self.pub_rgb.get_subscription_count() + self.pub_depth.get_subscription_count() == 0:
             return
-        rgb, depth = self._images(*self._render(pose), stamp, self.cfg.ros.camera_frame)
-        self.pub_rgb.publish(rgb)
-        self.pub_depth.publish(depth)
+        self._publish_view(pose, stamp, (self.pub_rgb, self.pub_depth, self.pub_info))
 
     def _publish_points(self, stamp) -> None:
         from .node_common import pointcloud2
@@ -140,11 +150,8 @@ class MapperNode(SplatNode):
         if self.role.mapper is None:
             self.warn_throttled("view", "render request ignored: the map is empty", error=False)
             return
-        stamp = from_stamp(msg.header.stamp)
-        rgb, depth = self._images(*self._render(msg_to_pose(msg.pose)), stamp,
-                                  self.cfg.ros.camera_frame)
-        self.pub_vrgb.publish(rgb)
-        self.pub_vdepth.publish(depth)
+        self._publish_view(msg_to_pose(msg.pose), from_stamp(msg.header.stamp),
+                           (self.pub_vrgb, self.pub_vdepth, self.pub_vinfo))
 
     # ------------------------------------------------------------ services
     def _srv_save(self, req, resp):

@@ -3,8 +3,8 @@ subscriptions, a worker thread, the graph-event channel and process start/stop.
 
 A node is a thin adapter: callbacks turn messages into core types (nodes/convert.py) and hand
 them to a core stage (splat_slam_ros.*) on the node's worker thread; results go back out as
-messages. Extra conversions that convert.py does not have (PoseStamped, Path, PointCloud2,
-TF) live here.
+messages. Extra conversions that convert.py does not have (PoseStamped, Path, PointCloud2)
+live here (TF: nodes/tf_frames.py).
 
 Graph events (``/splat/graph_events``, std_msgs/String with one JSON object, RELIABLE +
 TRANSIENT_LOCAL) carry the control protocol: ``ready``, ``end_of_stream``, ``finalized``,
@@ -36,11 +36,14 @@ TOPICS = {
     "events": f"{NS}/graph_events",                  # std_msgs/String (JSON)
     "camera_pose": f"{NS}/camera_pose",              # geometry_msgs/PoseStamped
     "trajectory": f"{NS}/trajectory",                # nav_msgs/Path
+    "keyframe_markers": f"{NS}/keyframe_markers",    # visualization_msgs/MarkerArray
     "rendered_rgb": f"{NS}/map/rendered_rgb",        # sensor_msgs/Image rgb8 (latest keyframe)
     "rendered_depth": f"{NS}/map/rendered_depth",    # sensor_msgs/Image 32FC1
+    "rendered_info": f"{NS}/map/rendered_camera_info",  # sensor_msgs/CameraInfo of the renders
     "render_request": f"{NS}/map/render_request",    # geometry_msgs/PoseStamped
     "view_rgb": f"{NS}/map/view_rgb",                # sensor_msgs/Image rgb8 (requested pose)
     "view_depth": f"{NS}/map/view_depth",            # sensor_msgs/Image 32FC1
+    "view_info": f"{NS}/map/view_camera_info",       # sensor_msgs/CameraInfo of the views
     "points": f"{NS}/map/points",                    # sensor_msgs/PointCloud2
     "status": f"{NS}/map/status",                    # splat_slam_msgs/MapperStatus
 }
@@ -448,32 +451,6 @@ def pointcloud2_to_arrays(m):
     pts = np.stack([rec["x"], rec["y"], rec["z"]], -1)
     rgb = np.stack([(rec["rgb"] >> 16) & 255, (rec["rgb"] >> 8) & 255, rec["rgb"] & 255], -1)
     return pts, rgb.astype(np.uint8)
-
-
-def tf_available() -> bool:
-    try:
-        import tf2_msgs.msg  # noqa: F401
-        return True
-    except ImportError:
-        return False
-
-
-def tf_message(T, stamp: float, parent: str, child: str):
-    """tf2_msgs/TFMessage with one transform parent -> child (needs tf2_msgs)."""
-    from geometry_msgs.msg import TransformStamped
-    from tf2_msgs.msg import TFMessage
-
-    from .convert import pose_to_msg, to_stamp
-    p = pose_to_msg(T)
-    t = TransformStamped()
-    t.header.stamp = to_stamp(stamp)
-    t.header.frame_id = parent
-    t.child_frame_id = child
-    t.transform.translation.x = p.position.x
-    t.transform.translation.y = p.position.y
-    t.transform.translation.z = p.position.z
-    t.transform.rotation = p.orientation
-    return TFMessage(transforms=[t])
 
 
 def events_qos():

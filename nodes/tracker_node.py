@@ -5,8 +5,9 @@ Subscribes  ros.image_topic (sensor_msgs/Image: rgb8, bgr8, mono8, rgba8, bgra8)
             /splat/pose_graph_updates (loop closure / global BA updates);
             /splat/graph_events (end_of_stream -> finalize; the loop closer's ``finalized``).
 Publishes   /splat/keyframes (Keyframe), /splat/pose_graph_updates (its local-BA updates),
-            /splat/camera_pose (PoseStamped), /splat/trajectory (Path), /tf map->camera
-            (when tf2_msgs is installed), /splat/frame_ack (FrameAck per consumed frame).
+            /splat/camera_pose (PoseStamped), /splat/trajectory (Path), /tf map->odom->camera
+            + /tf_static camera->camera_optical, /splat/keyframe_markers (MarkerArray; see
+            nodes/tf_frames.py), /splat/frame_ack (FrameAck per consumed frame).
 Bad input (unsupported encoding, no camera_info, a size change, undecodable bytes) is a
 logged error; the frame is acknowledged as consumed and dropped, the node keeps running
 (nodes/camera_input.py). Resize / crop / undistort follow ``camera.*`` (the Tracker's
@@ -21,6 +22,8 @@ import sys
 from typing import List, Optional
 
 import numpy as np
+
+from splat_slam_ros.types import TRACKER_REASONS
 
 from .node_common import TOPICS, SplatNode, run_node
 
@@ -38,18 +41,12 @@ class TrackerNode(SplatNode):
 
         from . import qos as Q
         from .camera_input import CameraInput
-        from .node_common import tf_available
+        from .tf_frames import TrackerFrames
         n = self.node
         self.publishers("keyframes", "updates", "ack")
         self.pub_pose = n.create_publisher(PoseStamped, TOPICS["camera_pose"], Q.pose_qos())
         self.pub_path = n.create_publisher(PathMsg, TOPICS["trajectory"], Q.status_qos())
-        self.pub_tf = None
-        if tf_available():
-            from tf2_msgs.msg import TFMessage
-            self.pub_tf = n.create_publisher(TFMessage, "/tf", 100)
-        else:
-            self.log.info("tf2_msgs is not installed (not on PyPI): map->camera is published as "
-                          f"{TOPICS['camera_pose']} (PoseStamped) only, not on /tf")
+        self.frames = TrackerFrames(self, TRACKER_REASONS)     # /tf, /tf_static, markers
         # updates first: when an update and a frame are both ready, the update runs first
         self.subscribe(PoseGraphUpdate, TOPICS["updates"], Q.pose_graph_qos(),
                        lambda m, raw: self.worker.submit(self._apply_update, m),
@@ -65,7 +62,8 @@ class TrackerNode(SplatNode):
         self.publish_event("ready")
 
     def _on_event(self, d: dict) -> None:
-        if d.get("event") == "end_of_stream" and d.get("node") in ("player", "launch"):
+        if d.get("event") == "end_of_stream" and d.get("node") in ("player", "launch",
+                                                                   "camera"):
             self.worker.submit(self._finalize)
         elif d.get("event") == "finalized":
             self.worker.submit(self._on_final, d)
@@ -90,13 +88,12 @@ class TrackerNode(SplatNode):
         except TrackingError as e:
             return self.camera.drop(frame.index, f"{e}")
         self.emit(out)                            # local BA first, then the new keyframe(s)
+        stamp = frame.timestamp
+        if out.keyframes:
+            self.frames.on_keyframes(self.role.tracker, stamp)
         if self.role.tracker.initialized and not step.lost:
-            stamp = frame.timestamp
             self.pub_pose.publish(pose_stamped(step.pose, stamp, self.frame_id))
-            if self.pub_tf is not None:
-                from .node_common import tf_message
-                self.pub_tf.publish(tf_message(step.pose, stamp, self.frame_id,
-                                               self.cfg.ros.camera_frame))
+            self.frames.on_pose(step.pose, stamp)
             self.stamps.append(stamp)
             self.poses.append(step.pose)
             if step.is_keyframe or len(self.stamps) % max(1, int(self.opts["path_every"])) == 0:
@@ -111,7 +108,10 @@ class TrackerNode(SplatNode):
     def _apply_update(self, msg) -> None:
         from .convert import msg_to_update
         if self.role is not None:
-            self.emit(self.role.on_update(msg_to_update(msg)))
+            trk = self.role.tracker
+            self.frames.around_update(trk, msg_to_update(msg),
+                                      lambda ev: self.emit(self.role.on_update(ev)))
+            self.frames.on_keyframes(trk, self.frames.last_stamp or 0.0)
         self._maybe_save()
 
     def _on_final(self, d: dict) -> None:

@@ -162,7 +162,9 @@ class MappingConfig:
 @dataclass
 class RosConfig:
     map_frame: str = "map"
-    camera_frame: str = "camera"
+    odom_frame: str = "odom"             # map -> odom: loop closure / global BA corrections
+    camera_frame: str = "camera"         # odom -> camera: tracking (ROS body axes, REP-103)
+    optical_frame: str = "camera_optical"  # static camera -> optical (OpenCV axes, images)
     image_topic: str = "image"
     camera_info_topic: str = "camera_info"
 

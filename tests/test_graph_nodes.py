@@ -48,7 +48,11 @@ from splat_slam_ros.types import Intrinsics, KeyframeData, UpdateEvent
 out_dir = sys.argv[1]
 rclpy.init()
 node = rclpy.create_node("feeder")
-got = {"status": [], "rgb": [], "depth": [], "points": [], "view": [], "pd": []}
+got = {"status": [], "rgb": [], "depth": [], "points": [], "view": [], "pd": [], "info": [],
+       "vinfo": []}
+from sensor_msgs.msg import CameraInfo
+node.create_subscription(CameraInfo, TOPICS["rendered_info"], lambda m: got["info"].append(m), Q.rendered_qos())
+node.create_subscription(CameraInfo, TOPICS["view_info"], lambda m: got["vinfo"].append(m), Q.rendered_qos())
 node.create_subscription(MapperStatus, TOPICS["status"], lambda m: got["status"].append(m), Q.status_qos())
 node.create_subscription(Image, TOPICS["rendered_rgb"], lambda m: got["rgb"].append(m), Q.rendered_qos())
 node.create_subscription(Image, TOPICS["rendered_depth"], lambda m: got["depth"].append(m), Q.rendered_qos())
@@ -115,7 +119,11 @@ if got["points"]:
 pq = PoseStamped(); pq.header.frame_id = "map"; pq.pose = convert.pose_to_msg(new[1])
 spin_until(lambda: pr.get_subscription_count() > 0, 20)
 pr.publish(pq)
-res["view"] = spin_until(lambda: len(got["view"]) > 0, 60)
+res["view"] = spin_until(lambda: len(got["view"]) > 0 and len(got["vinfo"]) > 0, 60)
+res["infos"] = [[m.header.frame_id, m.width, m.height, list(m.k), m.header.stamp.sec]
+                for m in (got["info"][-1:] + got["vinfo"][-1:])]
+res["image_frames"] = [got["rgb"][-1].header.frame_id if got["rgb"] else "",
+                       got["view"][-1].header.frame_id if got["view"] else ""]
 cli_s = node.create_client(SaveMap, SERVICES["save_map"]); cli_s.wait_for_service(timeout_sec=30)
 f = cli_s.call_async(SaveMap.Request(directory=out_dir)); spin_until(lambda: f.done(), 120)
 res["save"] = [f.result().success, f.result().message]
@@ -174,6 +182,12 @@ def test_depth_and_mapper_nodes(tmp_path):
     assert r["rendered_enc"] == ["rgb8", "32FC1"]
     assert r["points"] == r["gaussians0"] or r["points"] > 0
     assert r["view"]
+    # the renders carry their CameraInfo (same stamp) in the optical frame (rviz Camera display)
+    assert r["image_frames"] == ["camera_optical", "camera_optical"]
+    assert len(r["infos"]) == 2
+    for fr, w, h, k, _ in r["infos"]:
+        assert (fr, w, h) == ("camera_optical", 64, 48)
+        assert np.allclose(k, [50.0, 0, 31.5, 0, 50.0, 23.5, 0, 0, 1])
     assert r["save"][0], r["save"]
     saved = tmp_path / "saved"
     for f in ("map.ply", "trajectory_keyframes.txt", "metrics.json"):
