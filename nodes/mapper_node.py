@@ -27,6 +27,8 @@ from typing import Dict, Optional
 
 import numpy as np
 
+from splat_slam_ros.mapping.mesh import write_map_mesh
+
 from .node_common import SERVICES, TOPICS, SplatNode, raw_hash, run_node
 
 SEEN_KEEP = 5000
@@ -272,6 +274,8 @@ class MapperNode(SplatNode):
         if self.mapper is None:
             return metrics
         self.mapper.save_ply(d / "map.ply")
+        if self.cfg.mapping.mesh:
+            metrics["mesh"] = write_map_mesh(self.mapper, d / "map_mesh.ply")
         metrics.update(self.mapper.evaluate_keyframes(d / "renders"))
         metrics["map"] = self.mapper.stats()
         if not final:                              # the tracker writes the graph's own
@@ -292,7 +296,8 @@ class MapperNode(SplatNode):
                 self.save(d)
             resp.success = True
             resp.message = f"wrote {d / 'map.ply'}, {d / 'trajectory_keyframes.txt'}, " \
-                           f"{d / 'metrics.json'}, {d / 'renders'}"
+                           f"{d / 'metrics.json'}, {d / 'renders'}" \
+                           + (f", {d / 'map_mesh.ply'}" if self.cfg.mapping.mesh else "")
         except Exception as e:
             resp.success, resp.message = False, f"{type(e).__name__}: {e}"
         return resp
