@@ -27,7 +27,7 @@ from typing import Dict, Optional
 
 import numpy as np
 
-from splat_slam_ros.mapping.mesh import write_map_mesh
+from splat_slam_ros.mapping.mesh import map_mesh_output
 
 from .node_common import SERVICES, TOPICS, SplatNode, raw_hash, run_node
 
@@ -275,7 +275,7 @@ class MapperNode(SplatNode):
             return metrics
         self.mapper.save_ply(d / "map.ply")
         if self.cfg.mapping.mesh:
-            metrics["mesh"] = write_map_mesh(self.mapper, d / "map_mesh.ply")
+            metrics["mesh"] = map_mesh_output(self.mapper, d / "map_mesh.ply")
         metrics.update(self.mapper.evaluate_keyframes(d / "renders"))
         metrics["map"] = self.mapper.stats()
         if not final:                              # the tracker writes the graph's own

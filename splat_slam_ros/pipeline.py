@@ -19,7 +19,7 @@ import numpy as np
 
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.io.trajectory_io import write_tum
-from splat_slam_ros.mapping.mesh import write_map_mesh
+from splat_slam_ros.mapping.mesh import map_mesh_output
 from splat_slam_ros.types import Frame, Intrinsics, KeyframeData, UpdateEvent
 
 # Which module provides each stage, and what the user loses without it.
@@ -208,7 +208,7 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
                                  progress=progress)
         mapper.save_ply(out / "map.ply")
         if cfg.mapping.mesh:
-            metrics["mesh"] = write_map_mesh(mapper, out / "map_mesh.ply", progress)
+            metrics["mesh"] = map_mesh_output(mapper, out / "map_mesh.ply", progress)
         metrics.update(m)
         if hasattr(mapper, "save_renders"):
             mapper.save_renders(out / "renders")
@@ -239,7 +239,7 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
         if pipe.mapper is not None:
             pipe.mapper.save_ply(out / "map.ply")
             if cfg.mapping.mesh:
-                metrics["mesh"] = write_map_mesh(pipe.mapper, out / "map_mesh.ply", progress)
+                metrics["mesh"] = map_mesh_output(pipe.mapper, out / "map_mesh.ply", progress)
             metrics.update(pipe.mapper.evaluate_keyframes(out / "renders"))
             metrics["map"] = pipe.mapper.stats()
     result.wall_s = time.perf_counter() - t_start

@@ -14,8 +14,9 @@ from splat_slam_ros.config import MappingConfig, SlamConfig
 from splat_slam_ros.evaluation import ate
 from splat_slam_ros.geometry import se3_exp
 from splat_slam_ros.io.datasets import open_dataset
+from splat_slam_ros.mapping.mapper import Mapper
 from splat_slam_ros.mapping.mesh import (MeshError, auto_voxel, fuse_frames, fuse_views,
-                                         load_mesh, save_mesh)
+                                         load_mesh, map_mesh_output, save_mesh)
 from splat_slam_ros.mesh_eval import (_ray_depth, cull_mesh, evaluate_meshes, mesh_metrics,
                                       seen_vertices, transform_mesh)
 from splat_slam_ros.pipeline import run
@@ -174,6 +175,30 @@ def test_fuse_views_tilted_plane_and_settings():
         fuse_views([], K, 0.02, 0.08)
     with pytest.raises(MeshError, match="no valid depth"):
         auto_voxel([torch.zeros(4, 4)])
+
+
+def test_map_mesh_output_small_map_and_failures(tmp_path):
+    """A one-keyframe map of a wall at 2 m meshes onto the wall; a map that renders nothing
+    opaque reports an error instead of failing the run; bad settings still raise."""
+    cfg = SlamConfig()
+    cfg.mapping = MappingConfig.fast(iters_first=30, downsample_first=2)
+    mp = Mapper(cfg, K)
+    img = np.full((K.height, K.width, 3), 120, np.uint8)
+    img[:, ::8] = 230
+    mp.add_keyframe(0, img, pose(), np.full((K.height, K.width), 2.0, np.float32))
+    info = map_mesh_output(mp, tmp_path / "m.ply")
+    assert info["faces"] > 100 and info["views"] == 1 and info["file"] == "m.ply"
+    assert info["voxel_m"] == pytest.approx(0.01, rel=0.05)             # 0.005 x 2 m
+    V = np.asarray(load_mesh(tmp_path / "m.ply").vertices)
+    assert np.median(np.abs(V[:, 2] - 2.0)) < 0.03
+    cfg.mapping.mesh_voxel_m = -1.0
+    with pytest.raises(MeshError, match="mesh_voxel_m"):
+        map_mesh_output(mp, tmp_path / "bad.ply")
+    cfg.mapping.mesh_voxel_m = 0.0
+    with torch.no_grad():
+        mp.map.opacity_logits.fill_(-30.0)                        # nothing opaque any more
+    assert "no valid depth" in map_mesh_output(mp, tmp_path / "none.ply")["error"]
+    assert not (tmp_path / "none.ply").exists()
 
 
 # -------------------------------------------------------------------- errors

@@ -14,6 +14,7 @@ and ``fuse_frames`` use it to build a reference mesh from ground-truth depth.
 """
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 from typing import Iterable, Optional, Sequence, Tuple
@@ -27,6 +28,8 @@ from tqdm import tqdm
 from splat_slam_ros.config import MappingConfig
 from splat_slam_ros.geometry import se3_inverse
 from splat_slam_ros.types import Intrinsics
+
+log = logging.getLogger(__name__)
 
 AUTO_VOXEL_PER_DEPTH = 0.005     # voxel = 0.005 x median depth: ~1 cm at 2 m (reference 5/512 m)
 MAX_AUTO_SAMPLES = 200_000       # depth samples used for the median
@@ -200,3 +203,15 @@ def write_map_mesh(mapper, path, progress: bool = False) -> dict:
     save_mesh(path, mesh)
     info["file"] = Path(path).name
     return info
+
+
+def map_mesh_output(mapper, path, progress: bool = False) -> dict:
+    """``write_map_mesh`` for the end of a run / the save service: a map that yields no mesh
+    (e.g. nothing opaque rendered) is reported as ``{"error": ...}`` and logged, so the run's
+    other outputs are still written. Invalid ``mapping.mesh_*`` settings still raise."""
+    check_settings(mapper.mcfg)
+    try:
+        return write_map_mesh(mapper, path, progress=progress)
+    except MeshError as e:
+        log.warning("map_mesh.ply not written: %s", e)
+        return {"error": str(e)}
