@@ -3,11 +3,14 @@
 The paper extracts meshes with marching cubes after fusing the map's rendered depth at the
 keyframe poses into a TSDF (the reference uses Open3D's ScalableTSDFVolume, voxel 5/512 m,
 truncation 0.04 m; see shared/notes/reference-defaults.md); here Open3D's hashed
-VoxelBlockGrid does the same fusion. Here the voxel size follows the
-scene scale unless ``mapping.mesh_voxel_m`` fixes it, so monocular runs of any scale work.
+VoxelBlockGrid does the same fusion, and the voxel size follows the scene scale unless
+``mapping.mesh_voxel_m`` fixes it, so monocular runs of any scale work.
 
     from splat_slam_ros.mapping.mesh import write_map_mesh
     info = write_map_mesh(mapper, "out/map_mesh.ply")      # vertices, faces, voxel_m, ...
+
+``map_mesh_output`` is what a run / the save service calls: a map that yields no surface is
+reported in the returned dict instead of failing the run.
 
 ``fuse_views`` is the generic fusion (any RGB-D views with camera-to-world poses): the tests
 and ``fuse_frames`` use it to build a reference mesh from ground-truth depth.
