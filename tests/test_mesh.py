@@ -220,6 +220,7 @@ def test_mesh_file_errors_and_cli(tmp_path, capsys):
         (["--mesh", str(tmp_path / "nope.ply"), "--mesh-gt", str(gt)], "mesh file not found"),
         (["--mesh", str(tmp_path / "points.ply"), "--mesh-gt", str(gt)], "no triangle mesh"),
         (["--mesh", str(gt)], "go together"),
+        (["--mesh", str(tmp_path), "--mesh-gt", str(gt)], "map_mesh.ply"),     # run dir
         ([], "give --gt and --est"),
         (["--mesh", str(gt), "--mesh-gt", str(gt), "--samples", "0"], "--samples"),
         (["--mesh", str(gt), "--mesh-gt", str(gt), "--gt", "a.txt", "--est", "b.txt"],
@@ -285,7 +286,7 @@ def test_icl_map_mesh_against_gt_depth_mesh(shared_data, tmp_path, capsys):
     kpos.write_text(f"fx: {k.fx}\nfy: {k.fy}\ncx: {k.cx}\ncy: {k.cy}\nwidth: 640\nheight: 480\n")
     rc = eval_main(["--gt", str(out / "trajectory_full.txt"), "--est",
                     str(out / "trajectory_keyframes.txt"), "--mesh-gt",
-                    str(tmp_path / "gt_mesh.ply"), "--mesh", str(out / "map_mesh.ply"),
+                    str(tmp_path / "gt_mesh.ply"), "--mesh", str(out),     # the run directory
                     "--intrinsics", str(kpos),
                     "--json", str(tmp_path / "eval.json")])
     printed = capsys.readouterr()

@@ -20,11 +20,13 @@ from splat_slam_ros.mesh_eval import (DEFAULT_OCCLUSION_TOL_M, DEFAULT_SAMPLES,
                                       DEFAULT_THRESHOLD_M, evaluate_meshes)
 
 MESH_KEYS = ("accuracy_cm", "completion_cm", "completion_ratio_pct")
+RUN_DIR_MESH = "map_mesh.ply"
 
 
 def add_mesh_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("mesh evaluation (paper: accuracy, completion, completion ratio)")
-    g.add_argument("--mesh", metavar="EST.ply", help="estimated mesh (e.g. RUN/map_mesh.ply)")
+    g.add_argument("--mesh", metavar="EST.ply",
+                   help=f"estimated mesh, or a run directory (uses DIR/{RUN_DIR_MESH})")
     g.add_argument("--mesh-gt", metavar="GT.ply", help="ground-truth mesh")
     g.add_argument("--intrinsics", metavar="K.yaml",
                    help="camera intrinsics of the --gt poses (culling unseen parts)")
@@ -48,6 +50,8 @@ def check_mesh_args(args) -> bool:
         raise MeshError("--mesh and --mesh-gt go together")
     if args.mesh is None:
         return False
+    if Path(args.mesh).is_dir():
+        args.mesh = str(Path(args.mesh) / RUN_DIR_MESH)
     if args.samples < 1:
         raise MeshError(f"--samples must be >= 1, got {args.samples}")
     if not args.mesh_threshold > 0:
