@@ -24,6 +24,7 @@ ensure_apt() {
   command -v make >/dev/null 2>&1 || need+=(make)
   python3 -c 'import ensurepip, venv' >/dev/null 2>&1 || need+=(python3-venv)
   [ -e /usr/lib/x86_64-linux-gnu/libjemalloc.so.2 ] || [ -e /usr/lib/aarch64-linux-gnu/libjemalloc.so.2 ] || need+=(libjemalloc2)
+  /sbin/ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0 ' || need+=(libusb-1.0-0)   # open3d
   if [ ${#need[@]} -gt 0 ]; then
     if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
       log "installing apt packages: ${need[*]}"

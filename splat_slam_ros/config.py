@@ -148,6 +148,12 @@ class MappingConfig:
     scene_extent: float = 0.0            # metres; 0 = from keyframe centres and depth
     keyframe_every: int = 0              # map_sequence only: map every k-th frame (0 = window rules)
     seed: int = 0
+    # map_mesh.ply: TSDF fusion of rendered depth + colour at the keyframe poses (mapping/mesh.py)
+    mesh: bool = True                    # write map_mesh.ply with the other outputs / on save
+    mesh_voxel_m: float = 0.0            # 0 = auto: 0.005 x median rendered depth (~1 cm indoors)
+    mesh_trunc_voxels: float = 4.0       # TSDF truncation in voxels (reference: 0.04 m / (5/512 m))
+    mesh_max_depth_m: float = 0.0        # ignore rendered depth beyond this (0 = no limit)
+    mesh_min_alpha: float = 0.5          # pixels with lower accumulated opacity are not fused
 
     @classmethod
     def fast(cls, **overrides) -> "MappingConfig":

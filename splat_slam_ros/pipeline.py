@@ -21,6 +21,7 @@ from splat_slam_ros.coordinator import Coordinator
 from splat_slam_ros.evaluation import ate
 from splat_slam_ros.io.trajectory_io import read_trajectory, write_tum
 from splat_slam_ros.mapping.mapper import map_sequence
+from splat_slam_ros.mapping.mesh import map_mesh_output
 from splat_slam_ros.report import WarningRecorder, write_report
 
 
@@ -125,6 +126,8 @@ def _run_gt_mapping(dataset, cfg, out, progress, max_frames, result, metrics) ->
     mapper, m = map_sequence(frames, cfg, dataset.intrinsics, use_gt_depth=True,
                              progress=progress)
     mapper.save_ply(out / "map.ply")
+    if cfg.mapping.mesh:
+        metrics["mesh"] = map_mesh_output(mapper, out / "map_mesh.ply", progress)
     metrics.update(m)
     mapper.save_renders(out / "renders")
     gt = dataset.gt_trajectory()
@@ -154,5 +157,7 @@ def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics) ->
     mp = co.mapper.mapper if co.mapper is not None else None
     if mp is not None:
         mp.save_ply(out / "map.ply")
+        if cfg.mapping.mesh:
+            metrics["mesh"] = map_mesh_output(mp, out / "map_mesh.ply", progress)
         metrics.update(mp.evaluate_keyframes(out / "renders"))
         metrics["map"] = mp.stats()

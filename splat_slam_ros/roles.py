@@ -35,6 +35,7 @@ from splat_slam_ros.io.keyframe_store import (KeyframeStore, keyframe_depth, map
                                               restore_mapper)
 from splat_slam_ros.io.trajectory_io import write_tum
 from splat_slam_ros.mapping.mapper import Mapper
+from splat_slam_ros.mapping.mesh import map_mesh_output
 from splat_slam_ros.tracking.loop_closure import LoopCloser
 from splat_slam_ros.tracking.tracker import Tracker, TrackStep
 from splat_slam_ros.types import (LOOP_SEQ_START, Frame, Intrinsics, KeyframeData, ProxyDepth,
@@ -413,7 +414,7 @@ class MapperRole:
             self.store.clear()
 
     def save(self, directory: Path, final: bool = False) -> dict:
-        """map.ply, renders/ and metrics of the map now (``final``: mapper_metrics.json, the
+        """map.ply (+ map_mesh.ply), renders/ and metrics of the map now (``final``: mapper_metrics.json, the
         tracker writes the run's trajectories; else also trajectory_keyframes + metrics.json)."""
         d = Path(directory)
         d.mkdir(parents=True, exist_ok=True)
@@ -421,6 +422,8 @@ class MapperRole:
         if self.mapper is None:
             return metrics
         self.mapper.save_ply(d / "map.ply")
+        if self.cfg.mapping.mesh:
+            metrics["mesh"] = map_mesh_output(self.mapper, d / "map_mesh.ply")
         metrics.update(self.mapper.evaluate_keyframes(d / "renders"))
         metrics["map"] = self.mapper.stats()
         if final:

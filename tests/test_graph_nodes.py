@@ -190,9 +190,10 @@ def test_depth_and_mapper_nodes(tmp_path):
         assert np.allclose(k, [50.0, 0, 31.5, 0, 50.0, 23.5, 0, 0, 1])
     assert r["save"][0], r["save"]
     saved = tmp_path / "saved"
-    for f in ("map.ply", "trajectory_keyframes.txt", "metrics.json"):
+    for f in ("map.ply", "trajectory_keyframes.txt", "metrics.json", "map_mesh.ply"):
         assert (saved / f).is_file(), f
     assert json.loads((saved / "metrics.json").read_text())["views"] == 3
+    assert json.loads((saved / "metrics.json").read_text())["mesh"]["faces"] > 0
     from splat_slam_ros.config import load_config
     from splat_slam_ros.mapping.mapper import Mapper
     from splat_slam_ros.types import Intrinsics

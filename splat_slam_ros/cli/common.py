@@ -18,6 +18,7 @@ def user_errors() -> Tuple[Type[BaseException], ...]:
         ("splat_slam_ros.mapping.rasterizer", "RasterizerBuildError"),
         ("splat_slam_ros.mapping.mapper", "MapError"),
         ("splat_slam_ros.mapping.ply_io", "PlyError"),
+        ("splat_slam_ros.mapping.mesh", "MeshError"),
     ]
     out: List[Type[BaseException]] = []
     for mod, name in names:

@@ -2,6 +2,7 @@
 
     splat-slam-eval --gt groundtruth.txt --est runs/fr1_xyz [--align sim3] [--json m.json]
                     [--plot traj.png]
+    splat-slam-eval --mesh-gt GT.ply --mesh runs/x/map_mesh.ply [--gt ... --est ... --intrinsics K]
 
 Prints a small table and a line ``ATE_RMSE_cm <value>`` for scripts to grep.
 """
@@ -16,7 +17,9 @@ from typing import List, Optional
 
 import numpy as np
 
+from splat_slam_ros.cli.eval_mesh import add_mesh_args, check_mesh_args, run_mesh_eval
 from splat_slam_ros.evaluation import ALIGN_MODES, RPE_UNITS, MetricError, ate, rpe
+from splat_slam_ros.mapping.mesh import MeshError
 from splat_slam_ros.io.trajectory_io import FORMATS, TrajectoryFormatError, detect_format, read_trajectory
 
 RUN_DIR_TRAJECTORY = "trajectory_full.txt"
@@ -32,8 +35,8 @@ def _parser() -> argparse.ArgumentParser:
         description="Absolute (ATE) and relative (RPE) trajectory error of an estimate against "
                     "ground truth, after Umeyama alignment of the full matched trajectory "
                     "(Sim(3) by default, as in the reference evaluation).")
-    p.add_argument("--gt", required=True, help="ground-truth trajectory file (TUM, KITTI, EuRoC)")
-    p.add_argument("--est", required=True,
+    p.add_argument("--gt", help="ground-truth trajectory file (TUM, KITTI, EuRoC)")
+    p.add_argument("--est",
                    help=f"estimated trajectory file, or a run directory (uses DIR/{RUN_DIR_TRAJECTORY})")
     p.add_argument("--align", choices=ALIGN_MODES, default="sim3",
                    help="alignment before computing errors (default: sim3)")
@@ -51,6 +54,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--rpe-unit", choices=RPE_UNITS, default="frames")
     p.add_argument("--json", metavar="OUT", help="write all numbers to this JSON file")
     p.add_argument("--plot", metavar="PNG", help="write a plot of GT and aligned estimate")
+    add_mesh_args(p)
     return p
 
 
@@ -181,6 +185,12 @@ def main(argv: Optional[List[str]] = None) -> int:
             raise UserError(f"--max-diff must be >= 0, got {args.max_diff}")
         if not args.kitti_dt > 0:
             raise UserError(f"--kitti-dt must be > 0, got {args.kitti_dt}")
+        mesh = check_mesh_args(args)
+        if (args.gt is None) != (args.est is None) or (args.gt is None and not mesh):
+            raise UserError("give --gt and --est (trajectories), --mesh-gt and --mesh, or both")
+        if args.gt is None:
+            run_mesh_eval(args, None)
+            return 0
         gt_path = Path(args.gt)
         if gt_path.is_dir():
             raise UserError(f"--gt must be a trajectory file, {gt_path} is a directory")
@@ -216,7 +226,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                   f"{a['rmse_cm']:.2f} cm ({args.align}, scale {a['scale']:.3f}, "
                   f"{a['n_matched']} poses)")
             print(f"wrote {args.plot}")
-    except (UserError, MetricError, TrajectoryFormatError) as e:
+        if mesh:
+            run_mesh_eval(args, a, gt_P)
+    except (UserError, MetricError, TrajectoryFormatError, MeshError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except OSError as e:
