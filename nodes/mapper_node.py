@@ -24,15 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-<<<<<<< HEAD
 from .node_common import SERVICES, TOPICS, SplatNode, run_node
-=======
-from splat_slam_ros.mapping.mesh import map_mesh_output
-
-from .node_common import SERVICES, TOPICS, SplatNode, raw_hash, run_node
-
-SEEN_KEEP = 5000
->>>>>>> issue12mesh
 
 
 class MapperNode(SplatNode):
@@ -158,36 +150,8 @@ class MapperNode(SplatNode):
         if self.role.mapper is None:
             self.warn_throttled("view", "render request ignored: the map is empty", error=False)
             return
-<<<<<<< HEAD
         self._publish_view(msg_to_pose(msg.pose), from_stamp(msg.header.stamp),
                            (self.pub_vrgb, self.pub_vdepth, self.pub_vinfo))
-=======
-        stamp = from_stamp(msg.header.stamp)
-        rgb, depth = self._render(msg_to_pose(msg.pose))
-        self.pub_vrgb.publish(image_to_msg(rgb, "rgb8", stamp, self.cfg.ros.camera_frame))
-        self.pub_vdepth.publish(image_to_msg(depth.astype(np.float32), "32FC1", stamp,
-                                             self.cfg.ros.camera_frame))
-
-    def save(self, directory: Path, final: bool = False) -> dict:
-        """map.ply, trajectory_keyframes (mapped keyframes), renders/, metrics."""
-        from splat_slam_ros.io.trajectory_io import write_tum
-        d = Path(directory)
-        d.mkdir(parents=True, exist_ok=True)
-        metrics: dict = {}
-        if self.mapper is None:
-            return metrics
-        self.mapper.save_ply(d / "map.ply")
-        if self.cfg.mapping.mesh:
-            metrics["mesh"] = map_mesh_output(self.mapper, d / "map_mesh.ply")
-        metrics.update(self.mapper.evaluate_keyframes(d / "renders"))
-        metrics["map"] = self.mapper.stats()
-        if not final:                              # the tracker writes the graph's own
-            write_tum(d / "trajectory_keyframes.txt", *self.mapper.keyframe_trajectory())
-            (d / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
-        else:
-            (d / "mapper_metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
-        return metrics
->>>>>>> issue12mesh
 
     # ------------------------------------------------------------ services
     def _srv_save(self, req, resp):
@@ -201,7 +165,6 @@ class MapperNode(SplatNode):
             resp.success = True
             resp.message = f"wrote {d / 'map.ply'}, {d / 'trajectory_keyframes.txt'}, " \
                            f"{d / 'metrics.json'}, {d / 'renders'}" \
-                           + (f", {d / 'map_mesh.ply'}" if self.cfg.mapping.mesh else "") \
                            + (f", {d / 'map_mesh.ply'}" if self.cfg.mapping.mesh else "")
         except Exception as e:
             resp.success, resp.message = False, f"{type(e).__name__}: {e}"
