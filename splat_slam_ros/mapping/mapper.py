@@ -31,6 +31,7 @@ from splat_slam_ros.geometry import quat_to_matrix, se3_inverse
 from splat_slam_ros.mapping.keyframe_window import KeyframeDecision, KeyframeWindow
 from splat_slam_ros.mapping.map_init import init_gaussians
 from splat_slam_ros.mapping.ply_io import load_gaussians_ply, save_gaussians_ply
+from splat_slam_ros.runtime import resolve_device
 from splat_slam_ros.types import Intrinsics
 
 
@@ -44,14 +45,6 @@ def _rasterizer():
     except ImportError as e:
         raise MapError(f"the Gaussian rasterizer is not available: {e}") from None
     return rasterize
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise MapError(f"mapping.device is '{name}' but CUDA is not available; use cpu or auto")
-    return torch.device(name)
 
 
 @dataclass
@@ -78,7 +71,7 @@ class Mapper:
                            "which converts negative-focal (ICL-NUIM) cameras")
         if m.window_size < 1 or m.downsample < 1 or m.downsample_first < 1:
             raise MapError("mapping.window_size and mapping.downsample* must be >= 1")
-        self.device = resolve_device(str(device or m.device))
+        self.device = resolve_device(device or m.device, "mapping.device")
         self.K = intrinsics
         self.W, self.H = int(intrinsics.width), int(intrinsics.height)
         self.intr = (float(intrinsics.fx), float(intrinsics.fy), float(intrinsics.cx),

@@ -33,12 +33,13 @@ import numpy as np
 import torch
 
 from splat_slam_ros.config import SlamConfig
-from splat_slam_ros.tracking.dense_ba import bundle_adjust, intr_tensor, reproject
+from splat_slam_ros.tracking.dense_ba import bundle_adjust, reproject
 from splat_slam_ros.tracking.factor_graph import FactorGraph, proximity_pairs
 from splat_slam_ros.tracking.flow_frontend import make_flow_predictor
-from splat_slam_ros.geometry import pixel_grid, se3_inverse, se3_log
+from splat_slam_ros.geometry import intr_tensor, pixel_grid, se3_inverse, se3_log
 from splat_slam_ros.tracking.global_ba import normalized_global_ba, spatial_pairs, temporal_pairs
 from splat_slam_ros.tracking.motion_filter import MotionFilter
+from splat_slam_ros.runtime import limit_threads, resolve_device
 from splat_slam_ros.types import Intrinsics, KeyframeData, UpdateEvent
 
 log = logging.getLogger(__name__)
@@ -49,10 +50,9 @@ class LoopCloser:
 
     def __init__(self, cfg: SlamConfig, intrinsics: Optional[Intrinsics] = None,
                  flow_predictor=None, seq_start: int = 0, seq_counter=None):
-        from splat_slam_ros.tracking.tracker import resolve_device
         self.cfg = cfg
         self.tc = tc = cfg.tracking
-        self.device = resolve_device(tc.device)
+        self.device = resolve_device(tc.device, "tracking.device")
         self.flow = flow_predictor if flow_predictor is not None else make_flow_predictor(tc)
         self.raw_intrinsics = intrinsics
         self.intr = None                       # BA-grid (fx, fy, cx, cy), from the keyframes
@@ -88,7 +88,6 @@ class LoopCloser:
         """Store a new keyframe and measure its odometry edges to the previous ones."""
         if self.graph is None:
             self._setup(kf)
-        from splat_slam_ros.tracking.tracker import limit_threads
         with limit_threads(self.tc.threads):
             t0 = time.perf_counter()
             k = int(kf.kf_id)
@@ -369,7 +368,6 @@ class LoopCloser:
         """Loop detection + loop BA, and the online global BA when it is due."""
         if self.graph is None:
             return []
-        from splat_slam_ros.tracking.tracker import limit_threads
         events: List[UpdateEvent] = []
         with limit_threads(self.tc.threads):
             t0 = time.perf_counter()
@@ -387,7 +385,6 @@ class LoopCloser:
         """Final global BA (two passes, ``final_ba_iters``); one event per changed set."""
         if self.graph is None or not self.tc.global_ba:
             return []
-        from splat_slam_ros.tracking.tracker import limit_threads
         with limit_threads(self.tc.threads):
             if self.tc.loop_closure:
                 pre = self._close_loops()

@@ -15,7 +15,6 @@ ROS graph); their events come back through :meth:`Tracker.apply_update`.
 """
 from __future__ import annotations
 
-import contextlib
 import itertools
 import logging
 import time
@@ -28,13 +27,14 @@ import numpy as np
 import torch
 
 from splat_slam_ros.config import SlamConfig
-from splat_slam_ros.tracking.dense_ba import (bundle_adjust, induced_flow_distance, intr_tensor, pose_only_refine,
+from splat_slam_ros.tracking.dense_ba import (bundle_adjust, induced_flow_distance, pose_only_refine,
                        reproject)
 from splat_slam_ros.tracking.factor_graph import FactorGraph, proximity_pairs
 from splat_slam_ros.tracking.flow_frontend import (ImagePreprocessor, compose_flows, image_is_degenerate,
                             make_flow_predictor, predict_both)
-from splat_slam_ros.geometry import pixel_grid, pose_from_tq, pose_to_tq, se3_exp, se3_inverse, se3_log
+from splat_slam_ros.geometry import intr_tensor, pixel_grid, pose_from_tq, pose_to_tq, se3_exp, se3_inverse, se3_log
 from splat_slam_ros.tracking.motion_filter import MotionFilter
+from splat_slam_ros.runtime import limit_threads, resolve_device
 from splat_slam_ros.tracking.trajectory_filler import FrameRecord, fill_trajectory
 from splat_slam_ros.types import Frame, Intrinsics, KeyframeData, UpdateEvent
 
@@ -43,36 +43,6 @@ log = logging.getLogger(__name__)
 
 class TrackingError(ValueError):
     """A user-facing tracking configuration/input mistake."""
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise TrackingError(f"tracking.device={name} but CUDA is not available")
-    try:
-        return torch.device(name)
-    except RuntimeError:
-        raise TrackingError(f"tracking.device={name!r} is not a torch device "
-                            "(use cpu, cuda or auto)") from None
-
-
-@contextlib.contextmanager
-def limit_threads(n: int):
-    """Run a block with ``n`` torch/OpenCV threads (0: unchanged). The tracker's
-    tensors are small: on a shared 2-core machine one thread avoids the thread
-    pools' spinning and oversubscription (measured several times faster)."""
-    if n <= 0:
-        yield
-        return
-    old_t, old_cv = torch.get_num_threads(), cv2.getNumThreads()
-    torch.set_num_threads(n)
-    cv2.setNumThreads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old_t)
-        cv2.setNumThreads(old_cv)
 
 
 def orthonormalize(T: torch.Tensor) -> torch.Tensor:
@@ -144,7 +114,7 @@ class Tracker:
                  seq_start: int = 0, seq_counter=None):
         self.cfg = cfg
         tc = self.tc = cfg.tracking
-        self.device = resolve_device(tc.device)
+        self.device = resolve_device(tc.device, "tracking.device")
         cam = cfg.camera
         self.pre = ImagePreprocessor(intrinsics, tc.ba_downsample, cam.width, cam.height,
                                      cam.crop, cam.undistort)
