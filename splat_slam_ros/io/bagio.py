@@ -32,7 +32,7 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from splat_slam_ros.io.datasets import (ASSOC_TOL, Dataset, DatasetError, _check_selection, _copy_intrinsics,
+from splat_slam_ros.io.dataset_base import (ASSOC_TOL, Dataset, DatasetError, _check_selection, _copy_intrinsics,
                        _select, associate, ns_to_stamp, stamp_to_ns)
 from splat_slam_ros.geometry import pose_from_tq, pose_to_tq
 from splat_slam_ros.types import Frame, Intrinsics
