@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import array
-import importlib
 import math
 import sys
 import time
@@ -21,6 +20,8 @@ import numpy as np
 
 from splat_slam_ros.ros_env import RosEnvError, apply_ros_environment
 
+from .msg_types import UnknownMessageType, message_class
+
 
 class TopicToolError(Exception):
     """A user-facing error: printed as ``error: ...``, exit status 2."""
@@ -29,15 +30,10 @@ class TopicToolError(Exception):
 # ------------------------------------------------------------------ helpers
 def _import_type(type_name: str):
     """'pkg/msg/Name' -> the Python message class."""
-    parts = type_name.split("/")
-    if len(parts) != 3:
-        raise TopicToolError(f"unexpected message type name {type_name!r}")
-    pkg, kind, name = parts
     try:
-        return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
-    except (ImportError, AttributeError):
-        raise TopicToolError(f"cannot import message type {type_name} "
-                             f"(is the {pkg} package built and installed in this venv?)") from None
+        return message_class(type_name)
+    except UnknownMessageType as e:
+        raise TopicToolError(str(e)) from None
 
 
 def _full_name(topic: str) -> str:

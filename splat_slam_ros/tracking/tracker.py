@@ -22,7 +22,6 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Any, Callable, Dict, Iterable, List, Optional, Sequence, Tuple
 
-import cv2
 import numpy as np
 import torch
 
