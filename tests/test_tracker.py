@@ -16,6 +16,7 @@ import torch
 
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.geometry import se3_exp
+from splat_slam_ros.io.datasets import open_dataset
 from splat_slam_ros.types import Frame, Intrinsics
 
 ROOM = (np.array([-3.0, -2.0, -2.0]), np.array([3.0, 2.0, 4.0]))
@@ -340,18 +341,8 @@ def test_static_camera_does_not_drift():
 
 
 def _euroc_frames(root: Path, n: int):
-    try:
-        from splat_slam_ros.io.datasets import open_dataset
-        ds = open_dataset(root, keep_mono=True)
-        return ds.intrinsics, [f for _, f in zip(range(n), ds)]
-    except ImportError:
-        import yaml
-        s = yaml.safe_load((root / "mav0" / "cam0" / "sensor.yaml").read_text())
-        fu, fv, cu, cv = s["intrinsics"]
-        K = Intrinsics(fu, fv, cu, cv, *s["resolution"], "plumb_bob", list(s["distortion_coefficients"]))
-        files = sorted((root / "mav0" / "cam0" / "data").glob("*.png"))[:n]
-        return K, [Frame(i, int(p.stem) * 1e-9, cv2.imread(str(p), cv2.IMREAD_GRAYSCALE), K)
-                   for i, p in enumerate(files)]
+    ds = open_dataset(root, keep_mono=True)
+    return ds.intrinsics, [f for _, f in zip(range(n), ds)]
 
 
 def test_euroc_static_camera_real_images(shared_data):

@@ -41,13 +41,10 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import List, Optional, Tuple
 
+import cv2
 import numpy as np
-
-try:  # OpenCV is a core dependency; keep the import local-failure friendly
-    import cv2
-except ImportError:  # pragma: no cover
-    cv2 = None
-
+import onnxruntime as ort
+import torch
 import yaml
 
 
@@ -226,11 +223,6 @@ class OnnxMonoDepth(MonoDepthModel):
     """ONNX Runtime backend."""
 
     def __init__(self, path, sidecar: MonoSidecar, provider: str = "auto"):
-        try:
-            import onnxruntime as ort
-        except ImportError:
-            raise MonoDepthError("ONNX mono depth models need the onnxruntime package "
-                                 "(pip install onnxruntime, or onnxruntime-gpu for CUDA)") from None
         self.path = Path(path)
         self.name = self.path.name
         self.sc = sidecar
@@ -303,7 +295,6 @@ class TorchScriptMonoDepth(MonoDepthModel):
     """TorchScript backend (``torch.jit.save`` of a module (1,3,H,W) -> depth/disparity)."""
 
     def __init__(self, path, sidecar: MonoSidecar, provider: str = "auto"):
-        import torch
         self.torch = torch
         self.path = Path(path)
         self.name = self.path.name
@@ -384,8 +375,6 @@ def load_mono_depth(path, provider: str = "auto") -> MonoDepthModel:
     Raises :class:`MonoDepthError` with a one-line message for a missing/corrupt file, a
     missing/invalid sidecar or an incompatible model (checked with one dry run).
     """
-    if cv2 is None:  # pragma: no cover
-        raise MonoDepthError("mono depth needs opencv-python-headless")
     p = Path(str(path)).expanduser()
     if not str(path):
         raise MonoDepthError("no mono depth model path given")
