@@ -187,6 +187,21 @@ class GaussianMap:
         out["uid"] = self.uid.clone()
         return out
 
+    @property
+    def next_uid(self) -> int:
+        """The uid the next added Gaussian gets (uids are never reused)."""
+        return int(self._next_uid)
+
+    def load_tensors(self, t: Dict[str, torch.Tensor], next_uid: Optional[int] = None) -> None:
+        """Replace the contents with :meth:`tensors` output (Adam moments restart at zero)."""
+        self.keep(torch.zeros(len(self), dtype=torch.bool, device=self.device))
+        n = int(t["means"].shape[0])
+        if n:
+            self.add(t["means"], t["colors"], t["log_scales"], t["quats"], t["opacity_logits"],
+                     kf_id=t["kf_id"], created=t["created"], born=t["born"])
+            self.uid = torch.as_tensor(t["uid"]).to(device=self.device, dtype=torch.long)
+        self._next_uid = n if next_uid is None else int(next_uid)
+
     @torch.no_grad()
     def set_rows(self, idx: torch.Tensor, **values: torch.Tensor) -> None:
         """Overwrite parameter values in place for rows ``idx`` (deformation)."""

@@ -171,7 +171,7 @@ class LoopCloser:
             fc = self.motion.check(f, w)
             if best is None or fc.valid_frac > best[0].valid_frac:
                 best = (fc, f, w, fb, wb)
-            if fc.ok and fc.valid_frac >= 0.6 * (self.motion._typical or 0.0):
+            if fc.ok and fc.valid_frac >= 0.6 * self.motion.typical_valid_frac:
                 break
         self.timings["flow"] += time.perf_counter() - t0
         fc, f, w, fb, wb = best
@@ -267,7 +267,7 @@ class LoopCloser:
         for act, o, d in cands:
             fc = self._measure(act, o, kind="loop", both=True, mode="scratch")
             self.checked.add((act, o))
-            if fc is not None and fc.ok and fc.valid_frac >= 0.5 * (self.motion._typical or 0):
+            if fc is not None and fc.ok and fc.valid_frac >= 0.5 * self.motion.typical_valid_frac:
                 added.append((act, o))
         if not added:
             return []

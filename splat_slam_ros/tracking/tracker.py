@@ -33,6 +33,7 @@ from splat_slam_ros.tracking.flow_frontend import (ImagePreprocessor, compose_fl
                             make_flow_predictor, predict_both)
 from splat_slam_ros.geometry import intr_tensor, pixel_grid, pose_from_tq, pose_to_tq, se3_exp, se3_inverse, se3_log
 from splat_slam_ros.tracking.motion_filter import MotionFilter
+from splat_slam_ros.depth.dspo import make_depth_prior
 from splat_slam_ros.runtime import limit_threads, resolve_device
 from splat_slam_ros.tracking.trajectory_filler import FrameRecord, fill_trajectory
 from splat_slam_ros.types import Frame, Intrinsics, KeyframeData, UpdateEvent
@@ -154,13 +155,7 @@ class Tracker:
     def _default_prior(self, intrinsics):
         if not (self.cfg.depth.mono_model and self.tc.dspo):
             return None
-        try:
-            from splat_slam_ros import dspo  # noqa: WPS433 (optional stage, written separately)
-            return dspo.make_depth_prior(self.cfg, self.intrinsics)
-        except (ImportError, AttributeError) as e:
-            log.warning("DSPO requested (depth.mono_model set) but unavailable (%s); "
-                        "using plain DBA", e)
-            return None
+        return make_depth_prior(self.cfg, self.intrinsics)   # Eq. 2 (DSPO); errors propagate
 
     def next_seq(self) -> int:
         return next(self._seq)
@@ -478,7 +473,7 @@ class Tracker:
             init = uv - self.grid
             f, w, fb, wb = self._flows(self.prep[a], self.prep[b], init[0], init[1])
             fc = self.motion.check(f, w)
-            if fc.valid_frac < 0.5 * max(self.motion._typical or 0.0, tc.lost_min_valid):
+            if fc.valid_frac < 0.5 * max(self.motion.typical_valid_frac, tc.lost_min_valid):
                 continue
             self.graph.add(a, b, f, w, kind="proximity")
             self.graph.add(b, a, fb, wb, kind="proximity")
