@@ -237,7 +237,7 @@ def test_update_events_report_exactly_the_changed_keyframes():
     thr = cfg.tracking.event_pose_thresh
     n_events = 0
     for f in frames:
-        before = {k: tr.poses[k].clone() for k in tr.published}
+        before = {k: tr.kfs[k].pose.clone() for k in tr.published}
         st = tr.track(f)
         for ev in st.events:
             assert ev.seq > last_seq and ev.reason == "local_ba"
@@ -257,7 +257,7 @@ def test_update_events_report_exactly_the_changed_keyframes():
             mirror[kd.kf_id] = (kd.pose, kd.disparity)
         # a consumer applying the events holds the tracker's state up to the threshold
         for k in tr.published:
-            P = tr.poses[k].numpy()
+            P = tr.kfs[k].pose.numpy()
             assert np.abs(mirror[k][0][:3, 3] - P[:3, 3]).max() < 20 * thr
     assert n_events >= 2
 
@@ -334,7 +334,7 @@ def test_static_camera_does_not_drift():
         tr.track(f)
     ts, poses = tr.trajectory_full()
     assert tr.initialized
-    scene_depth = 1.0 / float(torch.stack([tr.disps[k] for k in tr.published]).mean())
+    scene_depth = 1.0 / float(torch.stack([tr.kfs[k].disp for k in tr.published]).mean())
     tail = poses[-30:, :3, 3]
     spread = np.linalg.norm(tail - tail.mean(0), axis=1).max()
     assert spread < 0.002 * scene_depth, f"static drift {spread / scene_depth:.4f} x depth"
@@ -358,7 +358,7 @@ def test_euroc_static_camera_real_images(shared_data):
     lost = sum(tr.track(f).lost for f in frames)
     ts, poses = tr.trajectory_full()
     assert lost == 0 and len(ts) == len(frames)
-    disps = [tr.disps[k] for k in tr.published] or [torch.ones(1)]
+    disps = [tr.kfs[k].disp for k in tr.published] or [torch.ones(1)]
     scene_depth = 1.0 / float(torch.stack([d.mean() for d in disps]).mean())
     spread = np.linalg.norm(poses[:, :3, 3] - poses[0, :3, 3], axis=1).max()
     # 1.7 cm of real motion at ~3 m: a few mm relative to the scene scale at most
@@ -384,5 +384,5 @@ def test_depth_prior_hook_runs_after_each_local_ba_and_its_disparities_are_used(
     assert len(calls) >= 2
     ids, out = calls[-1]                       # nothing optimised after the last call
     for n, k in enumerate(ids):
-        assert torch.allclose(tr.disps[k], out[n])
+        assert torch.allclose(tr.kfs[k].disp, out[n])
     assert any(kind == "radius" for kind in tr.graph.kind.values())
