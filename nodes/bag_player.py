@@ -32,6 +32,7 @@ from splat_slam_ros.io.dataset_base import DatasetError
 
 from .msg_types import UnknownMessageType, message_class
 from .node_common import TOPICS, events_qos, init_process
+from .tool_runner import run_rclpy_tool
 
 ROLE_TOPICS = ("image", "camera_info", "depth", "gt_pose")
 
@@ -286,7 +287,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Optional[List[str]] = None) -> int:
     init_process()
-    import rclpy
     from rclpy.utilities import remove_ros_args
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(remove_ros_args(["x"] + argv)[1:])
@@ -298,20 +298,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     except PlayerError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    rclpy.init(args=["x"] + argv)
-    try:
-        return Player(args, reader).play()
-    except PlayerError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
-    except Exception as e:
-        if type(e).__name__ == "ExternalShutdownException":
-            return 130
-        raise
-    finally:
-        rclpy.try_shutdown()
+    return run_rclpy_tool(lambda: Player(args, reader).play(), (PlayerError,), ["x"] + argv)
 
 
 if __name__ == "__main__":

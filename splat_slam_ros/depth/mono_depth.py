@@ -219,7 +219,24 @@ class MonoDepthModel:
         return a
 
 
-class OnnxMonoDepth(MonoDepthModel):
+class _NetworkMonoDepth(MonoDepthModel):
+    """A loaded network with its sidecar ``sc``: preprocess (sidecar resize / normalisation),
+    ``_run`` (the backend), postprocess (back to the image size, depth)."""
+    sc: MonoSidecar
+    static_hw: Tuple[Optional[int], Optional[int]]   # the network's fixed input size, if any
+
+    def _run(self, x: np.ndarray) -> np.ndarray:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def predict(self, image: np.ndarray) -> np.ndarray:
+        img = self._check_image(image)
+        H, W = img.shape[:2]
+        hw = _network_size(self.sc, self.static_hw, H, W)
+        x, box = preprocess(img, self.sc, hw)
+        return postprocess(self._run(x), self.kind, box, H, W)
+
+
+class OnnxMonoDepth(_NetworkMonoDepth):
     """ONNX Runtime backend."""
 
     def __init__(self, path, sidecar: MonoSidecar, provider: str = "auto"):
@@ -283,15 +300,8 @@ class OnnxMonoDepth(MonoDepthModel):
             raise MonoDepthError(f"{self.path.name}: inference failed: {msg}") from None
         return _squeeze_output(np.asarray(y, np.float32), self.path.name)
 
-    def predict(self, image: np.ndarray) -> np.ndarray:
-        img = self._check_image(image)
-        H, W = img.shape[:2]
-        hw = _network_size(self.sc, self.static_hw, H, W)
-        x, box = preprocess(img, self.sc, hw)
-        return postprocess(self._run(x), self.kind, box, H, W)
 
-
-class TorchScriptMonoDepth(MonoDepthModel):
+class TorchScriptMonoDepth(_NetworkMonoDepth):
     """TorchScript backend (``torch.jit.save`` of a module (1,3,H,W) -> depth/disparity)."""
 
     def __init__(self, path, sidecar: MonoSidecar, provider: str = "auto"):
@@ -330,13 +340,6 @@ class TorchScriptMonoDepth(MonoDepthModel):
             raise MonoDepthError(f"{self.path.name}: model returned {type(y).__name__}, "
                                  "expected a tensor")
         return _squeeze_output(y.detach().float().cpu().numpy(), self.path.name)
-
-    def predict(self, image: np.ndarray) -> np.ndarray:
-        img = self._check_image(image)
-        H, W = img.shape[:2]
-        hw = _network_size(self.sc, self.static_hw, H, W)
-        x, box = preprocess(img, self.sc, hw)
-        return postprocess(self._run(x), self.kind, box, H, W)
 
 
 def _dry_run(model) -> None:

@@ -58,25 +58,12 @@ class GaussianMap:
     def __len__(self) -> int:
         return int(self.params["means"].shape[0])
 
-    @property
-    def means(self) -> torch.nn.Parameter:
-        return self.params["means"]
-
-    @property
-    def quats(self) -> torch.nn.Parameter:
-        return self.params["quats"]
-
-    @property
-    def log_scales(self) -> torch.nn.Parameter:
-        return self.params["log_scales"]
-
-    @property
-    def opacity_logits(self) -> torch.nn.Parameter:
-        return self.params["opacity_logits"]
-
-    @property
-    def colors(self) -> torch.nn.Parameter:
-        return self.params["colors"]
+    # the optimised parameters (torch.nn.Parameter), by name
+    means = property(lambda self: self.params["means"])
+    quats = property(lambda self: self.params["quats"])
+    log_scales = property(lambda self: self.params["log_scales"])
+    opacity_logits = property(lambda self: self.params["opacity_logits"])
+    colors = property(lambda self: self.params["colors"])
 
     def scales(self) -> torch.Tensor:
         return self.params["log_scales"].exp()
