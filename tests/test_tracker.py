@@ -386,3 +386,33 @@ def test_depth_prior_hook_runs_after_each_local_ba_and_its_disparities_are_used(
     for n, k in enumerate(ids):
         assert torch.allclose(tr.kfs[k].disp, out[n])
     assert any(kind == "radius" for kind in tr.graph.kind.values())
+
+
+def test_max_stored_flows_keeps_only_the_newest_flows():
+    """tracking.max_stored_flows bounds memory: older non-keyframes keep their relative
+    pose for the final refinement but drop their stored flow."""
+    from splat_slam_ros.tracking.tracker import Tracker
+    frames, _ = sequence()
+    tr = Tracker(small_cfg(max_stored_flows=6), INTR)
+    for f in frames[:30]:
+        tr.track(f)
+    recs = tr.records
+    assert len(recs) == 30
+    assert all(r.flow is None for r in recs[:-7])
+    kept = [r for r in recs[-6:] if r.kf_id is None]
+    assert kept and all(r.flow is not None for r in kept)
+
+
+def test_a_broken_mono_model_is_an_error_not_plain_dba(tmp_path):
+    """DSPO is configured by depth.mono_model: a model that cannot load stops the tracker
+    (it used to fall back to plain DBA with a warning)."""
+    from splat_slam_ros.depth.mono_depth import MonoDepthError
+    from splat_slam_ros.tracking.tracker import Tracker
+    cfg = small_cfg()
+    cfg.depth.mono_model = str(tmp_path / "missing.onnx")
+    with pytest.raises(MonoDepthError, match="not found"):
+        Tracker(cfg, INTR)
+    (tmp_path / "broken.onnx").write_bytes(b"not an onnx model")
+    cfg.depth.mono_model = str(tmp_path / "broken.onnx")
+    with pytest.raises(MonoDepthError):
+        Tracker(cfg, INTR)
