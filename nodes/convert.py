@@ -19,9 +19,9 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, Quaternion
 from sensor_msgs.msg import CameraInfo, Image
 
-from splat_slam_ros.io.sensor_codec import (ENCODINGS, ConversionError,  # noqa: F401 (re-exported)
-                                           UnsupportedEncoding, camera_info_to_intrinsics,
-                                           decode_image, decode_rgb, encode_image)
+from splat_slam_ros.io.sensor_codec import ConversionError, decode_image, decode_rgb, encode_image
+# public names of this module that live in the core codec (nodes import them from here)
+from splat_slam_ros.io.sensor_codec import UnsupportedEncoding, camera_info_to_intrinsics  # noqa: F401
 from splat_slam_ros.types import Intrinsics, KeyframeData, UpdateEvent
 
 

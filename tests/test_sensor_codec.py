@@ -29,7 +29,9 @@ def rosbags_image(a, encoding, big=False, pad=0):
     rows = a.view(np.uint8).reshape(h, -1)
     rows = np.concatenate([rows, np.zeros((h, pad), np.uint8)], 1)
     return TS.types["sensor_msgs/msg/Image"](
-        header=bagio._header(TS, 0, "camera"), height=h, width=w, encoding=encoding,
+        header=TS.types["std_msgs/msg/Header"](
+            stamp=TS.types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="camera"),
+        height=h, width=w, encoding=encoding,
         is_bigendian=int(big), step=rows.shape[1], data=rows.reshape(-1))
 
 

@@ -46,7 +46,7 @@ def make_typestore(project_types: bool = True):
     return ts
 
 
-def _is_bag_dir(p: Path) -> bool:
+def is_bag_dir(p: Path) -> bool:
     return p.is_dir() and (p / "metadata.yaml").is_file()
 
 
@@ -171,9 +171,9 @@ class BagFile:
         if p.is_file():
             if p.suffix.lower() != ".mcap":
                 raise DatasetError(f"{p}: a bag is a rosbag2 folder or a .mcap file")
-            if _is_bag_dir(p.parent) and p in _mcap_files_of(p.parent):
+            if is_bag_dir(p.parent) and p in _mcap_files_of(p.parent):
                 bag_dir = p.parent
-        if bag_dir is not None and not _is_bag_dir(bag_dir):
+        if bag_dir is not None and not is_bag_dir(bag_dir):
             raise DatasetError(f"{bag_dir}: not a rosbag2 folder (no metadata.yaml)")
         if backend == "auto":
             backend = "rosbags" if bag_dir is not None else "mcap"

@@ -36,7 +36,7 @@ from tqdm import tqdm
 from splat_slam_ros.io.dataset_base import (ASSOC_TOL, Dataset, DatasetError, _check_selection, _copy_intrinsics,
                        _select, associate, ns_to_stamp, stamp_to_ns)
 from splat_slam_ros.geometry import pose_from_tq, pose_to_tq
-from splat_slam_ros.io.bag_reader import INFO_FILE, BagFile, _is_bag_dir, make_typestore
+from splat_slam_ros.io.bag_reader import INFO_FILE, BagFile, is_bag_dir, make_typestore
 from splat_slam_ros.io.bag_reader import register_project_types  # noqa: F401 (public re-export)
 from splat_slam_ros.io.sensor_codec import (camera_info_to_intrinsics, decode_depth, decode_rgb,
                                            encode_image)
@@ -126,7 +126,7 @@ def _prepare_out(out: Path, overwrite: bool) -> None:
         return
     if not overwrite:
         raise DatasetError(f"output {out} already exists (use --overwrite to replace it)")
-    if not _is_bag_dir(out):
+    if not is_bag_dir(out):
         raise DatasetError(f"output {out} exists and is not a rosbag2 folder; not deleting it")
     shutil.rmtree(out)
 

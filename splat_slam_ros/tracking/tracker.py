@@ -108,8 +108,6 @@ class TrackingResult:
 class Tracker:
     """Frame-by-frame tracker. ``Tracker(cfg, intrinsics)``; see module docstring."""
 
-    owns_loop_closure = False
-
     def __init__(self, cfg: SlamConfig, intrinsics: Intrinsics, flow_predictor=None,
                  depth_prior: Optional[Callable[[BAState], Optional[torch.Tensor]]] = None,
                  seq_start: int = 0, seq_counter=None):
