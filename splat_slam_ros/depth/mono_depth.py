@@ -48,7 +48,7 @@ import torch
 import yaml
 
 
-class MonoDepthError(RuntimeError):
+class MonoDepthError(ValueError):
     """A user-supplied monocular depth model or its sidecar is missing, unreadable or unusable."""
 
 
