@@ -33,8 +33,8 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from splat_slam_ros.io.dataset_base import (ASSOC_TOL, Dataset, DatasetError, _check_selection, _copy_intrinsics,
-                       _select, associate, ns_to_stamp, stamp_to_ns)
+from splat_slam_ros.io.dataset_base import (ASSOC_TOL, Dataset, DatasetError, check_selection, copy_intrinsics,
+                       select_frames, associate, ns_to_stamp, stamp_to_ns)
 from splat_slam_ros.geometry import pose_from_tq, pose_to_tq
 from splat_slam_ros.io.bag_reader import INFO_FILE, BagFile, is_bag_dir, make_typestore
 from splat_slam_ros.io.bag_reader import register_project_types  # noqa: F401 (public re-export)
@@ -235,7 +235,7 @@ class BagDataset(Dataset):
     def __init__(self, path, max_frames: Optional[int] = None, stride: int = 1,
                  keep_mono: bool = False, topics: Optional[Dict[str, Optional[str]]] = None,
                  backend: str = "auto"):
-        _check_selection(stride, max_frames)
+        check_selection(stride, max_frames)
         p = Path(path)
         self._bag = bag = BagFile(p, backend)
         self.backend = bag.backend
@@ -274,7 +274,7 @@ class BagDataset(Dataset):
             raise DatasetError(f"{p}: bag has no {tp['image']} messages")
         super().__init__(name, p, K, keep_mono,
                          notes=[f"converted: {n}" for n in info.get("notes") or []])
-        self._sel = _select(len(img_ns), int(stride), max_frames)
+        self._sel = select_frames(len(img_ns), int(stride), max_frames)
         self._img_ns = img_ns
         self._gt_ns = np.array(sorted(gt), dtype=np.int64)
         self._gt = gt
@@ -345,7 +345,7 @@ class BagDataset(Dataset):
                                        f"{img.shape[0]} but camera_info says "
                                        f"{self.intrinsics.width}x{self.intrinsics.height}")
                 yield Frame(index=out, timestamp=ns_to_stamp(ns), image=img,
-                            intrinsics=_copy_intrinsics(self.intrinsics),
+                            intrinsics=copy_intrinsics(self.intrinsics),
                             gt_pose=self._gt_for(ns), gt_depth=depth)
                 out += 1
 

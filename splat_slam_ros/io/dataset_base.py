@@ -67,7 +67,7 @@ def natural_key(name: str):
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
 
 
-def _copy_intrinsics(k: Intrinsics) -> Intrinsics:
+def copy_intrinsics(k: Intrinsics) -> Intrinsics:
     return Intrinsics(k.fx, k.fy, k.cx, k.cy, k.width, k.height, k.distortion_model,
                       list(k.distortion))
 
@@ -110,11 +110,11 @@ def _replica_cam_params(p: Path) -> Tuple[Intrinsics, dict]:
     return K, extra
 
 
-def _as_intrinsics(intrinsics) -> Tuple[Optional[Intrinsics], dict]:
+def as_intrinsics(intrinsics) -> Tuple[Optional[Intrinsics], dict]:
     if intrinsics is None:
         return None, {}
     if isinstance(intrinsics, Intrinsics):
-        return _copy_intrinsics(intrinsics), {}
+        return copy_intrinsics(intrinsics), {}
     return load_intrinsics(intrinsics)
 
 
@@ -166,7 +166,7 @@ def read_depth(path: Path, scale: float, size: Optional[Tuple[int, int]] = None,
     return d
 
 
-def _read_stamp_list(path: Path) -> List[Tuple[float, str]]:
+def read_stamp_list(path: Path) -> List[Tuple[float, str]]:
     """TUM rgb.txt / depth.txt: ``timestamp filename`` rows, '#' comments."""
     rows = []
     for n, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
@@ -227,29 +227,29 @@ def interpolate_poses(t_src, poses_src, t_query, tol: float = ASSOC_TOL,
     return out
 
 
-def _read_gt(path: Path, fmt: str = "auto") -> Tuple[np.ndarray, np.ndarray]:
+def read_gt_trajectory(path: Path, fmt: str = "auto") -> Tuple[np.ndarray, np.ndarray]:
     try:
         return read_trajectory(path, fmt)
     except TrajectoryFormatError as e:
         raise DatasetError(str(e)) from None
 
 
-def _tum_default_for(path: Path) -> Optional[Tuple[str, Intrinsics]]:
+def tum_default_for(path: Path) -> Optional[Tuple[str, Intrinsics]]:
     for part in reversed(path.resolve().parts):
         m = re.search(r"(?:freiburg|fr)([123])(?![0-9])", part.lower())
         if m:
             key = f"fr{m.group(1)}"
-            return key, _copy_intrinsics(TUM_DEFAULTS[key])
+            return key, copy_intrinsics(TUM_DEFAULTS[key])
     return None
 
 
-def _listdir_images(folder: Path) -> List[Path]:
+def list_images(folder: Path) -> List[Path]:
     return sorted((p for p in folder.iterdir()
                    if p.is_file() and p.suffix.lower() in IMAGE_EXTS and not p.name.startswith(".")),
                   key=lambda p: natural_key(p.name))
 
 
-def _numeric_stem(p: Path) -> Optional[float]:
+def numeric_stem(p: Path) -> Optional[float]:
     try:
         v = float(p.stem)
     except ValueError:
@@ -259,7 +259,7 @@ def _numeric_stem(p: Path) -> Optional[float]:
 
 # --------------------------------------------------------------------- datasets
 @dataclass
-class _Entry:
+class FrameEntry:
     timestamp: float
     image: Path
     depth: Optional[Path] = None
@@ -335,12 +335,12 @@ class Dataset:
                 f"{K.width}x{K.height}, gt_pose={self.has_gt_pose}, gt_depth={self.has_gt_depth}>")
 
 
-def _select(n: int, stride: int, max_frames: Optional[int]) -> range:
+def select_frames(n: int, stride: int, max_frames: Optional[int]) -> range:
     sel = range(0, n, stride)
     return sel if max_frames is None else sel[:max_frames]
 
 
-def _check_selection(stride, max_frames):
+def check_selection(stride, max_frames):
     if int(stride) < 1:
         raise DatasetError(f"stride must be >= 1, got {stride}")
     if max_frames is not None and int(max_frames) < 1:
@@ -354,7 +354,7 @@ def _fix_focal_signs(K: Intrinsics) -> Tuple[Intrinsics, Optional[np.ndarray], O
     if K.fx == 0 or K.fy == 0:
         raise DatasetError(f"intrinsics have a zero focal length (fx={K.fx}, fy={K.fy})")
     F = np.diag([np.sign(K.fx), np.sign(K.fy), 1.0, 1.0])
-    K2 = _copy_intrinsics(K)
+    K2 = copy_intrinsics(K)
     K2.fx, K2.fy = abs(K.fx), abs(K.fy)
     axes = "".join(a for a, f in (("x", K.fx), ("y", K.fy)) if f < 0)
     note = (f"negative focal length on {axes} (fx={K.fx}, fy={K.fy}): made positive; "
@@ -366,11 +366,11 @@ class FileDataset(Dataset):
     """Datasets made of image files (all formats except video and bag)."""
 
     def __init__(self, name: str, fmt: str, source: Path, intrinsics: Intrinsics,
-                 entries: List[_Entry], depth_scale: Optional[float] = None,
+                 entries: List[FrameEntry], depth_scale: Optional[float] = None,
                  resize_depth: bool = False, keep_mono: bool = False,
                  max_frames: Optional[int] = None, stride: int = 1,
                  notes: Optional[List[str]] = None):
-        _check_selection(stride, max_frames)
+        check_selection(stride, max_frames)
         if not entries:
             raise DatasetError(f"{source}: no frames found")
         K, F, note = _fix_focal_signs(intrinsics)
@@ -383,7 +383,7 @@ class FileDataset(Dataset):
                     e.gt_pose = F @ e.gt_pose @ F
         for e in entries:
             e.timestamp = quantize_stamp(e.timestamp)
-        self._entries = [entries[i] for i in _select(len(entries), int(stride), max_frames)]
+        self._entries = [entries[i] for i in select_frames(len(entries), int(stride), max_frames)]
         self.depth_scale = depth_scale if any(e.depth is not None for e in self._entries) else None
         self._resize_depth = resize_depth
         # Validate the intrinsics against the first image now (clear error, not mid-run).
@@ -425,7 +425,7 @@ class FileDataset(Dataset):
                 depth = read_depth(e.depth, self.depth_scale, (K.width, K.height),
                                    self._resize_depth)
             yield Frame(index=i, timestamp=float(e.timestamp), image=img,
-                        intrinsics=_copy_intrinsics(K),
+                        intrinsics=copy_intrinsics(K),
                         gt_pose=None if e.gt_pose is None else e.gt_pose.copy(),
                         gt_depth=depth)
 
@@ -436,7 +436,7 @@ class VideoDataset(Dataset):
 
     def __init__(self, path: Path, intrinsics: Intrinsics, fps: Optional[float] = None,
                  keep_mono: bool = False, max_frames: Optional[int] = None, stride: int = 1):
-        _check_selection(stride, max_frames)
+        check_selection(stride, max_frames)
         K, _, note = _fix_focal_signs(intrinsics)
         super().__init__(path.stem, path, K, keep_mono, [note] if note else None)
         cap = self._open()
@@ -461,7 +461,7 @@ class VideoDataset(Dataset):
         return cap
 
     def __len__(self) -> int:
-        return len(_select(self._n_total, self._stride, self._max))
+        return len(select_frames(self._n_total, self._stride, self._max))
 
     has_gt_pose = property(lambda self: False)
     has_gt_depth = property(lambda self: False)
@@ -491,7 +491,7 @@ class VideoDataset(Dataset):
                 last_t = t
                 yield Frame(index=out, timestamp=float(t),
                             image=_to_rgb8(img, self.source, keep),
-                            intrinsics=_copy_intrinsics(self.intrinsics))
+                            intrinsics=copy_intrinsics(self.intrinsics))
                 src += 1
                 out += 1
         finally:

@@ -10,9 +10,9 @@ import yaml
 
 from splat_slam_ros.geometry import pose_from_tq
 from splat_slam_ros.io.dataset_base import (ASSOC_TOL, DEFAULT_FPS, IMAGE_EXTS, REPLICA_DEFAULT,
-                                            DatasetError, FileDataset, _copy_intrinsics, _Entry,
-                                            _listdir_images, _numeric_stem, _read_gt,
-                                            _read_stamp_list, _tum_default_for, associate,
+                                            DatasetError, FileDataset, copy_intrinsics, FrameEntry,
+                                            list_images, numeric_stem, read_gt_trajectory,
+                                            read_stamp_list, tum_default_for, associate,
                                             interpolate_poses, load_intrinsics, natural_key,
                                             read_image)
 from splat_slam_ros.types import Intrinsics
@@ -27,19 +27,19 @@ def _open_tum(root: Path, K, extra, **kw) -> FileDataset:
     if K is None and local.is_file():
         K, extra = load_intrinsics(local)
     if K is None:
-        d = _tum_default_for(root)
+        d = tum_default_for(root)
         if d is None:
             raise DatasetError(f"{root}: no intrinsics: add intrinsics.yaml, pass --intrinsics "
                                "FILE, or name the folder after the TUM camera (fr1/fr2/fr3)")
         key, K = d
         notes.append(f"intrinsics: TUM {key} defaults chosen from the folder name")
-    rgb = _read_stamp_list(rgb_txt)
-    entries = [_Entry(t, root / f) for t, f in rgb]
+    rgb = read_stamp_list(rgb_txt)
+    entries = [FrameEntry(t, root / f) for t, f in rgb]
     depth_txt = root / "depth.txt"
     scale = None
     if depth_txt.is_file():
         scale = float(kw.pop("depth_scale", None) or extra.get("depth_scale", 5000.0))
-        dep = _read_stamp_list(depth_txt)
+        dep = read_stamp_list(depth_txt)
         idx = associate([t for t, _ in rgb], [t for t, _ in dep])
         if all(i is None for i in idx):
             raise DatasetError(f"{root}: no depth.txt stamp within {ASSOC_TOL} s of any rgb.txt "
@@ -54,7 +54,7 @@ def _open_tum(root: Path, K, extra, **kw) -> FileDataset:
         kw.pop("depth_scale", None)
     gt_txt = root / "groundtruth.txt"
     if gt_txt.is_file():
-        ts, P = _read_gt(gt_txt, "tum")
+        ts, P = read_gt_trajectory(gt_txt, "tum")
         poses = interpolate_poses(ts, P, [e.timestamp for e in entries])
         if all(p is None for p in poses):
             raise DatasetError(f"{root}: no groundtruth.txt sample within {ASSOC_TOL} s of any "
@@ -88,11 +88,11 @@ def _open_replica(root: Path, K, extra, fps=None, **kw) -> FileDataset:
             raise DatasetError(f"{root}: no intrinsics (no cam_params.json here or in the parent, "
                                f"no --intrinsics) and the images are {w}x{h}, not Replica's "
                                "1200x680")
-        K = _copy_intrinsics(REPLICA_DEFAULT)
+        K = copy_intrinsics(REPLICA_DEFAULT)
         notes.append("intrinsics: Replica defaults (600, 600, 599.5, 339.5)")
     scale = float(kw.pop("depth_scale", None) or extra.get("depth_scale", 6553.5))
     fps = fps or DEFAULT_FPS
-    entries = [_Entry(i / fps, p, depths[i] if depths else None) for i, p in enumerate(imgs)]
+    entries = [FrameEntry(i / fps, p, depths[i] if depths else None) for i, p in enumerate(imgs)]
     traj = root / "traj.txt"
     if traj.is_file():
         rows = _numeric_matrix_rows(traj, 16)
@@ -119,7 +119,7 @@ def _open_scannet(root: Path, K, extra, fps=None, **kw) -> FileDataset:
     cdir = root / "color"
     if not cdir.is_dir():
         raise DatasetError(f"{root}: ScanNet layout needs color/N.jpg")
-    imgs = [p for p in _listdir_images(cdir) if p.stem.isdigit()]
+    imgs = [p for p in list_images(cdir) if p.stem.isdigit()]
     imgs.sort(key=lambda p: int(p.stem))
     if not imgs:
         raise DatasetError(f"{cdir}: no N.jpg colour images")
@@ -143,7 +143,7 @@ def _open_scannet(root: Path, K, extra, fps=None, **kw) -> FileDataset:
         notes.append("depth resized to the colour size (nearest neighbour)")
     scale = float(kw.pop("depth_scale", None) or extra.get("depth_scale", 1000.0))
     fps = fps or DEFAULT_FPS
-    entries = [_Entry(i / fps, p, depths[p.stem] if depths else None) for i, p in enumerate(imgs)]
+    entries = [FrameEntry(i / fps, p, depths[p.stem] if depths else None) for i, p in enumerate(imgs)]
     pdir = root / "pose"
     if pdir.is_dir():
         bad = 0
@@ -221,13 +221,13 @@ def _open_euroc(root: Path, K, extra, camera: str = "cam0", **kw) -> FileDataset
         except ValueError:
             raise DatasetError(f"{csv}:{n}: expected 'timestamp_ns,filename', got {s[:80]!r}") \
                 from None
-        entries.append(_Entry(ns / 10**9, cam / "data" / fname))   # exact int -> float
+        entries.append(FrameEntry(ns / 10**9, cam / "data" / fname))   # exact int -> float
     notes = []
     gt_csv = mav0 / "state_groundtruth_estimate0" / "data.csv"
     gt_tum = sorted(seq.glob("groundtruth*.txt"))
     gt_file = gt_csv if gt_csv.is_file() else (gt_tum[0] if gt_tum else None)
     if gt_file is not None:
-        ts, P = _read_gt(gt_file)
+        ts, P = read_gt_trajectory(gt_file)
         poses = interpolate_poses(ts, P, [e.timestamp for e in entries])
         if all(p is None for p in poses):
             raise DatasetError(f"{gt_file}: no ground-truth sample within {ASSOC_TOL} s of any "
@@ -255,7 +255,7 @@ def _open_posefolder(root: Path, K, extra, fps=None, **kw) -> FileDataset:
     cdir, pose_txt = root / "color", root / "pose.txt"
     if not cdir.is_dir() or not pose_txt.is_file():
         raise DatasetError(f"{root}: posefolder layout needs color/N.png and pose.txt")
-    imgs = [p for p in _listdir_images(cdir)]
+    imgs = [p for p in list_images(cdir)]
     if not imgs:
         raise DatasetError(f"{cdir}: no images")
     K, extra = _folder_intrinsics(root, K, extra)
@@ -265,7 +265,7 @@ def _open_posefolder(root: Path, K, extra, fps=None, **kw) -> FileDataset:
     ddir = root / "depth"
     depths = None
     if ddir.is_dir():
-        dl = _listdir_images(ddir)
+        dl = list_images(ddir)
         by_stem = {p.stem: p for p in dl}
         missing = [p.stem for p in imgs if p.stem not in by_stem]
         if missing:
@@ -276,7 +276,7 @@ def _open_posefolder(root: Path, K, extra, fps=None, **kw) -> FileDataset:
     fps = fps or DEFAULT_FPS
     stamps = a[:, 0] if a.shape[1] == 8 else np.arange(len(a)) / fps
     P = pose_from_tq(a[:, -7:]).numpy()
-    entries = [_Entry(float(stamps[i]), p, depths[i] if depths else None, P[i])
+    entries = [FrameEntry(float(stamps[i]), p, depths[i] if depths else None, P[i])
                for i, p in enumerate(imgs)]
     return FileDataset(root.name, "posefolder", root, K, entries,
                        depth_scale=scale if depths else None, **kw)
@@ -294,12 +294,12 @@ def _numeric_matrix_rows_any(path: Path, ncols) -> np.ndarray:
 
 
 def _open_folder(root: Path, K, extra, fps=None, **kw) -> FileDataset:
-    imgs = _listdir_images(root)
+    imgs = list_images(root)
     if not imgs:
         raise DatasetError(f"{root}: no images ({', '.join(IMAGE_EXTS)}) in the folder")
     K, extra = _folder_intrinsics(root, K, extra)
     kw.pop("depth_scale", None)
-    stamps = [_numeric_stem(p) for p in imgs]
+    stamps = [numeric_stem(p) for p in imgs]
     notes = []
     if fps is None and all(s is not None for s in stamps) and len(set(stamps)) == len(stamps):
         order = np.argsort(stamps, kind="stable")
@@ -309,5 +309,5 @@ def _open_folder(root: Path, K, extra, fps=None, **kw) -> FileDataset:
         fps = fps or DEFAULT_FPS
         stamps = [i / fps for i in range(len(imgs))]
         notes.append(f"timestamps: index / {fps:g} fps")
-    entries = [_Entry(t, p) for t, p in zip(stamps, imgs)]
+    entries = [FrameEntry(t, p) for t, p in zip(stamps, imgs)]
     return FileDataset(root.name, "folder", root, K, entries, notes=notes, **kw)

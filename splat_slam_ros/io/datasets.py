@@ -45,7 +45,7 @@ from splat_slam_ros.io.bagio import BagDataset
 from splat_slam_ros.io.dataset_base import (ASSOC_TOL, DEFAULT_FPS, FORMATS, IMAGE_EXTS,
                                             INTERP_MAX_GAP, REPLICA_DEFAULT, TUM_DEFAULTS,
                                             VIDEO_EXTS, Dataset, DatasetError, FileDataset,
-                                            VideoDataset, _as_intrinsics, _listdir_images,
+                                            VideoDataset, as_intrinsics, list_images,
                                             associate, interpolate_poses, load_intrinsics,
                                             ns_to_stamp, read_depth, read_image, stamp_to_ns)
 from splat_slam_ros.io.dataset_formats import (_open_euroc, _open_folder, _open_posefolder,
@@ -96,7 +96,7 @@ def detect_format(path) -> str:
         return "euroc"
     if (p / "color").is_dir() and (p / "pose.txt").is_file():
         return "posefolder"
-    if _listdir_images(p):
+    if list_images(p):
         return "folder"
     raise DatasetError(f"{p}: unknown dataset layout; expected one of: {LAYOUTS}")
 
@@ -123,7 +123,7 @@ def open_dataset(path, fmt: str = "auto", intrinsics: Union[None, str, Path, Int
     if fmt == "bag":
         return BagDataset(p, max_frames=max_frames, stride=stride, keep_mono=keep_mono,
                           **options)
-    K, extra = _as_intrinsics(intrinsics)
+    K, extra = as_intrinsics(intrinsics)
     if fmt == "video":
         if not p.is_file():
             raise DatasetError(f"{p}: format 'video' needs a video file")

@@ -62,7 +62,7 @@ def _sample_trilinear(t, tex, lev, u, v):
     return (c[:, 0] + (c[:, 1] - c[:, 0]) * w).T                # (P, 3) in 0..255
 
 
-def _render_room(scene: Scene, pose_world: np.ndarray, K: Intrinsics, device=None):
+def render_view(scene: Scene, pose_world: np.ndarray, K: Intrinsics, device=None):
     """Core ray caster. Returns (rgb float32 (H,W,3) in [0,255+], z-depth (H,W)) torch
     tensors on ``device`` (default CPU)."""
     dev = torch.device(device or "cpu")
@@ -160,7 +160,7 @@ def render_frame(scene: Scene, pose: np.ndarray, intrinsics: Intrinsics,
     Returns (rgb H x W x 3 uint8 RGB — or float32 in [0, 255] with ``as_float`` —, depth
     H x W float32 z-depth in metres), numpy; ``device`` (torch) does the work."""
     with torch.no_grad():
-        rgb, depth = _render_room(scene, pose, intrinsics, device)
+        rgb, depth = render_view(scene, pose, intrinsics, device)
     rgb = rgb.cpu().numpy()
     if not as_float:
         rgb = np.clip(rgb + 0.5, 0, 255).astype(np.uint8)

@@ -11,8 +11,8 @@ import numpy as np
 import torch
 
 from splat_slam_ros.io.synth.options import TEX_LEVELS, TEX_SIZE, SynthError
-from splat_slam_ros.io.synth.textures import _load_texture_images, _mip_levels, _to_u8, procedural_texture
-from splat_slam_ros.io.synth.trajectories import _UP_AXES, estimate_up
+from splat_slam_ros.io.synth.textures import load_texture_images, mip_levels, to_u8, procedural_texture
+from splat_slam_ros.io.synth.trajectories import UP_AXES, estimate_up
 
 
 def _point_box_distance(P: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -106,7 +106,7 @@ class Scene:
         org = np.zeros((len(self.textures), TEX_LEVELS, 2), np.float32)   # (x, y) of texel 0
         for i, tx in enumerate(self.textures):
             y = 0
-            for l, arr in enumerate(_mip_levels(tx, TEX_LEVELS)):
+            for l, arr in enumerate(mip_levels(tx, TEX_LEVELS)):
                 sl = arr.shape[0]
                 x = i * (S + 1)
                 wrapped = np.concatenate([arr, arr[:1]], 0)
@@ -169,7 +169,7 @@ def make_scene(room_lo, room_hi, boxes_lo=(), boxes_hi=(), *, seed: int = 0,
         raise SynthError("scene boxes need lo < hi on every axis")
     S = TEX_SIZE
     B = len(boxes_lo)
-    images = _load_texture_images(textures, rng, S) if textures else []
+    images = load_texture_images(textures, rng, S) if textures else []
     names: List[str] = []
     texs: List[np.ndarray] = []
 
@@ -177,7 +177,7 @@ def make_scene(room_lo, room_hi, boxes_lo=(), boxes_hi=(), *, seed: int = 0,
         if name.startswith("image:") and name in names:
             return names.index(name)
         names.append(name)
-        texs.append(arr if arr.dtype == np.uint8 else _to_u8(arr))
+        texs.append(arr if arr.dtype == np.uint8 else to_u8(arr))
         return len(texs) - 1
 
     # room: floor (z lo), ceiling (z hi), four walls
@@ -233,7 +233,7 @@ def make_scene(room_lo, room_hi, boxes_lo=(), boxes_hi=(), *, seed: int = 0,
 def _room_frame(P: np.ndarray, up, fmt) -> Tuple[np.ndarray, np.ndarray]:
     """(unit world up, 4x4 world->room transform): room z up, x along the mean horizontal
     viewing direction, origin at the mean camera position."""
-    up_v = np.asarray(_UP_AXES[up] if isinstance(up, str) else (up if up is not None
+    up_v = np.asarray(UP_AXES[up] if isinstance(up, str) else (up if up is not None
                       else estimate_up(P, fmt)), float)
     up_v /= np.linalg.norm(up_v)
     fwd = P[:, :3, 2] - np.outer(P[:, :3, 2] @ up_v, up_v)

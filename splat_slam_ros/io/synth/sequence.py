@@ -16,7 +16,7 @@ from tqdm import tqdm
 from splat_slam_ros.io.synth.camera import CameraEffects
 from splat_slam_ros.io.synth.options import (DEPTH_SCALE, GAP_WARN_S, RealismOptions, SynthError,
                                             default_intrinsics, parse_size, resolve_realism)
-from splat_slam_ros.io.synth.render import _render_room
+from splat_slam_ros.io.synth.render import render_view
 from splat_slam_ros.io.synth.scene import Scene, build_scene
 from splat_slam_ros.io.synth.trajectories import PoseInterpolator, frame_stamps, load_trajectory
 from splat_slam_ros.io.trajectory_io import write_tum
@@ -67,14 +67,14 @@ class SequencePlan:
         """Frame ``k`` exactly as written: (rgb uint8 with the realism effects, clean depth)."""
         effects = effects or CameraEffects(self.realism, self.intrinsics, self.seed)
         with torch.no_grad():
-            rgb, depth = _render_room(self.scene, self.poses[k], self.intrinsics, self.device)
+            rgb, depth = render_view(self.scene, self.poses[k], self.intrinsics, self.device)
             n_sub = self.realism.motion_blur
             if n_sub > 1:   # sub-exposures over [t - E, t]; the last one is the frame's pose
                 E = self.realism.exposure_ms * 1e-3
                 sub_t = self.stamps[k] - E * (1.0 - np.arange(n_sub - 1) / (n_sub - 1))
                 acc = rgb.clone()
                 for T_sub in self.interpolator(sub_t):
-                    acc += _render_room(self.scene, T_sub, self.intrinsics, self.device)[0]
+                    acc += render_view(self.scene, T_sub, self.intrinsics, self.device)[0]
                 rgb = acc / n_sub
         img = effects(rgb.cpu().numpy(), k, float(self.stamps[k] - self.stamps[0]))
         return img, depth.cpu().numpy().astype(np.float32)

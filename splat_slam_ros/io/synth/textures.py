@@ -245,7 +245,7 @@ PROCEDURAL = {"plaster": tex_plaster, "wallpaper": tex_wallpaper, "wood": tex_wo
               "whiteboard": tex_whiteboard}
 
 
-def _to_u8(img: np.ndarray) -> np.ndarray:
+def to_u8(img: np.ndarray) -> np.ndarray:
     return np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
@@ -253,12 +253,12 @@ def _to_u8(img: np.ndarray) -> np.ndarray:
 def procedural_texture(kind: str, seed: int, slot: int) -> np.ndarray:
     """A TEX_SIZE^2 tileable uint8 RGB texture of ``kind`` (see PROCEDURAL), deterministic in
     (seed, slot); cached (read-only) so scenes re-built with one seed share textures."""
-    arr = _to_u8(PROCEDURAL[kind](np.random.default_rng([int(seed), 31, int(slot)]), TEX_SIZE))
+    arr = to_u8(PROCEDURAL[kind](np.random.default_rng([int(seed), 31, int(slot)]), TEX_SIZE))
     arr.setflags(write=False)
     return arr
 
 
-def _load_texture_images(folder, rng, S: int, max_images: int = 24) -> List[Tuple[str, np.ndarray]]:
+def load_texture_images(folder, rng, S: int, max_images: int = 24) -> List[Tuple[str, np.ndarray]]:
     d = Path(folder)
     if not d.is_dir():
         raise SynthError(f"--textures folder not found: {d}")
@@ -281,7 +281,7 @@ def _load_texture_images(folder, rng, S: int, max_images: int = 24) -> List[Tupl
     return out
 
 
-def _mip_levels(tex: np.ndarray, levels: int) -> List[np.ndarray]:
+def mip_levels(tex: np.ndarray, levels: int) -> List[np.ndarray]:
     out = [tex]
     for _ in range(levels - 1):
         s = out[-1].shape[0] // 2
