@@ -4,7 +4,6 @@ the launcher restarts it, it resumes from its store and no keyframe is lost."""
 import json
 import os
 import signal
-import subprocess
 import time
 from pathlib import Path
 
@@ -21,8 +20,8 @@ tracking:
   warmup: 4
   motion_filter_thresh: 2.0
   keyframe_thresh: 2.0
-  loop_closure: {loop}
-  global_ba: {loop}
+  loop_closure: true
+  global_ba: true
 mapping:
   iters_first: 30
   iters_per_keyframe: 5
@@ -48,14 +47,6 @@ SUBS = [["/splat/keyframes", "splat_slam_msgs/msg/Keyframe", "keyframe"],
         ["/clock", "rosgraph_msgs/msg/Clock", "image"]]
 
 
-def _loop_available() -> bool:
-    try:
-        from splat_slam_ros.tracking.loop_closure import LoopCloser  # noqa: F401
-        return True
-    except ImportError:
-        return False
-
-
 @pytest.fixture(scope="module")
 def tiny_bag(tmp_path_factory):
     need_ros()
@@ -68,7 +59,7 @@ def tiny_bag(tmp_path_factory):
                       overwrite=True, progress=False, realism="clean", fps=10)
     write_bag(open_dataset(d / "seq"), d / "bag", progress=False)
     cfg = d / "cfg.yaml"
-    cfg.write_text(CFG.format(loop="true" if _loop_available() else "false"))
+    cfg.write_text(CFG)
     return d / "bag", cfg
 
 
@@ -173,7 +164,7 @@ def test_resumable_nodes_killed_mid_run_resume(tiny_bag, graph_run, tmp_path):
                         victims[name] = int(k)
             except OSError:
                 pass
-        assert len(victims) == (3 if _loop_available() else 2)
+        assert len(victims) == 3
         for pid in victims.values():             # every resumable node goes down at once
             os.kill(pid, signal.SIGKILL)
         rc = launch.wait(timeout=900)
@@ -186,9 +177,8 @@ def test_resumable_nodes_killed_mid_run_resume(tiny_bag, graph_run, tmp_path):
     assert "[mapper]" in log and "resumed from" in log
     m = json.loads((out / "metrics.json").read_text())
     assert m["nodes"]["mapper"]["restarts"] == 1 and m["nodes"]["depth"]["restarts"] == 1
-    if _loop_available():
-        assert m["nodes"]["loop_closure"]["restarts"] == 1
-        assert "loop_closure died (exit status -9); restarting it" in log
+    assert m["nodes"]["loop_closure"]["restarts"] == 1
+    assert "loop_closure died (exit status -9); restarting it" in log
     assert m["keyframes"] == k_ref                     # same lockstep run, same keyframes
     offered = json.loads(manifest.read_text())["meta"]["offered"]
     assert sorted(int(k) for k in offered) == list(range(k_ref))   # no keyframe lost
