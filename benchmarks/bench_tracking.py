@@ -30,6 +30,8 @@ import sys
 import time
 from pathlib import Path
 
+import torch
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data" / "trajectories"
 REALISTIC = ["--realism", "realistic"]       # blur 5, AE 0.08, vignetting 0.25, noise 2, JPEG 90
@@ -176,11 +178,7 @@ def main() -> None:
                 note="fps = input frames / wall time of the whole process (start-up, "
                      "imports and PNG decoding included); fps_cpu = frames / CPU seconds "
                      "of that process; load = 1-min load average of the shared machine")
-    try:
-        import torch
-        meta["torch"] = torch.__version__
-    except ImportError:
-        pass
+    meta["torch"] = torch.__version__
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     old = json.loads(Path(args.out).read_text()) if Path(args.out).is_file() else {}
     old.setdefault("cases", {}).update(results)

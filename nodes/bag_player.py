@@ -21,15 +21,18 @@ starts from it) and exits 0.
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import struct
 import sys
 import time
-from pathlib import Path
-from typing import Dict, Iterator, List, Optional, Tuple
+from typing import Dict, List, Optional, Tuple
 
+from splat_slam_ros.io.bag_reader import BagFile
+from splat_slam_ros.io.dataset_base import DatasetError
+
+from .msg_types import UnknownMessageType, message_class
 from .node_common import TOPICS, events_qos, init_process
+from .tool_runner import run_rclpy_tool
 
 ROLE_TOPICS = ("image", "camera_info", "depth", "gt_pose")
 
@@ -48,71 +51,31 @@ def cdr_stamp_ns(raw: bytes) -> Optional[int]:
 
 
 def _import_type(name: str):
-    parts = name.split("/")
-    if len(parts) != 3:
-        raise PlayerError(f"unexpected message type name {name!r} in the bag")
     try:
-        return getattr(importlib.import_module(f"{parts[0]}.{parts[1]}"), parts[2])
-    except (ImportError, AttributeError):
-        raise PlayerError(f"message type {name} is not installed in this environment") from None
+        return message_class(name)
+    except UnknownMessageType as e:
+        raise PlayerError(str(e)) from None
 
 
-class BagReader:
-    """Raw (topic, log_ns, type name, bytes) of a rosbag2 MCAP folder or a bare .mcap file."""
+class BagReader(BagFile):
+    """The core bag reader (``io.bag_reader.BagFile``) with the player's views: ``types``
+    {topic: type name} and ``counts`` {topic: messages}; a bad bag is a PlayerError."""
 
     def __init__(self, path):
-        import yaml
-        p = Path(path)
-        if not p.exists():
-            raise PlayerError(f"bag not found: {p}")
-        if p.is_dir():
-            meta_f = p / "metadata.yaml"
-            if not meta_f.is_file():
-                raise PlayerError(f"{p}: not a rosbag2 folder (no metadata.yaml)")
-            meta = yaml.safe_load(meta_f.read_text())["rosbag2_bagfile_information"]
-            if meta.get("storage_identifier", "mcap") != "mcap":
-                raise PlayerError(f"{p}: storage {meta.get('storage_identifier')!r} is not mcap "
-                                  "(convert it with splat-slam-convert)")
-            self.files = [p / Path(r).name for r in meta["relative_file_paths"]]
-            info = p / "splat_slam_info.yaml"
-            self.info = yaml.safe_load(info.read_text()) if info.is_file() else {}
-        else:
-            if p.suffix.lower() != ".mcap":
-                raise PlayerError(f"{p}: a bag is a rosbag2 folder or a .mcap file")
-            self.files = [p]
-            self.info = {}
-        self.types: Dict[str, str] = {}
-        self.counts: Dict[str, int] = {}
-        from mcap.reader import make_reader
-        for f in self.files:
-            try:
-                with open(f, "rb") as fh:
-                    summ = make_reader(fh).get_summary()
-            except Exception as e:
-                raise PlayerError(f"cannot read MCAP file {f}: {e}") from None
-            if summ is None:
-                raise PlayerError(f"{f}: MCAP file without a summary section")
-            stats = summ.statistics.channel_message_counts if summ.statistics else {}
-            for cid, ch in summ.channels.items():
-                if ch.message_encoding != "cdr":
-                    continue
-                self.types[ch.topic] = summ.schemas[ch.schema_id].name
-                self.counts[ch.topic] = self.counts.get(ch.topic, 0) + stats.get(cid, 0)
-
-    def messages(self, topics) -> Iterator[Tuple[str, int, bytes]]:
-        from mcap.reader import make_reader
-        for f in self.files:
-            with open(f, "rb") as fh:
-                for _schema, ch, m in make_reader(fh).iter_messages(topics=list(topics),
-                                                                   log_time_order=True):
-                    yield ch.topic, m.log_time, m.data
+        try:
+            super().__init__(path)
+            topics = self.topics()
+        except DatasetError as e:
+            raise PlayerError(str(e)) from None
+        self.types: Dict[str, str] = {t: ty for t, (ty, _n) in topics.items()}
+        self.counts: Dict[str, int] = {t: n for t, (_ty, n) in topics.items()}
 
 
 def frames(reader: BagReader, topics: List[str], image_topic: str):
     """Groups of (topic, raw) with one image each, in log-time order."""
     group: List[Tuple[str, bytes]] = []
     group_t = None
-    for topic, t, raw in reader.messages(topics):
+    for topic, t, raw in reader.raw_messages(topics):
         if group_t is not None and t != group_t and any(tp == image_topic for tp, _ in group):
             yield group_t, group
             group = []
@@ -324,7 +287,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Optional[List[str]] = None) -> int:
     init_process()
-    import rclpy
     from rclpy.utilities import remove_ros_args
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(remove_ros_args(["x"] + argv)[1:])
@@ -336,20 +298,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     except PlayerError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    rclpy.init(args=["x"] + argv)
-    try:
-        return Player(args, reader).play()
-    except PlayerError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
-    except Exception as e:
-        if type(e).__name__ == "ExternalShutdownException":
-            return 130
-        raise
-    finally:
-        rclpy.try_shutdown()
+    return run_rclpy_tool(lambda: Player(args, reader).play(), (PlayerError,), ["x"] + argv)
 
 
 if __name__ == "__main__":

@@ -18,29 +18,10 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, Quaternion
 from sensor_msgs.msg import CameraInfo, Image
 
+from splat_slam_ros.io.sensor_codec import ConversionError, decode_image, decode_rgb, encode_image
+# public names of this module that live in the core codec (nodes import them from here)
+from splat_slam_ros.io.sensor_codec import UnsupportedEncoding, camera_info_to_intrinsics  # noqa: F401
 from splat_slam_ros.types import Intrinsics, KeyframeData, ProxyDepth, UpdateEvent
-
-
-class ConversionError(ValueError):
-    """A message cannot be converted (size mismatch, garbage data, bad shape)."""
-
-
-class UnsupportedEncoding(ConversionError):
-    """An image encoding this project does not handle."""
-
-
-# encoding -> (numpy dtype, channels)
-ENCODINGS = {
-    "rgb8": (np.uint8, 3),
-    "bgr8": (np.uint8, 3),
-    "rgba8": (np.uint8, 4),
-    "bgra8": (np.uint8, 4),
-    "mono8": (np.uint8, 1),
-    "8UC1": (np.uint8, 1),
-    "mono16": (np.uint16, 1),
-    "16UC1": (np.uint16, 1),
-    "32FC1": (np.float32, 1),
-}
 
 
 # ------------------------------------------------------------------ raw helpers
@@ -85,104 +66,27 @@ def from_stamp(stamp: Time) -> float:
 # ------------------------------------------------------------------ images
 def image_to_msg(img: np.ndarray, encoding: Optional[str] = None, stamp: float = 0.0,
                  frame_id: str = "") -> Image:
-    """numpy image -> sensor_msgs/Image.
-
-    ``encoding`` defaults by shape/dtype: HxWx3 uint8 -> rgb8, HxWx4 uint8 -> rgba8,
-    HxW uint8 -> mono8, HxW uint16 -> 16UC1, HxW float32 -> 32FC1. The array must already be
-    in the channel order ``encoding`` names (no colour conversion here).
-    """
-    img = np.asarray(img)
-    if encoding is None:
-        encoding = _guess_encoding(img)
-    if encoding not in ENCODINGS:
-        raise UnsupportedEncoding(
-            f"unsupported image encoding {encoding!r}; supported: {', '.join(ENCODINGS)}")
-    dtype, ch = ENCODINGS[encoding]
-    if img.ndim == 3 and ch == 1 and img.shape[2] == 1:
-        img = img[:, :, 0]
-    want_ndim = 2 if ch == 1 else 3
-    if img.ndim != want_ndim or (ch > 1 and img.shape[2] != ch):
-        raise ConversionError(f"array of shape {img.shape} does not fit encoding {encoding} "
-                              f"({ch} channel{'s' if ch > 1 else ''})")
-    if img.dtype != dtype:
-        raise ConversionError(f"array dtype {img.dtype} does not fit encoding {encoding} "
-                              f"({np.dtype(dtype).name})")
+    """numpy image -> sensor_msgs/Image (fields from ``sensor_codec.encode_image``: encoding
+    defaults by shape/dtype; the array must already be in the channel order it names)."""
+    f = encode_image(img, encoding)
     m = Image()
     m.header.stamp = to_stamp(stamp)
     m.header.frame_id = frame_id
-    m.height, m.width = int(img.shape[0]), int(img.shape[1])
-    m.encoding = encoding
+    m.height, m.width, m.encoding, m.step = f.height, f.width, f.encoding, f.step
     m.is_bigendian = 0
-    m.step = m.width * ch * np.dtype(dtype).itemsize
-    m.data = _u8(img.astype(np.dtype(dtype).newbyteorder("="), copy=False))
+    m.data = _u8(f.data)
     return m
 
 
-def _guess_encoding(img: np.ndarray) -> str:
-    if img.dtype == np.uint8:
-        if img.ndim == 2:
-            return "mono8"
-        if img.ndim == 3 and img.shape[2] in (1, 3, 4):
-            return {1: "mono8", 3: "rgb8", 4: "rgba8"}[img.shape[2]]
-    elif img.ndim == 2 and img.dtype == np.uint16:
-        return "16UC1"
-    elif img.ndim == 2 and img.dtype == np.float32:
-        return "32FC1"
-    raise UnsupportedEncoding(f"no image encoding for an array of shape {img.shape} and dtype "
-                              f"{img.dtype}; pass encoding= one of {', '.join(ENCODINGS)}")
-
-
 def msg_to_image(msg: Image, copy: bool = True) -> np.ndarray:
-    """sensor_msgs/Image -> numpy (H x W for one channel, H x W x C otherwise), in the
-    message's own channel order and dtype (native byte order). Handles row padding
-    (``step`` > width x pixel size) and big-endian data."""
-    enc = msg.encoding
-    if enc not in ENCODINGS:
-        raise UnsupportedEncoding(
-            f"unsupported image encoding {enc!r}; supported: {', '.join(ENCODINGS)}")
-    dtype, ch = ENCODINGS[enc]
-    item = np.dtype(dtype).itemsize
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    row = w * ch * item
-    if step < row:
-        raise ConversionError(f"image step {step} < width {w} x {ch * item} bytes per pixel")
-    if item > 1 and step % item:
-        raise ConversionError(f"image step {step} is not a multiple of the {item}-byte pixel type")
-    n = len(msg.data)
-    if n != step * h:
-        raise ConversionError(f"image data has {n} bytes, expected {step * h} "
-                              f"({h} rows x step {step}) for {w}x{h} {enc}")
-    if h == 0 or w == 0:
-        return np.zeros((h, w) if ch == 1 else (h, w, ch), dtype)
-    raw = np.frombuffer(msg.data, dtype=np.uint8).reshape(h, step)
-    copied = False
-    if step != row:                              # drop row padding (copies)
-        raw = np.ascontiguousarray(raw[:, :row])
-        copied = True
-    native = np.dtype(dtype)
-    dt = native.newbyteorder(">" if msg.is_bigendian else "<") if item > 1 else native
-    a = raw.view(dt).reshape((h, w) if ch == 1 else (h, w, ch))
-    if dt != native:                             # foreign byte order -> native (copies)
-        return a.astype(native)
-    return a.copy() if copy and not copied else a
+    """sensor_msgs/Image -> numpy in the message's own channel order and dtype
+    (``sensor_codec.decode_image``: row padding and big-endian data handled)."""
+    return decode_image(msg, copy)
 
 
 def msg_to_rgb(msg: Image) -> np.ndarray:
     """sensor_msgs/Image of a colour/mono 8-bit encoding -> H x W x 3 uint8 RGB (a copy)."""
-    a = msg_to_image(msg, copy=False)
-    enc = msg.encoding
-    if enc == "rgb8":
-        return a.copy()
-    if enc == "bgr8":
-        return np.ascontiguousarray(a[:, :, ::-1])
-    if enc == "rgba8":
-        return np.ascontiguousarray(a[:, :, :3])
-    if enc == "bgra8":
-        return np.ascontiguousarray(a[:, :, 2::-1])
-    if enc in ("mono8", "8UC1"):
-        return np.repeat(a[:, :, None], 3, axis=2)
-    raise UnsupportedEncoding(f"image encoding {enc!r} is not a colour image "
-                              "(expected rgb8, bgr8, rgba8, bgra8 or mono8)")
+    return decode_rgb(msg)
 
 
 # ------------------------------------------------------------------ camera info
@@ -200,18 +104,6 @@ def intrinsics_to_camera_info(intr: Intrinsics, stamp: float = 0.0,
     m.p = [float(intr.fx), 0.0, float(intr.cx), 0.0,
            0.0, float(intr.fy), float(intr.cy), 0.0, 0.0, 0.0, 1.0, 0.0]
     return m
-
-
-def camera_info_to_intrinsics(msg: CameraInfo) -> Intrinsics:
-    """sensor_msgs/CameraInfo -> Intrinsics (from K; D and distortion_model kept)."""
-    k = [float(x) for x in msg.k]
-    if k[0] <= 0 or k[4] <= 0:
-        raise ConversionError(f"CameraInfo has no valid K (fx={k[0]}, fy={k[4]}): "
-                              "the camera is uncalibrated")
-    if msg.width <= 0 or msg.height <= 0:
-        raise ConversionError(f"CameraInfo has no image size ({msg.width}x{msg.height})")
-    return Intrinsics(k[0], k[4], k[2], k[5], int(msg.width), int(msg.height),
-                      msg.distortion_model or "plumb_bob", [float(x) for x in msg.d])
 
 
 # ------------------------------------------------------------------ poses

@@ -12,6 +12,7 @@ cameras with :func:`sensor_qos` (BEST_EFFORT matches any publisher).
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Dict
 
@@ -72,40 +73,11 @@ def qos(name: str) -> QoSProfile:
         raise KeyError(f"unknown QoS preset {name!r}; known: {', '.join(PRESETS)}") from None
 
 
-def image_qos() -> QoSProfile:
-    return qos("image")
-
-
-def sensor_qos() -> QoSProfile:
-    return qos("sensor")
-
-
-def keyframe_qos() -> QoSProfile:
-    return qos("keyframe")
-
-
-def pose_graph_qos() -> QoSProfile:
-    return qos("pose_graph")
-
-
-def proxy_depth_qos() -> QoSProfile:
-    return qos("proxy_depth")
-
-
-def rendered_qos() -> QoSProfile:
-    return qos("rendered")
-
-
-def ack_qos() -> QoSProfile:
-    return qos("ack")
-
-
-def status_qos() -> QoSProfile:
-    return qos("status")
-
-
-def pose_qos() -> QoSProfile:
-    return qos("pose")
+# One factory per preset: image_qos() == qos("image"), and so on.
+(image_qos, sensor_qos, keyframe_qos, pose_graph_qos, proxy_depth_qos, rendered_qos, ack_qos,
+ status_qos, pose_qos) = (functools.partial(qos, name) for name in (
+    "image", "sensor", "keyframe", "pose_graph", "proxy_depth", "rendered", "ack", "status",
+    "pose"))
 
 
 def matching_subscription_qos(node, topic: str, depth: int = 10) -> QoSProfile:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import array
-import importlib
 import math
 import sys
 import time
@@ -21,6 +20,9 @@ import numpy as np
 
 from splat_slam_ros.ros_env import RosEnvError, apply_ros_environment
 
+from .msg_types import UnknownMessageType, message_class
+from .tool_runner import run_rclpy_tool
+
 
 class TopicToolError(Exception):
     """A user-facing error: printed as ``error: ...``, exit status 2."""
@@ -29,15 +31,10 @@ class TopicToolError(Exception):
 # ------------------------------------------------------------------ helpers
 def _import_type(type_name: str):
     """'pkg/msg/Name' -> the Python message class."""
-    parts = type_name.split("/")
-    if len(parts) != 3:
-        raise TopicToolError(f"unexpected message type name {type_name!r}")
-    pkg, kind, name = parts
     try:
-        return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
-    except (ImportError, AttributeError):
-        raise TopicToolError(f"cannot import message type {type_name} "
-                             f"(is the {pkg} package built and installed in this venv?)") from None
+        return message_class(type_name)
+    except UnknownMessageType as e:
+        raise TopicToolError(str(e)) from None
 
 
 def _full_name(topic: str) -> str:
@@ -148,6 +145,16 @@ def _node(rclpy, name: str):
                              enable_rosout=False, start_parameter_services=False)
 
 
+def _open_topic(args, node_name: str):
+    """(rclpy, node, full topic name, type name, message class) once ``args.topic`` has a
+    publisher (rclpy is imported here: after main() applied the ROS environment)."""
+    import rclpy
+    topic = _full_name(args.topic)
+    node = _node(rclpy, node_name)
+    type_name = _wait_for_topic(node, topic, args.timeout)
+    return rclpy, node, topic, type_name, _import_type(type_name)
+
+
 def cmd_list(args) -> int:
     import rclpy
     node = _node(rclpy, "splat_topic_list")
@@ -165,14 +172,10 @@ def cmd_list(args) -> int:
 
 
 def cmd_echo(args) -> int:
-    import rclpy
     from rclpy.serialization import deserialize_message
 
     from splat_slam_nodes.qos import matching_subscription_qos
-    topic = _full_name(args.topic)
-    node = _node(rclpy, "splat_topic_echo")
-    type_name = _wait_for_topic(node, topic, args.timeout)
-    cls = _import_type(type_name)
+    rclpy, node, topic, type_name, cls = _open_topic(args, "splat_topic_echo")
     got = []
 
     def cb(raw: bytes):
@@ -193,13 +196,8 @@ def cmd_echo(args) -> int:
 
 
 def cmd_hz(args) -> int:
-    import rclpy
-
     from splat_slam_nodes.qos import matching_subscription_qos
-    topic = _full_name(args.topic)
-    node = _node(rclpy, "splat_topic_hz")
-    type_name = _wait_for_topic(node, topic, args.timeout)
-    cls = _import_type(type_name)
+    rclpy, node, topic, type_name, cls = _open_topic(args, "splat_topic_hz")
     stamps: deque = deque(maxlen=args.window + 1)
     sizes: deque = deque(maxlen=args.window)
     total = [0]
@@ -282,21 +280,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     except RosEnvError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    import rclpy
-    rclpy.init()
-    try:
-        return {"list": cmd_list, "echo": cmd_echo, "hz": cmd_hz}[args.cmd](args)
-    except TopicToolError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 0
-    except Exception as e:                        # rclpy shuts down on SIGINT/SIGTERM
-        if type(e).__name__ == "ExternalShutdownException":
-            return 0
-        raise
-    finally:
-        rclpy.try_shutdown()
+    cmd = {"list": cmd_list, "echo": cmd_echo, "hz": cmd_hz}[args.cmd]
+    return run_rclpy_tool(lambda: cmd(args), (TopicToolError,), interrupted=0)
 
 
 if __name__ == "__main__":

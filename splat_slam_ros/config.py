@@ -63,6 +63,7 @@ class TrackingConfig:
     lost_rms: float = 1.0                # lost if the frame's pose fit leaves this rms (BA px)
     reloc_keyframes: int = 4             # recent keyframes tried when the last one fails
     filler_iters: int = 3                # pose-only iterations per non-keyframe at the end
+    max_stored_flows: int = 20000        # newest frames whose flow is kept for that refinement
     event_pose_thresh: float = 1e-4      # report a keyframe if it moved more (scene units / rad)
     event_disp_thresh: float = 1e-3      # ... or its mean relative disparity change exceeds this
     # loop closure (paper 3.1 "Loop Closure")
@@ -73,6 +74,7 @@ class TrackingConfig:
     loop_nms: int = 12
     loop_max_edges: int = 2              # loop candidates measured per step
     loop_ba_iters: int = 2
+    loop_fit_rms: float = 0.25           # BA px: a loop edge already fitting this well needs no loop BA
     # online global BA (paper 3.1 "Global BA")
     global_ba: bool = True
     global_ba_every: int = 20            # keyframes

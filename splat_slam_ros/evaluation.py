@@ -178,6 +178,17 @@ def _alignment(align: str, gt_pos: np.ndarray, est_pos: np.ndarray):
     return umeyama_alignment(est_pos, gt_pos, with_scale=(align == "sim3"))
 
 
+def _matched_aligned(gt_ts, gt_poses, est_ts, est_poses, align, max_diff, offset):
+    """Checked, associated and aligned trajectories: (ground-truth stamps, matched ground
+    truth G, matched estimate aligned onto it Ea, match indices ia / ib, (s, R, t))."""
+    gt_ts, G = _check_traj(gt_ts, gt_poses, "ground-truth")
+    est_ts, E = _check_traj(est_ts, est_poses, "estimated")
+    ia, ib = _associate_checked(gt_ts, est_ts, max_diff, offset)
+    G, E = G[ia], E[ib]
+    s, R, t = _alignment(align, G[:, :3, 3], E[:, :3, 3])
+    return gt_ts, G, align_poses(E, s, R, t), ia, ib, (s, R, t)
+
+
 # --------------------------------------------------------------------- ATE
 def ate(gt_ts, gt_poses, est_ts, est_poses, align: str = "sim3", max_diff: float = 0.02,
         offset: float = 0.0) -> Dict:
@@ -189,12 +200,8 @@ def ate(gt_ts, gt_poses, est_ts, est_poses, align: str = "sim3", max_diff: float
     ``timestamps`` (ground-truth stamps of the matches), ``errors_cm``, ``gt_poses``
     (matched), ``aligned_est_poses`` (matched estimate after alignment), ``idx_gt``, ``idx_est``.
     """
-    gt_ts, G = _check_traj(gt_ts, gt_poses, "ground-truth")
-    est_ts, E = _check_traj(est_ts, est_poses, "estimated")
-    ia, ib = _associate_checked(gt_ts, est_ts, max_diff, offset)
-    G, E = G[ia], E[ib]
-    s, R, t = _alignment(align, G[:, :3, 3], E[:, :3, 3])
-    Ea = align_poses(E, s, R, t)
+    gt_ts, G, Ea, ia, ib, (s, R, t) = _matched_aligned(gt_ts, gt_poses, est_ts, est_poses,
+                                                        align, max_diff, offset)
     err = np.linalg.norm(G[:, :3, 3] - Ea[:, :3, 3], axis=1)
     st = _stats(err)
     rot_err = _rotation_angles_deg(np.swapaxes(G[:, :3, :3], 1, 2) @ Ea[:, :3, :3])
@@ -248,12 +255,8 @@ def rpe(gt_ts, gt_poses, est_ts, est_poses, delta=1, unit: str = "frames",
     ``rot_{rmse,mean,median,std,min,max}_deg``, ``n_pairs``, ``n_matched``, ``scale`` and
     the per-pair arrays ``trans_errors_cm``, ``rot_errors_deg``, ``pairs``.
     """
-    gt_ts, G = _check_traj(gt_ts, gt_poses, "ground-truth")
-    est_ts, E = _check_traj(est_ts, est_poses, "estimated")
-    ia, ib = _associate_checked(gt_ts, est_ts, max_diff, offset)
-    G, E = G[ia], E[ib]
-    s, R, t = _alignment(align, G[:, :3, 3], E[:, :3, 3])
-    Ea = align_poses(E, s, R, t)
+    gt_ts, G, Ea, ia, ib, (s, R, t) = _matched_aligned(gt_ts, gt_poses, est_ts, est_poses,
+                                                        align, max_diff, offset)
     pairs = _pairs(Ea, delta, unit, all_pairs)
     if not pairs:
         raise MetricError(f"RPE delta {delta} ({unit}) leaves no pose pairs among "

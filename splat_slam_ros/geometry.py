@@ -187,6 +187,13 @@ def intrinsics_matrix(fx, fy, cx, cy, dtype=torch.float64, device=None) -> torch
     return torch.tensor([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=dtype, device=device)
 
 
+def intr_tensor(intr, dtype=torch.float32, device=None) -> torch.Tensor:
+    """(fx, fy, cx, cy) as a tensor from an Intrinsics, a sequence or a tensor."""
+    if hasattr(intr, "fx"):
+        intr = (intr.fx, intr.fy, intr.cx, intr.cy)
+    return torch.as_tensor(intr, dtype=dtype, device=device)
+
+
 def pixel_grid(h: int, w: int, dtype=torch.float32, device=None) -> torch.Tensor:
     """(h, w, 2) pixel coordinates (u, v) of pixel centres (integer positions)."""
     v, u = torch.meshgrid(torch.arange(h, dtype=dtype, device=device),

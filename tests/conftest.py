@@ -13,3 +13,15 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared data folder not found at {SHARED_DATA} (only present in the dev/CI setup)")
     return SHARED_DATA
+
+
+@pytest.fixture
+def file_error(tmp_path):
+    """``check(name, text, reader, error, pattern)``: ``reader(path)`` of a file ``name``
+    holding ``text`` raises ``error`` with a message matching the regex ``pattern``."""
+    def check(name, text, reader, error, pattern):
+        p = tmp_path / name
+        p.write_text(text)
+        with pytest.raises(error, match=pattern):
+            reader(p)
+    return check

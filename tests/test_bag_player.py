@@ -4,7 +4,6 @@ import json
 import subprocess
 import time
 
-import numpy as np
 import pytest
 
 from test_graph_support import (PY, isolated_env, need_ros, read_jsonl, start, start_probe, stop,
@@ -23,6 +22,23 @@ def _player(bag, env, log, *extra):
                   "--start-timeout", "60", *extra], env, log)
 
 
+def _play(bag, tmp_path, env, probe_spec, *player_args, wait_eos: bool = True):
+    """Run the probe and the player until the player exits 0 (and, with ``wait_eos``, the
+    probe saw end_of_stream); both are stopped. Returns (probe records, player wall s)."""
+    probe = start_probe(probe_spec, env, tmp_path / "probe.log")
+    player = _player(bag, env, tmp_path / "player.log", *player_args)
+    try:
+        t0 = time.monotonic()
+        assert player.wait(timeout=90) == 0, (tmp_path / "player.log").read_text()
+        wall = time.monotonic() - t0
+        if wait_eos:
+            assert wait_for(lambda: _eos(read_jsonl(tmp_path / "probe.log")), 10)
+    finally:
+        stop(player)
+        stop(probe)
+    return read_jsonl(tmp_path / "probe.log"), wall
+
+
 def _eos(recs):
     return [json.loads(r["data"]) for r in recs if r.get("topic") == "/splat/graph_events"
             and json.loads(r["data"]).get("event") == "end_of_stream"]
@@ -32,16 +48,9 @@ def test_lockstep_waits_for_each_ack(tmp_path):
     need_ros()
     bag = write_tiny_bag(tmp_path / "bag", n=10)
     env = isolated_env()
-    probe = start_probe({"name": "probe", "subs": SUBS, "ack_topic": "/camera/image_raw",
-                         "ack_delay": 0.15, "duration": 90}, env, tmp_path / "probe.log")
-    player = _player(bag, env, tmp_path / "player.log", "--wait-acks", "")
-    try:
-        assert player.wait(timeout=90) == 0, (tmp_path / "player.log").read_text()
-        assert wait_for(lambda: _eos(read_jsonl(tmp_path / "probe.log")), 10)
-    finally:
-        stop(player)
-        stop(probe)
-    recs = read_jsonl(tmp_path / "probe.log")
+    recs, _ = _play(bag, tmp_path, env, {"name": "probe", "subs": SUBS, "ack_delay": 0.15,
+                                         "ack_topic": "/camera/image_raw", "duration": 90},
+                    "--wait-acks", "")
     imgs = [r for r in recs if r.get("topic") == "/camera/image_raw"]
     acks = [r for r in recs if "acked" in r]
     infos = [r for r in recs if r.get("topic") == "/camera/camera_info"]
@@ -63,20 +72,12 @@ def test_lockstep_waits_for_keyframe_consumers(tmp_path):
     need_ros()
     bag = write_tiny_bag(tmp_path / "bag", n=4, with_depth=False, with_gt=False)
     env = isolated_env()
-    probe = start_probe({"name": "probe", "subs": SUBS, "ack_topic": "/camera/image_raw",
-                         "kf_every": 2, "duration": 90}, env, tmp_path / "probe.log")
-    player = _player(bag, env, tmp_path / "player.log", "--wait-acks", "mapper",
-                     "--ack-timeout", "1.0")
-    try:
-        t0 = time.monotonic()
-        assert player.wait(timeout=90) == 0
-        wall = time.monotonic() - t0
-    finally:
-        stop(player)
-        stop(probe)
+    recs, wall = _play(bag, tmp_path, env, {"name": "probe", "subs": SUBS, "kf_every": 2,
+                                            "ack_topic": "/camera/image_raw", "duration": 90},
+                       "--wait-acks", "mapper", "--ack-timeout", "1.0", wait_eos=False)
     log = (tmp_path / "player.log").read_text()
     assert "no ack of keyframe 0 from mapper" in log and "no ack of keyframe 1 from mapper" in log
-    eos = _eos(read_jsonl(tmp_path / "probe.log"))
+    eos = _eos(recs)
     assert eos and eos[0]["lost_acks"] == 2
     assert wall >= 2.0
 
@@ -85,16 +86,8 @@ def test_realtime_rate_and_clock(tmp_path):
     need_ros()
     bag = write_tiny_bag(tmp_path / "bag", n=12, fps=30.0)
     env = isolated_env()
-    probe = start_probe({"name": "probe", "subs": SUBS, "duration": 90}, env,
-                        tmp_path / "probe.log")
-    player = _player(bag, env, tmp_path / "player.log", "--mode", "realtime", "--rate", "0.5")
-    try:
-        assert player.wait(timeout=90) == 0, (tmp_path / "player.log").read_text()
-        assert wait_for(lambda: _eos(read_jsonl(tmp_path / "probe.log")), 10)
-    finally:
-        stop(player)
-        stop(probe)
-    recs = read_jsonl(tmp_path / "probe.log")
+    recs, _ = _play(bag, tmp_path, env, {"name": "probe", "subs": SUBS, "duration": 90},
+                    "--mode", "realtime", "--rate", "0.5")
     imgs = [r for r in recs if r.get("topic") == "/camera/image_raw"]
     clocks = [r for r in recs if r.get("topic") == "/clock"]
     assert len(imgs) == 12
@@ -120,15 +113,8 @@ def test_all_topics_and_user_errors(tmp_path):
     assert r.returncode == 2 and "graph not ready" in r.stderr
     subs = SUBS + [["/camera/depth", "sensor_msgs/msg/Image", "image"],
                    ["/ground_truth/pose", "geometry_msgs/msg/PoseStamped", "image"]]
-    probe = start_probe({"name": "probe", "subs": subs, "ack_topic": "/camera/image_raw",
-                         "duration": 60}, env, tmp_path / "probe.log")
-    player = _player(bag, env, tmp_path / "player.log", "--topics", "all", "--wait-acks", "")
-    try:
-        assert player.wait(timeout=60) == 0
-        assert wait_for(lambda: _eos(read_jsonl(tmp_path / "probe.log")), 10)
-    finally:
-        stop(player)
-        stop(probe)
-    recs = read_jsonl(tmp_path / "probe.log")
+    recs, _ = _play(bag, tmp_path, env, {"name": "probe", "subs": subs, "duration": 60,
+                                         "ack_topic": "/camera/image_raw"},
+                    "--topics", "all", "--wait-acks", "")
     for t in ("/camera/depth", "/ground_truth/pose"):
         assert len([r for r in recs if r.get("topic") == t]) == 3

@@ -1,3 +1,5 @@
+import re
+
 import pytest
 
 from splat_slam_ros.config import ConfigError, SlamConfig, config_dir, load_config
@@ -29,11 +31,8 @@ def test_yaml_and_overrides(tmp_path):
     ("- a\n- b\n", "must hold a mapping"),
     ("tracking: [unclosed\n", "not valid YAML"),
 ])
-def test_bad_config_errors(tmp_path, text, msg):
-    p = tmp_path / "bad.yaml"
-    p.write_text(text)
-    with pytest.raises(ConfigError, match=msg.replace("(", r"\(").replace(")", r"\)")):
-        load_config(p)
+def test_bad_config_errors(file_error, text, msg):
+    file_error("bad.yaml", text, load_config, ConfigError, re.escape(msg))
 
 
 def test_missing_file_and_bad_override(tmp_path):

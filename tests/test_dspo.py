@@ -8,15 +8,12 @@ import torch
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.tracking.dense_ba import bundle_adjust, reproject
 from splat_slam_ros.depth.dspo import DspoPrior, dspo_step, make_depth_prior
-from splat_slam_ros.geometry import so3_exp
 from splat_slam_ros.depth.mono_depth import MonoDepthModel
-from splat_slam_ros.types import Intrinsics
+from test_proxy_depth import BA, TRACK, pose  # the same cameras and trajectory
 
 ROOM = [((0, 0, 1), 5.0, None), ((1, 0, 0), -2.5, None), ((1, 0, 0), 2.5, None),
         ((0, 1, 0), 1.2, None), ((0, 1, 0), -1.5, None),
         ((0, 0, 1), 2.5, ((-0.6, -0.5, 2.4), (0.4, 0.3, 2.6)))]
-TRACK = Intrinsics(250.0, 250.0, 159.5, 119.5, 320, 240)
-BA = TRACK.scaled(1 / 8)                      # 40 x 30
 THETA0, GAMMA0 = 2.0, 0.08                    # mono disparity = (d - GAMMA0) / THETA0
 
 
@@ -36,14 +33,6 @@ def raycast(T, intr, H, W):
             ok &= np.all((X >= np.asarray(box[0])[:, None]) & (X <= np.asarray(box[1])[:, None]), 0)
         best = np.where(ok & (t < best), t, best)
     return best.reshape(H, W)
-
-
-def pose(i):
-    T = np.eye(4)
-    T[:3, :3] = so3_exp(torch.tensor([0.02 * np.sin(i), 0.04 * (i - 3), 0.0],
-                                     dtype=torch.float64)).numpy()
-    T[:3, 3] = [0.12 * (i - 3), 0.03 * np.sin(1.3 * i), 0.08 * i]
-    return T
 
 
 class StandInMono(MonoDepthModel):

@@ -21,8 +21,8 @@ tracking:
   warmup: 4
   motion_filter_thresh: 2.0
   keyframe_thresh: 2.0
-  loop_closure: {loop}
-  global_ba: {loop}
+  loop_closure: true
+  global_ba: true
 mapping:
   iters_first: 30
   iters_per_keyframe: 5
@@ -60,7 +60,7 @@ def tiny_bag(tmp_path_factory):
                       overwrite=True, progress=False, realism="clean", fps=10)
     write_bag(open_dataset(d / "seq"), d / "bag", progress=False)
     cfg = d / "cfg.yaml"
-    cfg.write_text(CFG.format(loop="true"))
+    cfg.write_text(CFG)
     return d / "bag", cfg
 
 

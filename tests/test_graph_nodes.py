@@ -30,6 +30,15 @@ mapping:
   downsample_first: 4
 """
 
+# Spins the script's ``node`` until ``cond()`` holds or ``timeout`` s passed.
+SPIN_UNTIL = '''
+def spin_until(cond, timeout):
+    t0 = time.monotonic()
+    while not cond() and time.monotonic() - t0 < timeout:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    return bool(cond())
+'''
+
 # Feeds 3 keyframes of a fronto-parallel plane at 2 m, then a pose-graph update; exercises
 # the mapper's topics and services; prints one JSON result line.
 FEEDER = r'''
@@ -62,12 +71,7 @@ node.create_subscription(ProxyDepth, TOPICS["proxy_depth"], lambda m: got["pd"].
 pk = node.create_publisher(Keyframe, TOPICS["keyframes"], Q.keyframe_qos())
 pu = node.create_publisher(PoseGraphUpdate, TOPICS["updates"], Q.pose_graph_qos())
 pr = node.create_publisher(PoseStamped, TOPICS["render_request"], Q.pose_qos())
-def spin_until(cond, timeout):
-    t0 = time.monotonic()
-    while not cond() and time.monotonic() - t0 < timeout:
-        rclpy.spin_once(node, timeout_sec=0.05)
-    return bool(cond())
-T0 = time.monotonic()
+''' + SPIN_UNTIL + r'''T0 = time.monotonic()
 ok = spin_until(lambda: pk.get_subscription_count() >= 2 and pu.get_subscription_count() >= 2, 120)
 H, W = 48, 64
 intr = Intrinsics(50.0, 50.0, 31.5, 23.5, W, H)
@@ -223,12 +227,7 @@ pi = node.create_publisher(Image, "/cam/image", Q.image_qos())
 pc = node.create_publisher(CameraInfo, "/cam/info", Q.image_qos())
 pk = node.create_publisher(Keyframe, TOPICS["keyframes"], Q.keyframe_qos())
 pd = node.create_publisher(ProxyDepth, TOPICS["proxy_depth"], Q.proxy_depth_qos())
-def spin_until(cond, timeout):
-    t0 = time.monotonic()
-    while not cond() and time.monotonic() - t0 < timeout:
-        rclpy.spin_once(node, timeout_sec=0.05)
-    return bool(cond())
-spin_until(lambda: pi.get_subscription_count() and pc.get_subscription_count() and
+''' + SPIN_UNTIL + r'''spin_until(lambda: pi.get_subscription_count() and pc.get_subscription_count() and
            pk.get_subscription_count() >= 2 and pd.get_subscription_count(), 120)
 spin_until(lambda: False, 0.5)
 rng = np.random.default_rng(0)

@@ -8,7 +8,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List
 
 import numpy as np
 import pytest
@@ -19,7 +19,9 @@ REPO = Path(__file__).resolve().parents[1]
 PY = sys.executable
 
 
-def ros_skip_reason() -> str:
+def ros_missing_reason() -> str:
+    """'' when rclpy and splat_slam_msgs import in a fresh interpreter (as the node
+    processes do), else the last line of the error."""
     r = subprocess.run([PY, "-c", "import rclpy; from splat_slam_msgs.msg import Keyframe"],
                        capture_output=True, text=True, timeout=120)
     return "" if r.returncode == 0 else (r.stderr.strip().splitlines() or ["?"])[-1]
@@ -29,11 +31,14 @@ _WHY = None
 
 
 def need_ros():
+    """Fail (never skip) when the node processes could not import rclpy / splat_slam_msgs:
+    both are requirements (run.sh installs rclpy and builds the messages)."""
     global _WHY
     if _WHY is None:
-        _WHY = ros_skip_reason()
+        _WHY = ros_missing_reason()
     if _WHY:
-        pytest.skip(f"rclpy / splat_slam_msgs not importable ({_WHY})")
+        pytest.fail(f"rclpy / splat_slam_msgs not importable ({_WHY}); build the messages with "
+                    "msg_defs/build.sh and run with the venv's python")
 
 
 def isolated_env(**extra) -> Dict[str, str]:
@@ -98,7 +103,7 @@ def write_tiny_bag(path: Path, n: int = 12, w: int = 64, h: int = 48, with_depth
 # A probe process: subscribes to topics (raw, any type), acks frames like a tracker would
 # (optionally with a delay), records what it saw as JSON lines on stdout.
 PROBE = r'''
-import json, sys, time, importlib
+import json, sys, time
 from splat_slam_ros.ros_env import apply_ros_environment
 apply_ros_environment()
 import rclpy
@@ -112,8 +117,7 @@ from splat_slam_msgs.msg import FrameAck
 from std_msgs.msg import String
 ack_pub = node.create_publisher(FrameAck, TOPICS["ack"], Q.ack_qos())
 ev_pub = node.create_publisher(String, TOPICS["events"], events_qos())
-def imp(t):
-    p = t.split("/"); return getattr(importlib.import_module(p[0] + "." + p[1]), p[2])
+from splat_slam_nodes.msg_types import message_class as imp
 pending = []
 def make_cb(topic, cls):
     def cb(raw):

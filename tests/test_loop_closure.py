@@ -139,49 +139,49 @@ def test_loop_closer_events_list_exactly_the_changed_keyframes():
     lc = LoopCloser(cfg, INTR)
     for k in range(16):
         lc.add_keyframe(keyframe(k, est[k], data))
-    snap = {k: (lc.poses[k].clone(), lc.disps[k].clone()) for k in lc.ids}
+    snap = {k: (lc.kfs[k].pose.clone(), lc.kfs[k].disp.clone()) for k in lc.kfs.ids}
     events = lc.global_ba(3)
     assert len(events) == 1
     ev = events[0]
     assert ev.reason == "global_ba" and ev.disparities.shape == (len(ev.kf_ids), 30, 40)
     listed = set(ev.kf_ids)
     assert {12, 13, 14, 15} <= listed
-    for k in lc.ids:
+    for k in lc.kfs.ids:
         P0, D0 = snap[k]
-        dxi = se3_log(se3_inverse(P0) @ lc.poses[k])
-        scale = 1.0 / float(lc.disps[k].mean())
+        dxi = se3_log(se3_inverse(P0) @ lc.kfs[k].pose)
+        scale = 1.0 / float(lc.kfs[k].disp.mean())
         pose_change = max(float(dxi[:3].norm()) / scale, float(dxi[3:].norm()))
-        disp_change = float((lc.disps[k] - D0).abs().mean() / D0.abs().mean())
+        disp_change = float((lc.kfs[k].disp - D0).abs().mean() / D0.abs().mean())
         changed = pose_change > tc.event_pose_thresh or disp_change > tc.event_disp_thresh
         assert (k in listed) == changed, (k, pose_change, disp_change)
         if k in listed:
             n = ev.kf_ids.index(k)
-            assert np.allclose(ev.poses[n], lc.poses[k].numpy())
-            assert np.allclose(ev.disparities[n], lc.disps[k].numpy())
+            assert np.allclose(ev.poses[n], lc.kfs[k].pose.numpy())
+            assert np.allclose(ev.disparities[n], lc.kfs[k].disp.numpy())
     for k in (0, 1):                                   # the gauge: poses fixed
-        assert torch.allclose(lc.poses[k], snap[k][0], atol=1e-9)
+        assert torch.allclose(lc.kfs[k].pose, snap[k][0], atol=1e-9)
 
 
 def test_tracker_applies_loop_events_and_moves_later_keyframes_rigidly():
+    from splat_slam_ros.tracking.keyframe_set import KeyframeState
     from splat_slam_ros.tracking.tracker import Tracker
     tr = Tracker(small_cfg(), INTR)
     eye = np.eye(4)
     for k in range(4):
         T = eye.copy()
         T[0, 3] = 0.1 * k
-        tr.poses[k] = torch.from_numpy(T)
-        tr.disps[k] = torch.ones(30, 40)
+        tr.kfs.add(k, KeyframeState(torch.from_numpy(T), torch.ones(30, 40), k, 0.1 * k))
         tr.published.add(k)
-    tr.last_pose = tr.poses[3].clone()
+    tr.last_pose = tr.kfs[3].pose.clone()
     corr = se3_exp(torch.tensor([0.0, 0.05, 0.0, 0.0, 0.02, 0.0], dtype=torch.float64)).numpy()
-    new1 = corr @ tr.poses[1].numpy()
+    new1 = corr @ tr.kfs[1].pose.numpy()
     tr.apply_update(UpdateEvent(seq=5, reason="loop_closure", kf_ids=[1], poses=new1[None],
                                 disparities=np.full((1, 30, 40), 2.0, np.float32)))
-    assert np.allclose(tr.poses[1].numpy(), new1)
-    assert float(tr.disps[1].mean()) == pytest.approx(2.0)
-    assert np.allclose(tr.poses[0].numpy(), eye)                     # older: untouched
+    assert np.allclose(tr.kfs[1].pose.numpy(), new1)
+    assert float(tr.kfs[1].disp.mean()) == pytest.approx(2.0)
+    assert np.allclose(tr.kfs[0].pose.numpy(), eye)                     # older: untouched
     for k in (2, 3):                                                 # newer: same correction
         T = eye.copy()
         T[0, 3] = 0.1 * k
-        assert np.allclose(tr.poses[k].numpy(), corr @ T, atol=1e-9)
-    assert np.allclose(tr.last_pose.numpy(), tr.poses[3].numpy())
+        assert np.allclose(tr.kfs[k].pose.numpy(), corr @ T, atol=1e-9)
+    assert np.allclose(tr.last_pose.numpy(), tr.kfs[3].pose.numpy())

@@ -9,8 +9,6 @@ import yaml
 from splat_slam_ros.depth.mono_depth import (MonoDepthError, MonoDepthModel, load_mono_depth,
                                        read_sidecar)
 
-pytest.importorskip("onnxruntime")
-
 MEAN = [0.5, 0.25, 0.0]
 STD = [0.5, 0.25, 1.0]
 W_RGB = [0.5, 1.0, 2.0]

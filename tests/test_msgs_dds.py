@@ -19,36 +19,10 @@ from pathlib import Path
 import pytest
 
 from splat_slam_ros import ros_env
+from test_graph_support import isolated_env, need_ros
 
 HELPERS = Path(__file__).resolve().parent / "ros_helpers"
 REPO = Path(__file__).resolve().parents[1]
-
-
-def _have_ros() -> str:
-    """'' when rclpy and splat_slam_msgs import in a fresh venv interpreter, else why not."""
-    r = subprocess.run([sys.executable, "-c", "import rclpy; from splat_slam_msgs.msg import Keyframe"],
-                       capture_output=True, text=True, timeout=60)
-    return "" if r.returncode == 0 else (r.stderr.strip().splitlines() or ["?"])[-1]
-
-
-_WHY_NOT = None
-
-
-def need_ros():
-    global _WHY_NOT
-    if _WHY_NOT is None:
-        _WHY_NOT = _have_ros()
-    if _WHY_NOT:
-        pytest.skip(f"rclpy / splat_slam_msgs not importable ({_WHY_NOT}); build with "
-                    "msg_defs/build.sh and run with the venv's python")
-
-
-def isolated_env(**extra):
-    base = {k: v for k, v in os.environ.items()
-            if k not in ("FASTRTPS_DEFAULT_PROFILES_FILE", ros_env.OVERRIDE_ENV)}
-    base["ROS_DOMAIN_ID"] = str(ros_env.random_domain_id())
-    base.update(extra)
-    return ros_env.ros_environment(base)
 
 
 def _stop(p: subprocess.Popen):

@@ -10,14 +10,10 @@ import pytest
 
 pytestmark = pytest.mark.ros
 
-try:
-    import rclpy  # noqa: F401
-    from rclpy.serialization import deserialize_message, serialize_message
-    from sensor_msgs.msg import CameraInfo, Image
-    from splat_slam_msgs.msg import FrameAck, Keyframe, PoseGraphUpdate, ProxyDepth
-except ImportError as e:  # pragma: no cover - depends on the environment
-    pytest.skip(f"rclpy / splat_slam_msgs not importable ({e}); build them with "
-                "msg_defs/build.sh and run with the venv's python", allow_module_level=True)
+import rclpy  # noqa: F401
+from rclpy.serialization import deserialize_message, serialize_message
+from sensor_msgs.msg import CameraInfo, Image
+from splat_slam_msgs.msg import FrameAck, Keyframe, PoseGraphUpdate, ProxyDepth
 
 from splat_slam_nodes import convert as C
 from splat_slam_ros.types import Intrinsics, KeyframeData, UpdateEvent

@@ -16,6 +16,7 @@ import torch
 
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.geometry import se3_exp
+from splat_slam_ros.io.datasets import open_dataset
 from splat_slam_ros.types import Frame, Intrinsics
 
 ROOM = (np.array([-3.0, -2.0, -2.0]), np.array([3.0, 2.0, 4.0]))
@@ -240,7 +241,7 @@ def test_update_events_report_exactly_the_changed_keyframes():
     thr = cfg.tracking.event_pose_thresh
     n_events = 0
     for f in frames:
-        before = {k: tr.poses[k].clone() for k in tr.published}
+        before = {k: tr.kfs[k].pose.clone() for k in tr.published}
         st = tr.track(f)
         for ev in st.events:
             assert ev.seq > last_seq and ev.reason == "local_ba"
@@ -260,7 +261,7 @@ def test_update_events_report_exactly_the_changed_keyframes():
             mirror[kd.kf_id] = (kd.pose, kd.disparity)
         # a consumer applying the events holds the tracker's state up to the threshold
         for k in tr.published:
-            P = tr.poses[k].numpy()
+            P = tr.kfs[k].pose.numpy()
             assert np.abs(mirror[k][0][:3, 3] - P[:3, 3]).max() < 20 * thr
     assert n_events >= 2
 
@@ -337,25 +338,15 @@ def test_static_camera_does_not_drift():
         tr.track(f)
     ts, poses = tr.trajectory_full()
     assert tr.initialized
-    scene_depth = 1.0 / float(torch.stack([tr.disps[k] for k in tr.published]).mean())
+    scene_depth = 1.0 / float(torch.stack([tr.kfs[k].disp for k in tr.published]).mean())
     tail = poses[-30:, :3, 3]
     spread = np.linalg.norm(tail - tail.mean(0), axis=1).max()
     assert spread < 0.002 * scene_depth, f"static drift {spread / scene_depth:.4f} x depth"
 
 
 def _euroc_frames(root: Path, n: int):
-    try:
-        from splat_slam_ros.io.datasets import open_dataset
-        ds = open_dataset(root, keep_mono=True)
-        return ds.intrinsics, [f for _, f in zip(range(n), ds)]
-    except ImportError:
-        import yaml
-        s = yaml.safe_load((root / "mav0" / "cam0" / "sensor.yaml").read_text())
-        fu, fv, cu, cv = s["intrinsics"]
-        K = Intrinsics(fu, fv, cu, cv, *s["resolution"], "plumb_bob", list(s["distortion_coefficients"]))
-        files = sorted((root / "mav0" / "cam0" / "data").glob("*.png"))[:n]
-        return K, [Frame(i, int(p.stem) * 1e-9, cv2.imread(str(p), cv2.IMREAD_GRAYSCALE), K)
-                   for i, p in enumerate(files)]
+    ds = open_dataset(root, keep_mono=True)
+    return ds.intrinsics, [f for _, f in zip(range(n), ds)]
 
 
 def test_euroc_static_camera_real_images(shared_data):
@@ -371,7 +362,7 @@ def test_euroc_static_camera_real_images(shared_data):
     lost = sum(tr.track(f).lost for f in frames)
     ts, poses = tr.trajectory_full()
     assert lost == 0 and len(ts) == len(frames)
-    disps = [tr.disps[k] for k in tr.published] or [torch.ones(1)]
+    disps = [tr.kfs[k].disp for k in tr.published] or [torch.ones(1)]
     scene_depth = 1.0 / float(torch.stack([d.mean() for d in disps]).mean())
     spread = np.linalg.norm(poses[:, :3, 3] - poses[0, :3, 3], axis=1).max()
     # 1.7 cm of real motion at ~3 m: a few mm relative to the scene scale at most
@@ -397,5 +388,35 @@ def test_depth_prior_hook_runs_after_each_local_ba_and_its_disparities_are_used(
     assert len(calls) >= 2
     ids, out = calls[-1]                       # nothing optimised after the last call
     for n, k in enumerate(ids):
-        assert torch.allclose(tr.disps[k], out[n])
+        assert torch.allclose(tr.kfs[k].disp, out[n])
     assert any(kind == "radius" for kind in tr.graph.kind.values())
+
+
+def test_max_stored_flows_keeps_only_the_newest_flows():
+    """tracking.max_stored_flows bounds memory: older non-keyframes keep their relative
+    pose for the final refinement but drop their stored flow."""
+    from splat_slam_ros.tracking.tracker import Tracker
+    frames, _ = sequence()
+    tr = Tracker(small_cfg(max_stored_flows=6), INTR)
+    for f in frames[:30]:
+        tr.track(f)
+    recs = tr.records
+    assert len(recs) == 30
+    assert all(r.flow is None for r in recs[:-7])
+    kept = [r for r in recs[-6:] if r.kf_id is None]
+    assert kept and all(r.flow is not None for r in kept)
+
+
+def test_a_broken_mono_model_is_an_error_not_plain_dba(tmp_path):
+    """DSPO is configured by depth.mono_model: a model that cannot load stops the tracker
+    (it used to fall back to plain DBA with a warning)."""
+    from splat_slam_ros.depth.mono_depth import MonoDepthError
+    from splat_slam_ros.tracking.tracker import Tracker
+    cfg = small_cfg()
+    cfg.depth.mono_model = str(tmp_path / "missing.onnx")
+    with pytest.raises(MonoDepthError, match="not found"):
+        Tracker(cfg, INTR)
+    (tmp_path / "broken.onnx").write_bytes(b"not an onnx model")
+    cfg.depth.mono_model = str(tmp_path / "broken.onnx")
+    with pytest.raises(MonoDepthError):
+        Tracker(cfg, INTR)

@@ -53,11 +53,8 @@ def test_real_trajectories(shared_data):
     ("1 0 0 0 0 0 0 1\n2 0 0 0 0 0 0\n", "cannot tell|different numbers of columns|need 8"),
     ("1 0 0 0 0 0 0 5\n", "not unit length"),
 ])
-def test_bad_files(tmp_path, text, msg):
-    p = tmp_path / "bad.txt"
-    p.write_text(text)
-    with pytest.raises(TrajectoryFormatError, match=msg):
-        read_trajectory(p)
+def test_bad_files(file_error, text, msg):
+    file_error("bad.txt", text, read_trajectory, TrajectoryFormatError, msg)
 
 
 def test_missing_file(tmp_path):

@@ -4,32 +4,37 @@ from __future__ import annotations
 import sys
 from typing import Callable, Dict, List, Tuple, Type
 
+import yaml
+
+from splat_slam_ros.config import ConfigError
+from splat_slam_ros.depth.mono_depth import MonoDepthError
+from splat_slam_ros.depth.proxy_depth import ProxyDepthError
+from splat_slam_ros.evaluation import MetricError
+from splat_slam_ros.io.dataset_base import DatasetError
+from splat_slam_ros.io.keyframe_store import StoreError
+from splat_slam_ros.io.sensor_codec import ConversionError
+from splat_slam_ros.io.synth import SynthError
+from splat_slam_ros.io.trajectory_io import TrajectoryFormatError
+from splat_slam_ros.mapping.mapper import MapError
+from splat_slam_ros.mapping.mesh import MeshError
+from splat_slam_ros.mapping.ply_io import PlyError
+from splat_slam_ros.mapping.rasterizer import RasterizerBuildError
+from splat_slam_ros.runtime import DeviceError
+from splat_slam_ros.tracking.flow_frontend import FrontendError
+from splat_slam_ros.tracking.tracker import TrackingError
+from splat_slam_ros.types import IntrinsicsError
+
+# Every project exception type that signals a user mistake (printed as ``error: ...``).
+USER_ERRORS: Tuple[Type[BaseException], ...] = (
+    ConfigError, IntrinsicsError, DeviceError, TrajectoryFormatError, DatasetError,
+    ConversionError, MetricError, MonoDepthError, ProxyDepthError, SynthError,
+    RasterizerBuildError, MapError, MeshError, PlyError, TrackingError, FrontendError, StoreError,
+    FileNotFoundError)
+
+
 def user_errors() -> Tuple[Type[BaseException], ...]:
-    """All project exception types that signal a user mistake (imported lazily)."""
-    import importlib
-    names = [
-        ("splat_slam_ros.config", "ConfigError"),
-        ("splat_slam_ros.types", "IntrinsicsError"),
-        ("splat_slam_ros.io.trajectory_io", "TrajectoryFormatError"),
-        ("splat_slam_ros.io.datasets", "DatasetError"),
-        ("splat_slam_ros.evaluation", "MetricError"),
-        ("splat_slam_ros.depth.mono_depth", "MonoDepthError"),
-        ("splat_slam_ros.io.synth", "SynthError"),
-        ("splat_slam_ros.mapping.rasterizer", "RasterizerBuildError"),
-        ("splat_slam_ros.mapping.mapper", "MapError"),
-        ("splat_slam_ros.mapping.ply_io", "PlyError"),
-        ("splat_slam_ros.mapping.mesh", "MeshError"),
-    ]
-    out: List[Type[BaseException]] = []
-    for mod, name in names:
-        try:
-            m = importlib.import_module(mod)
-        except Exception:
-            continue
-        cls = getattr(m, name, None)
-        if isinstance(cls, type) and issubclass(cls, BaseException):
-            out.append(cls)
-    return tuple(out) + (FileNotFoundError,)
+    """All project exception types that signal a user mistake."""
+    return USER_ERRORS
 
 
 def run_main(body: Callable[[], int]) -> int:
@@ -47,9 +52,6 @@ def run_main(body: Callable[[], int]) -> int:
 
 def parse_overrides(items: List[str]) -> Dict[str, object]:
     """`--set key=value` items -> dict with YAML-parsed values (ConfigError if malformed)."""
-    import yaml
-
-    from splat_slam_ros.config import ConfigError
     out: Dict[str, object] = {}
     for it in items or []:
         if "=" not in it:

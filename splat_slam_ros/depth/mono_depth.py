@@ -41,17 +41,14 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import List, Optional, Tuple
 
+import cv2
 import numpy as np
-
-try:  # OpenCV is a core dependency; keep the import local-failure friendly
-    import cv2
-except ImportError:  # pragma: no cover
-    cv2 = None
-
+import onnxruntime as ort
+import torch
 import yaml
 
 
-class MonoDepthError(RuntimeError):
+class MonoDepthError(ValueError):
     """A user-supplied monocular depth model or its sidecar is missing, unreadable or unusable."""
 
 
@@ -222,15 +219,27 @@ class MonoDepthModel:
         return a
 
 
-class OnnxMonoDepth(MonoDepthModel):
+class _NetworkMonoDepth(MonoDepthModel):
+    """A loaded network with its sidecar ``sc``: preprocess (sidecar resize / normalisation),
+    ``_run`` (the backend), postprocess (back to the image size, depth)."""
+    sc: MonoSidecar
+    static_hw: Tuple[Optional[int], Optional[int]]   # the network's fixed input size, if any
+
+    def _run(self, x: np.ndarray) -> np.ndarray:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def predict(self, image: np.ndarray) -> np.ndarray:
+        img = self._check_image(image)
+        H, W = img.shape[:2]
+        hw = _network_size(self.sc, self.static_hw, H, W)
+        x, box = preprocess(img, self.sc, hw)
+        return postprocess(self._run(x), self.kind, box, H, W)
+
+
+class OnnxMonoDepth(_NetworkMonoDepth):
     """ONNX Runtime backend."""
 
     def __init__(self, path, sidecar: MonoSidecar, provider: str = "auto"):
-        try:
-            import onnxruntime as ort
-        except ImportError:
-            raise MonoDepthError("ONNX mono depth models need the onnxruntime package "
-                                 "(pip install onnxruntime, or onnxruntime-gpu for CUDA)") from None
         self.path = Path(path)
         self.name = self.path.name
         self.sc = sidecar
@@ -291,19 +300,11 @@ class OnnxMonoDepth(MonoDepthModel):
             raise MonoDepthError(f"{self.path.name}: inference failed: {msg}") from None
         return _squeeze_output(np.asarray(y, np.float32), self.path.name)
 
-    def predict(self, image: np.ndarray) -> np.ndarray:
-        img = self._check_image(image)
-        H, W = img.shape[:2]
-        hw = _network_size(self.sc, self.static_hw, H, W)
-        x, box = preprocess(img, self.sc, hw)
-        return postprocess(self._run(x), self.kind, box, H, W)
 
-
-class TorchScriptMonoDepth(MonoDepthModel):
+class TorchScriptMonoDepth(_NetworkMonoDepth):
     """TorchScript backend (``torch.jit.save`` of a module (1,3,H,W) -> depth/disparity)."""
 
     def __init__(self, path, sidecar: MonoSidecar, provider: str = "auto"):
-        import torch
         self.torch = torch
         self.path = Path(path)
         self.name = self.path.name
@@ -339,13 +340,6 @@ class TorchScriptMonoDepth(MonoDepthModel):
             raise MonoDepthError(f"{self.path.name}: model returned {type(y).__name__}, "
                                  "expected a tensor")
         return _squeeze_output(y.detach().float().cpu().numpy(), self.path.name)
-
-    def predict(self, image: np.ndarray) -> np.ndarray:
-        img = self._check_image(image)
-        H, W = img.shape[:2]
-        hw = _network_size(self.sc, self.static_hw, H, W)
-        x, box = preprocess(img, self.sc, hw)
-        return postprocess(self._run(x), self.kind, box, H, W)
 
 
 def _dry_run(model) -> None:
@@ -384,8 +378,6 @@ def load_mono_depth(path, provider: str = "auto") -> MonoDepthModel:
     Raises :class:`MonoDepthError` with a one-line message for a missing/corrupt file, a
     missing/invalid sidecar or an incompatible model (checked with one dry run).
     """
-    if cv2 is None:  # pragma: no cover
-        raise MonoDepthError("mono depth needs opencv-python-headless")
     p = Path(str(path)).expanduser()
     if not str(path):
         raise MonoDepthError("no mono depth model path given")

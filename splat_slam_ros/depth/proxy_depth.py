@@ -39,7 +39,8 @@ import numpy as np
 import torch
 
 from splat_slam_ros.config import SlamConfig
-from splat_slam_ros.geometry import pixel_grid, se3_inverse
+from splat_slam_ros.geometry import intr_tensor, pixel_grid, se3_inverse
+from splat_slam_ros.runtime import resolve_device
 from splat_slam_ros.types import Intrinsics, KeyframeData, UpdateEvent
 
 SOURCE_EMPTY = 0
@@ -71,20 +72,6 @@ class ProxyDepthResult:
 
 
 # ------------------------------------------------------------------ helpers
-def resolve_device(name: str) -> torch.device:
-    name = (name or "cpu").lower()
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
-def intr_vector(intr, dtype=torch.float32, device=None) -> torch.Tensor:
-    """(fx, fy, cx, cy) tensor from an Intrinsics, a sequence or a tensor."""
-    if isinstance(intr, Intrinsics):
-        intr = (intr.fx, intr.fy, intr.cx, intr.cy)
-    return torch.as_tensor(intr, dtype=dtype, device=device)
-
-
 def ba_intrinsics(intr: Intrinsics, h: int, w: int) -> Intrinsics:
     """Intrinsics of the (h, w) BA grid of an image with intrinsics ``intr``."""
     return intr.scaled(w / intr.width, h / intr.height)
@@ -163,7 +150,7 @@ def consistency_count(depths: torch.Tensor, poses: torch.Tensor, intr, eta: floa
     count = torch.zeros(N, h * w, dtype=torch.int32, device=device)
     if len(pairs) == 0:
         return count.reshape(N, h, w)
-    intr = intr_vector(intr, torch.float32, device)
+    intr = intr_tensor(intr, torch.float32, device)
     # threshold per target: eta * average depth (Eq. 5)
     nvalid = ok.flatten(1).sum(1)
     mean_d = D.flatten(1).sum(1) / nvalid.clamp_min(1)
@@ -533,7 +520,7 @@ class ProxyDepthEstimator:
         self.cfg = cfg
         self.dc = cfg.depth
         self.intr = intrinsics
-        self.device = resolve_device(self.dc.device)
+        self.device = resolve_device(self.dc.device, "depth.device")
         self.capacity = max(2, int(getattr(cfg.tracking, "keyframe_buffer", 512)))
         self._kfs: "OrderedDict[int, _KfState]" = OrderedDict()
         self._refreshed: List[Tuple[ProxyDepthResult, ProxyDepthResult]] = []

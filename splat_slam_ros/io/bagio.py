@@ -20,7 +20,8 @@ in ``splat_slam_info.yaml`` beside ``metadata.yaml``.
 
 :class:`BagDataset` reads such a bag back as :class:`~splat_slam_ros.types.Frame`
 objects (``open_dataset(path, fmt="bag")``), with the rosbags reader or, for a bare
-``.mcap`` file (or ``backend="mcap"``), with ``mcap`` + ``mcap_ros2``.
+``.mcap`` file (or ``backend="mcap"``), with ``mcap`` + ``mcap_ros2`` — both through
+:class:`~splat_slam_ros.io.bag_reader.BagFile`, the one bag reader.
 """
 from __future__ import annotations
 
@@ -32,9 +33,13 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from splat_slam_ros.io.datasets import (ASSOC_TOL, Dataset, DatasetError, _check_selection, _copy_intrinsics,
-                       _select, associate, ns_to_stamp, stamp_to_ns)
+from splat_slam_ros.io.dataset_base import (ASSOC_TOL, Dataset, DatasetError, check_selection, copy_intrinsics,
+                       select_frames, associate, ns_to_stamp, stamp_to_ns)
 from splat_slam_ros.geometry import pose_from_tq, pose_to_tq
+from splat_slam_ros.io.bag_reader import INFO_FILE, BagFile, is_bag_dir, make_typestore
+from splat_slam_ros.io.bag_reader import register_project_types  # noqa: F401 (public re-export)
+from splat_slam_ros.io.sensor_codec import (camera_info_to_intrinsics, decode_depth, decode_rgb,
+                                           encode_image)
 from splat_slam_ros.types import Frame, Intrinsics
 
 DEFAULT_TOPICS: Dict[str, Optional[str]] = {
@@ -45,40 +50,10 @@ DEFAULT_TOPICS: Dict[str, Optional[str]] = {
 }
 CAMERA_FRAME = "camera"
 WORLD_FRAME = "world"
-INFO_FILE = "splat_slam_info.yaml"
-MSG_PACKAGE = "splat_slam_msgs"
-MSG_DIR = Path(__file__).resolve().parents[1] / "msg_defs" / "msg"
 
 T_IMAGE = "sensor_msgs/msg/Image"
 T_INFO = "sensor_msgs/msg/CameraInfo"
 T_POSE = "geometry_msgs/msg/PoseStamped"
-
-
-# --------------------------------------------------------------------- typestore
-def register_project_types(typestore, msg_dir=None) -> List[str]:
-    """Register ``splat_slam_msgs/msg/*`` from ``msg_defs/msg/*.msg`` into a rosbags typestore.
-
-    Returns the registered type names; an absent folder registers nothing (no error).
-    """
-    from rosbags.typesys import get_types_from_msg
-    d = Path(msg_dir) if msg_dir is not None else MSG_DIR
-    if not d.is_dir():
-        return []
-    types = {}
-    for f in sorted(d.glob("*.msg")):
-        types.update(get_types_from_msg(f.read_text(), f"{MSG_PACKAGE}/msg/{f.stem}"))
-    if types:
-        typestore.register(types)
-    return sorted(types)
-
-
-def make_typestore(project_types: bool = True):
-    """ROS 2 Jazzy typestore (+ the project's own messages when msg_defs/ is present)."""
-    from rosbags.typesys import Stores, get_typestore
-    ts = get_typestore(Stores.ROS2_JAZZY)
-    if project_types:
-        register_project_types(ts)
-    return ts
 
 
 # ------------------------------------------------------------ message builders
@@ -88,24 +63,23 @@ def _header(ts, ns: int, frame_id: str):
     return Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame_id)
 
 
+def _image(ts, img: np.ndarray, ns: int, frame_id: str, encoding: str):
+    f = encode_image(img, encoding)
+    return ts.types[T_IMAGE](header=_header(ts, ns, frame_id), height=f.height, width=f.width,
+                             encoding=f.encoding, is_bigendian=0, step=f.step, data=f.data)
+
+
 def image_msg(ts, img: np.ndarray, ns: int, frame_id: str = CAMERA_FRAME):
     """uint8 HxW (mono8) or HxWx3 (rgb8) -> sensor_msgs/Image."""
     img = np.ascontiguousarray(img)
     if img.dtype != np.uint8 or img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
         raise DatasetError(f"image_msg needs uint8 HxW or HxWx3, got {img.dtype} {img.shape}")
-    enc, ch = ("mono8", 1) if img.ndim == 2 else ("rgb8", 3)
-    h, w = img.shape[:2]
-    return ts.types[T_IMAGE](header=_header(ts, ns, frame_id), height=h, width=w, encoding=enc,
-                             is_bigendian=0, step=w * ch, data=img.reshape(-1))
+    return _image(ts, img, ns, frame_id, "mono8" if img.ndim == 2 else "rgb8")
 
 
 def depth_msg(ts, depth: np.ndarray, ns: int, frame_id: str = CAMERA_FRAME):
     """float32 metres HxW -> sensor_msgs/Image 32FC1 (little endian)."""
-    d = np.ascontiguousarray(depth, dtype="<f4")
-    h, w = d.shape
-    return ts.types[T_IMAGE](header=_header(ts, ns, frame_id), height=h, width=w,
-                             encoding="32FC1", is_bigendian=0, step=w * 4,
-                             data=d.view(np.uint8).reshape(-1))
+    return _image(ts, np.asarray(depth, dtype=np.float32), ns, frame_id, "32FC1")
 
 
 def camera_info_msg(ts, K: Intrinsics, ns: int, frame_id: str = CAMERA_FRAME):
@@ -138,65 +112,12 @@ def msg_stamp_ns(msg) -> int:
     return int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
 
 
-def _rows(msg, bytes_per_px: int) -> np.ndarray:
-    buf = np.frombuffer(msg.data if not isinstance(msg.data, list) else bytes(msg.data), np.uint8)
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    if buf.size < h * step or step < w * bytes_per_px:
-        raise DatasetError(f"image message is truncated ({buf.size} bytes for {w}x{h}, step {step})")
-    return buf[:h * step].reshape(h, step)[:, :w * bytes_per_px]
-
-
-def image_from_msg(msg, keep_mono: bool = False) -> np.ndarray:
-    """sensor_msgs/Image (rgb8/bgr8/rgba8/bgra8/mono8) -> RGB uint8 (or HxW mono8 if kept)."""
-    enc = msg.encoding.lower()
-    chans = {"mono8": 1, "8uc1": 1, "rgb8": 3, "bgr8": 3, "8uc3": 3, "rgba8": 4, "bgra8": 4}
-    if enc not in chans:
-        raise DatasetError(f"unsupported image encoding {msg.encoding!r} (rgb8, bgr8, mono8, ...)")
-    c = chans[enc]
-    a = _rows(msg, c).reshape(int(msg.height), int(msg.width), c)
-    if c == 1:
-        a = a[..., 0]
-        return a.copy() if keep_mono else np.repeat(a[..., None], 3, axis=2)
-    a = a[..., :3]
-    if enc.startswith("bgr"):
-        a = a[..., ::-1]
-    return np.ascontiguousarray(a)
-
-
-def depth_from_msg(msg) -> np.ndarray:
-    """sensor_msgs/Image 32FC1 (metres) or 16UC1 (millimetres, REP-118) -> float32 metres."""
-    enc = msg.encoding.upper()
-    big = bool(msg.is_bigendian)
-    if enc == "32FC1":
-        a = _rows(msg, 4).copy().view(">f4" if big else "<f4")
-    elif enc in ("16UC1", "MONO16"):
-        a = _rows(msg, 2).copy().view(">u2" if big else "<u2").astype(np.float32) / 1000.0
-    else:
-        raise DatasetError(f"unsupported depth encoding {msg.encoding!r} (32FC1 or 16UC1)")
-    d = a.reshape(int(msg.height), int(msg.width)).astype(np.float32)
-    d[~np.isfinite(d)] = 0
-    return d
-
-
-def intrinsics_from_camera_info(msg) -> Intrinsics:
-    k = np.asarray(msg.k, dtype=np.float64).reshape(-1)
-    if k.size != 9 or k[0] == 0:
-        raise DatasetError("camera_info has no valid K matrix")
-    return Intrinsics(float(k[0]), float(k[4]), float(k[2]), float(k[5]), int(msg.width),
-                      int(msg.height), msg.distortion_model or "plumb_bob",
-                      [float(x) for x in np.asarray(msg.d, dtype=np.float64)])
-
-
 def pose_from_msg(msg) -> np.ndarray:
     p, q = msg.pose.position, msg.pose.orientation
     return pose_from_tq(np.array([p.x, p.y, p.z, q.x, q.y, q.z, q.w])).numpy()
 
 
 # -------------------------------------------------------------------- writing
-def _is_bag_dir(p: Path) -> bool:
-    return p.is_dir() and (p / "metadata.yaml").is_file()
-
-
 def _prepare_out(out: Path, overwrite: bool) -> None:
     if not out.exists():
         return
@@ -205,7 +126,7 @@ def _prepare_out(out: Path, overwrite: bool) -> None:
         return
     if not overwrite:
         raise DatasetError(f"output {out} already exists (use --overwrite to replace it)")
-    if not _is_bag_dir(out):
+    if not is_bag_dir(out):
         raise DatasetError(f"output {out} exists and is not a rosbag2 folder; not deleting it")
     shutil.rmtree(out)
 
@@ -301,88 +222,6 @@ def write_bag(dataset: Dataset, out_dir, progress: bool = True,
 
 
 # -------------------------------------------------------------------- reading
-class _RosbagsBackend:
-    def __init__(self, path: Path):
-        from rosbags.rosbag2 import Reader
-        from rosbags.rosbag2.errors import ReaderError
-        try:
-            self.reader = Reader(path)
-            self.reader.open()
-        except ReaderError as e:
-            raise DatasetError(f"cannot read bag {path}: {e}") from None
-        self.ts = make_typestore()
-        self.custom = _custom_data(path)
-
-    def topics(self) -> Dict[str, Tuple[str, int]]:
-        return {t: (i.msgtype, i.msgcount) for t, i in self.reader.topics.items()}
-
-    def messages(self, topics) -> Iterator[Tuple[str, int, object]]:
-        """(topic, log_ns, decode()) in log-time order; decoding is deferred."""
-        conns = [c for c in self.reader.connections if c.topic in topics]
-        for c, t, raw in self.reader.messages(connections=conns):
-            yield c.topic, t, (lambda raw=raw, c=c: self.ts.deserialize_cdr(raw, c.msgtype))
-
-    def close(self):
-        self.reader.close()
-
-
-class _McapBackend:
-    def __init__(self, files: List[Path]):
-        from mcap.reader import make_reader
-        from mcap_ros2.decoder import DecoderFactory
-        self.files = files
-        self._make_reader = make_reader
-        self._factory = DecoderFactory()
-        self.custom = {}
-        self._topics: Dict[str, Tuple[str, int]] = {}
-        for f in files:
-            try:
-                with open(f, "rb") as fh:
-                    r = make_reader(fh)
-                    summ = r.get_summary()
-                    if summ is None:
-                        raise DatasetError(f"{f}: MCAP file without a summary section")
-                    stats = summ.statistics.channel_message_counts if summ.statistics else {}
-                    for cid, ch in summ.channels.items():
-                        name = summ.schemas[ch.schema_id].name if ch.schema_id else ""
-                        old = self._topics.get(ch.topic, (name, 0))[1]
-                        self._topics[ch.topic] = (name, old + stats.get(cid, 0))
-            except DatasetError:
-                raise
-            except Exception as e:   # mcap raises several exception types
-                raise DatasetError(f"cannot read MCAP file {f}: {e}") from None
-
-    def topics(self):
-        return dict(self._topics)
-
-    def messages(self, topics):
-        for f in self.files:
-            with open(f, "rb") as fh:
-                r = self._make_reader(fh)
-                decoders = {}
-                for schema, ch, m in r.iter_messages(topics=list(topics), log_time_order=True):
-                    if ch.id not in decoders:
-                        decoders[ch.id] = self._factory.decoder_for(ch.message_encoding, schema)
-                    yield ch.topic, m.log_time, (lambda d=decoders[ch.id], b=m.data: d(b))
-
-    def close(self):
-        pass
-
-
-def _custom_data(bag_dir: Path) -> Dict[str, str]:
-    try:
-        meta = yaml.safe_load((bag_dir / "metadata.yaml").read_text())
-        return dict(meta["rosbag2_bagfile_information"].get("custom_data") or {})
-    except (OSError, yaml.YAMLError, KeyError, TypeError, AttributeError):
-        return {}
-
-
-def _mcap_files_of(bag_dir: Path) -> List[Path]:
-    meta = yaml.safe_load((bag_dir / "metadata.yaml").read_text())
-    rel = meta["rosbag2_bagfile_information"]["relative_file_paths"]
-    return [bag_dir / Path(r).name for r in rel]
-
-
 class BagDataset(Dataset):
     """Frames from a rosbag2 folder (or bare .mcap file) with the layout :func:`write_bag` makes.
 
@@ -396,33 +235,11 @@ class BagDataset(Dataset):
     def __init__(self, path, max_frames: Optional[int] = None, stride: int = 1,
                  keep_mono: bool = False, topics: Optional[Dict[str, Optional[str]]] = None,
                  backend: str = "auto"):
-        _check_selection(stride, max_frames)
+        check_selection(stride, max_frames)
         p = Path(path)
-        if not p.exists():
-            raise DatasetError(f"bag not found: {p}")
-        bag_dir = p if p.is_dir() else None
-        if p.is_file():
-            if p.suffix.lower() != ".mcap":
-                raise DatasetError(f"{p}: a bag is a rosbag2 folder or a .mcap file")
-            if _is_bag_dir(p.parent) and p in _mcap_files_of(p.parent):
-                bag_dir = p.parent
-        if bag_dir is not None and not _is_bag_dir(bag_dir):
-            raise DatasetError(f"{bag_dir}: not a rosbag2 folder (no metadata.yaml)")
-        if backend == "auto":
-            backend = "rosbags" if bag_dir is not None else "mcap"
-        if backend == "rosbags":
-            if bag_dir is None:
-                raise DatasetError(f"{p}: the rosbags backend needs the bag folder (metadata.yaml)")
-            self._backend = _RosbagsBackend(bag_dir)
-        elif backend == "mcap":
-            self._backend = _McapBackend(_mcap_files_of(bag_dir) if p.is_dir() else [p])
-        else:
-            raise DatasetError(f"unknown bag backend {backend!r} (auto, rosbags, mcap)")
-        self.backend = backend
-        info = {}
-        if bag_dir is not None and (bag_dir / INFO_FILE).is_file():
-            info = yaml.safe_load((bag_dir / INFO_FILE).read_text()) or {}
-        custom = self._backend.custom
+        self._bag = bag = BagFile(p, backend)
+        self.backend = bag.backend
+        info, custom, bag_dir = bag.info, bag.custom, bag.bag_dir
         tp = dict(DEFAULT_TOPICS)
         tp.update(info.get("topics") or {})
         tp.update(topics or {})
@@ -431,7 +248,7 @@ class BagDataset(Dataset):
         name = info.get("name") or custom.get("splat_slam.name") or \
             (bag_dir.name if bag_dir is not None else p.stem)
         self.source_format = info.get("format") or custom.get("splat_slam.format")
-        avail = self._backend.topics()
+        avail = bag.topics()
         for role in ("image", "camera_info"):
             if tp.get(role) not in avail:
                 raise DatasetError(f"{p}: bag has no {role} topic {tp.get(role)!r} "
@@ -442,12 +259,12 @@ class BagDataset(Dataset):
         gt: Dict[int, np.ndarray] = {}
         want = [tp["image"], tp["camera_info"]] + ([tp["gt_pose"]] if tp.get("gt_pose") in avail
                                                     else [])
-        for topic, t, dec in self._backend.messages(want):
+        for topic, t, dec in bag.messages(want):
             if topic == tp["image"]:
                 img_ns.append(t)
             elif topic == tp["camera_info"]:
                 if K is None:
-                    K = intrinsics_from_camera_info(dec())
+                    K = camera_info_to_intrinsics(dec())
             else:
                 m = dec()
                 gt[msg_stamp_ns(m)] = pose_from_msg(m)
@@ -457,7 +274,7 @@ class BagDataset(Dataset):
             raise DatasetError(f"{p}: bag has no {tp['image']} messages")
         super().__init__(name, p, K, keep_mono,
                          notes=[f"converted: {n}" for n in info.get("notes") or []])
-        self._sel = _select(len(img_ns), int(stride), max_frames)
+        self._sel = select_frames(len(img_ns), int(stride), max_frames)
         self._img_ns = img_ns
         self._gt_ns = np.array(sorted(gt), dtype=np.int64)
         self._gt = gt
@@ -466,11 +283,11 @@ class BagDataset(Dataset):
             self.depth_scale = 1.0
 
     def close(self) -> None:
-        self._backend.close()
+        self._bag.close()
 
     def topic_counts(self) -> Dict[str, Tuple[str, int]]:
         """{topic: (message type, message count)} of the whole bag."""
-        return self._backend.topics()
+        return self._bag.topics()
 
     # ---------------------------------------------------------------- helpers
     def _gt_for(self, ns: int) -> Optional[np.ndarray]:
@@ -520,19 +337,19 @@ class BagDataset(Dataset):
                 for dd in depths:
                     dm = dd()
                     if msg_stamp_ns(dm) == ns:
-                        depth = depth_from_msg(dm)
+                        depth = decode_depth(dm)
                         break
-                img = image_from_msg(m, keep)
+                img = decode_rgb(m, keep)
                 if (img.shape[1], img.shape[0]) != (self.intrinsics.width, self.intrinsics.height):
                     raise DatasetError(f"image {ordinal} in the bag is {img.shape[1]}x"
                                        f"{img.shape[0]} but camera_info says "
                                        f"{self.intrinsics.width}x{self.intrinsics.height}")
                 yield Frame(index=out, timestamp=ns_to_stamp(ns), image=img,
-                            intrinsics=_copy_intrinsics(self.intrinsics),
+                            intrinsics=copy_intrinsics(self.intrinsics),
                             gt_pose=self._gt_for(ns), gt_depth=depth)
                 out += 1
 
-        for topic, t, dec in self._backend.messages(topics):
+        for topic, t, dec in self._bag.messages(topics):
             if t != group_t:
                 yield from flush()
                 group_t, group = t, []

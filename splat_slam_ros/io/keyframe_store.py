@@ -29,6 +29,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
+from splat_slam_ros.mapping.mapper import Mapper
 from splat_slam_ros.types import Intrinsics, KeyframeData
 
 MANIFEST = "manifest.json"
@@ -301,31 +302,9 @@ class KeyframeStore(RecordStore):
 
 # ====================================================================== mapper
 def mapper_state(mapper) -> Tuple[Dict[str, np.ndarray], Dict[str, Any]]:
-    """Arrays + JSON metadata that :func:`restore_mapper` turns back into an equal Mapper
-    (Gaussians with kf_id/created/born/uid, mapped keyframes with pose and exposure, the
-    window and its visibility sets). Adam moments are not kept (they restart at zero, as for
-    freshly added Gaussians). Keyframe images and depths are not included: the caller stores
-    them per keyframe (images once, depths when they change: :func:`keyframe_depth`), so a
-    snapshot costs O(map), not O(keyframes x image)."""
-    g = mapper.map
-    t = g.tensors()
-    arrays = {k: v.detach().cpu().numpy() for k, v in t.items()}
-    ids = sorted(mapper.keyframes)
-    kfs = [mapper.keyframes[k] for k in ids]
-    arrays["kf_ids"] = np.array(ids, np.int64)
-    arrays["kf_index"] = np.array([k.index for k in kfs], np.int64)
-    arrays["kf_timestamp"] = np.array([k.timestamp for k in kfs], np.float64)
-    arrays["kf_pose"] = (np.stack([k.pose for k in kfs]) if kfs else np.zeros((0, 4, 4)))
-    arrays["kf_exposure"] = (np.stack([k.exposure.detach().cpu().numpy() for k in kfs])
-                             if kfs else np.zeros((0, 2), np.float32))
-    win = mapper.window
-    vis = {str(k): v.detach().cpu().numpy().tolist() for k, v in win.visibility.items()}
-    meta = {"window": list(win.window), "last": win.last, "visibility": vis,
-            "next_uid": int(g._next_uid), "iteration": int(mapper.iteration),
-            "n_deformations": int(mapper.n_deformations),
-            "n_deformed_gaussians": int(mapper.n_deformed_gaussians),
-            "scene_depth": float(mapper._scene_depth)}
-    return arrays, meta
+    """Arrays + JSON metadata of a Mapper (:meth:`Mapper.state_dict`); keyframe images and
+    depths are stored per keyframe by the caller (:func:`keyframe_depth`)."""
+    return mapper.state_dict()
 
 
 def keyframe_depth(mapper, kf_id: int) -> Dict[str, np.ndarray]:
@@ -337,51 +316,9 @@ def keyframe_depth(mapper, kf_id: int) -> Dict[str, np.ndarray]:
 
 
 def restore_mapper(arrays: Dict[str, np.ndarray], meta: Dict[str, Any], cfg, intrinsics,
-                   image_of, depth_of) -> "object":
+                   image_of, depth_of) -> Mapper:
     """Rebuild a Mapper from :func:`mapper_state` output; ``image_of(kf_id)`` returns the
     keyframe's H x W x 3 uint8 image, ``depth_of(kf_id)`` what :func:`keyframe_depth` gave."""
-    import torch
-
-    from splat_slam_ros.mapping.mapper import MappedKeyframe, Mapper
     mp = Mapper(cfg, intrinsics)
-    dev = mp.device
-    g = mp.map
-    n = int(arrays["means"].shape[0])
-    if n:
-        T = {k: torch.from_numpy(np.asarray(arrays[k])) for k in
-             ("means", "colors", "log_scales", "quats", "opacity_logits", "kf_id", "created",
-              "born", "uid")}
-        g.add(T["means"], T["colors"], T["log_scales"], T["quats"], T["opacity_logits"],
-              kf_id=T["kf_id"], created=T["created"], born=T["born"])
-        g.uid = T["uid"].to(device=dev, dtype=torch.long)
-    g._next_uid = int(meta.get("next_uid", n))
-    for i, k in enumerate(np.asarray(arrays["kf_ids"]).tolist()):
-        img = np.asarray(image_of(int(k)), np.uint8)
-        d = depth_of(int(k))
-        W = int(d["width"])
-        valid = np.unpackbits(np.asarray(d["valid"]), axis=-1)[..., :W].astype(bool)
-        kf = MappedKeyframe(int(k), int(arrays["kf_index"][i]), float(arrays["kf_timestamp"][i]),
-                            np.asarray(arrays["kf_pose"][i], np.float64),
-                            torch.from_numpy(np.ascontiguousarray(img)).to(dev),
-                            torch.from_numpy(np.asarray(d["depth"], np.float32)).to(dev),
-                            torch.from_numpy(valid.copy()).to(dev),
-                            torch.from_numpy(np.asarray(arrays["kf_exposure"][i],
-                                                        np.float32)).to(dev))
-        if kf.index > 0:
-            kf.exposure.requires_grad_(True)
-            grp = {"params": [kf.exposure], "lr": mp.mcfg.lr_exposure}
-            if mp._exp_opt is None:
-                mp._exp_opt = torch.optim.Adam([grp], lr=mp.mcfg.lr_exposure)
-            else:
-                mp._exp_opt.add_param_group(grp)
-        mp.keyframes[int(k)] = kf
-    win = mp.window
-    win.window = [int(x) for x in meta.get("window", [])]
-    win.last = meta.get("last")
-    win.visibility = {int(k): torch.tensor(v, dtype=torch.long, device=dev)
-                      for k, v in (meta.get("visibility") or {}).items()}
-    mp.iteration = int(meta.get("iteration", 0))
-    mp.n_deformations = int(meta.get("n_deformations", 0))
-    mp.n_deformed_gaussians = int(meta.get("n_deformed_gaussians", 0))
-    mp._scene_depth = float(meta.get("scene_depth", 0.0))
+    mp.load_state_dict(arrays, meta, image_of, depth_of)
     return mp

@@ -58,25 +58,12 @@ class GaussianMap:
     def __len__(self) -> int:
         return int(self.params["means"].shape[0])
 
-    @property
-    def means(self) -> torch.nn.Parameter:
-        return self.params["means"]
-
-    @property
-    def quats(self) -> torch.nn.Parameter:
-        return self.params["quats"]
-
-    @property
-    def log_scales(self) -> torch.nn.Parameter:
-        return self.params["log_scales"]
-
-    @property
-    def opacity_logits(self) -> torch.nn.Parameter:
-        return self.params["opacity_logits"]
-
-    @property
-    def colors(self) -> torch.nn.Parameter:
-        return self.params["colors"]
+    # the optimised parameters (torch.nn.Parameter), by name
+    means = property(lambda self: self.params["means"])
+    quats = property(lambda self: self.params["quats"])
+    log_scales = property(lambda self: self.params["log_scales"])
+    opacity_logits = property(lambda self: self.params["opacity_logits"])
+    colors = property(lambda self: self.params["colors"])
 
     def scales(self) -> torch.Tensor:
         return self.params["log_scales"].exp()
@@ -186,6 +173,21 @@ class GaussianMap:
         out["born"] = self.born.clone()
         out["uid"] = self.uid.clone()
         return out
+
+    @property
+    def next_uid(self) -> int:
+        """The uid the next added Gaussian gets (uids are never reused)."""
+        return int(self._next_uid)
+
+    def load_tensors(self, t: Dict[str, torch.Tensor], next_uid: Optional[int] = None) -> None:
+        """Replace the contents with :meth:`tensors` output (Adam moments restart at zero)."""
+        self.keep(torch.zeros(len(self), dtype=torch.bool, device=self.device))
+        n = int(t["means"].shape[0])
+        if n:
+            self.add(t["means"], t["colors"], t["log_scales"], t["quats"], t["opacity_logits"],
+                     kf_id=t["kf_id"], created=t["created"], born=t["born"])
+            self.uid = torch.as_tensor(t["uid"]).to(device=self.device, dtype=torch.long)
+        self._next_uid = n if next_uid is None else int(next_uid)
 
     @torch.no_grad()
     def set_rows(self, idx: torch.Tensor, **values: torch.Tensor) -> None:

@@ -32,27 +32,13 @@ from splat_slam_ros.mapping.keyframe_views import history_entry, write_keyframe_
 from splat_slam_ros.mapping.keyframe_window import KeyframeDecision, KeyframeWindow
 from splat_slam_ros.mapping.map_init import init_gaussians
 from splat_slam_ros.mapping.ply_io import load_gaussians_ply, save_gaussians_ply
+from splat_slam_ros.mapping.rasterizer import rasterize
+from splat_slam_ros.runtime import resolve_device
 from splat_slam_ros.types import Intrinsics
 
 
 class MapError(ValueError):
     """A user-facing mapping mistake (bad input shapes, missing poses/depth, bad file)."""
-
-
-def _rasterizer():
-    try:
-        from splat_slam_ros.mapping.rasterizer import rasterize
-    except ImportError as e:
-        raise MapError(f"the Gaussian rasterizer is not available: {e}") from None
-    return rasterize
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise MapError(f"mapping.device is '{name}' but CUDA is not available; use cpu or auto")
-    return torch.device(name)
 
 
 @dataclass
@@ -79,7 +65,7 @@ class Mapper:
                            "which converts negative-focal (ICL-NUIM) cameras")
         if m.window_size < 1 or m.downsample < 1 or m.downsample_first < 1:
             raise MapError("mapping.window_size and mapping.downsample* must be >= 1")
-        self.device = resolve_device(str(device or m.device))
+        self.device = resolve_device(device or m.device, "mapping.device")
         self.K = intrinsics
         self.W, self.H = int(intrinsics.width), int(intrinsics.height)
         self.intr = (float(intrinsics.fx), float(intrinsics.fy), float(intrinsics.cx),
@@ -112,7 +98,7 @@ class Mapper:
 
     def _raster(self, pose, intr=None, width=None, height=None, means=None):
         g = self.map
-        return _rasterizer()(
+        return rasterize(
             g.means if means is None else means, g.normalized_quats(), g.scales(),
             g.opacities(), g.colors, self._viewmat(pose), intr or self.intr,
             int(width or self.W), int(height or self.H), backend=self.backend)
@@ -237,14 +223,7 @@ class Mapper:
         kf = MappedKeyframe(kf_id, len(self.keyframes),
                             float(kf_id if timestamp is None else timestamp), pose, img_t,
                             depth_t, valid_t, torch.zeros(2, device=self.device))
-        if not first:        # the first keyframe fixes the exposure gauge (a = 1, b = 0)
-            kf.exposure.requires_grad_(True)
-            grp = {"params": [kf.exposure], "lr": self.mcfg.lr_exposure}
-            if self._exp_opt is None:
-                self._exp_opt = torch.optim.Adam([grp], lr=self.mcfg.lr_exposure)
-            else:
-                self._exp_opt.add_param_group(grp)
-        self.keyframes[kf_id] = kf
+        self._add_keyframe_record(kf)
         if first and bool(valid_t.any()):
             self._scene_depth = float(depth_t[valid_t].median())
 
@@ -268,6 +247,18 @@ class Mapper:
         stats.update(self.stats())
         self.history.append(history_entry(stats, timestamp))
         return stats
+
+    def _add_keyframe_record(self, kf: MappedKeyframe) -> None:
+        """Store a mapped keyframe; its exposure (Eq. 8 affine a, b) joins the exposure
+        optimiser except for the first keyframe, which fixes the gauge (a = 1, b = 0)."""
+        if kf.index > 0:
+            kf.exposure.requires_grad_(True)
+            grp = {"params": [kf.exposure], "lr": self.mcfg.lr_exposure}
+            if self._exp_opt is None:
+                self._exp_opt = torch.optim.Adam([grp], lr=self.mcfg.lr_exposure)
+            else:
+                self._exp_opt.add_param_group(grp)
+        self.keyframes[kf.kf_id] = kf
 
     # =========================================================== optimisation
     def _pick_views(self, single_random: bool) -> List[int]:
@@ -553,6 +544,67 @@ class Mapper:
         mp.map.add(t["means"], t["colors"], t["log_scales"], t["quats"], t["opacity_logits"],
                    kf_id=t["kf_id"], created=0, born=0)
         return mp
+
+    # ================================================================ state
+    def state_dict(self) -> Tuple[Dict[str, np.ndarray], Dict]:
+        """(arrays, JSON metadata) that :meth:`load_state_dict` turns back into an equal map:
+        Gaussians with kf_id/created/born/uid, mapped keyframes with pose and exposure, the
+        window and its visibility sets, counters. Adam moments are not kept (they restart at
+        zero, as for freshly added Gaussians). Keyframe images and depths are not included:
+        the caller stores them per keyframe, so a snapshot costs O(map), not O(keyframes x
+        image)."""
+        g = self.map
+        arrays = {k: v.detach().cpu().numpy() for k, v in g.tensors().items()}
+        ids = sorted(self.keyframes)
+        kfs = [self.keyframes[k] for k in ids]
+        arrays["kf_ids"] = np.array(ids, np.int64)
+        arrays["kf_index"] = np.array([k.index for k in kfs], np.int64)
+        arrays["kf_timestamp"] = np.array([k.timestamp for k in kfs], np.float64)
+        arrays["kf_pose"] = np.stack([k.pose for k in kfs]) if kfs else np.zeros((0, 4, 4))
+        arrays["kf_exposure"] = (np.stack([k.exposure.detach().cpu().numpy() for k in kfs])
+                                 if kfs else np.zeros((0, 2), np.float32))
+        win = self.window
+        vis = {str(k): v.detach().cpu().numpy().tolist() for k, v in win.visibility.items()}
+        meta = {"window": list(win.window), "last": win.last, "visibility": vis,
+                "next_uid": g.next_uid, "iteration": int(self.iteration),
+                "n_deformations": int(self.n_deformations),
+                "n_deformed_gaussians": int(self.n_deformed_gaussians),
+                "scene_depth": float(self._scene_depth)}
+        return arrays, meta
+
+    def load_state_dict(self, arrays: Dict[str, np.ndarray], meta: Dict, image_of,
+                        depth_of) -> None:
+        """Restore :meth:`state_dict` output into this (fresh) mapper. ``image_of(kf_id)``
+        returns the keyframe's H x W x 3 uint8 image, ``depth_of(kf_id)`` a dict with the
+        proxy ``depth`` (float32), its validity mask bit-packed along rows (``valid``,
+        ``np.packbits(mask, axis=-1)``) and the image ``width``."""
+        if self.keyframes or len(self.map):
+            raise MapError("load_state_dict needs a fresh mapper (no keyframes, no Gaussians)")
+        dev = self.device
+        self.map.load_tensors({k: torch.from_numpy(np.asarray(arrays[k])) for k in
+                               ("means", "colors", "log_scales", "quats", "opacity_logits",
+                                "kf_id", "created", "born", "uid")},
+                              meta.get("next_uid"))
+        for i, k in enumerate(np.asarray(arrays["kf_ids"]).tolist()):
+            img = np.ascontiguousarray(np.asarray(image_of(int(k)), np.uint8))
+            d = depth_of(int(k))
+            W = int(d["width"])
+            valid = np.unpackbits(np.asarray(d["valid"]), axis=-1)[..., :W].astype(bool)
+            self._add_keyframe_record(MappedKeyframe(
+                int(k), int(arrays["kf_index"][i]), float(arrays["kf_timestamp"][i]),
+                np.asarray(arrays["kf_pose"][i], np.float64), torch.from_numpy(img).to(dev),
+                torch.from_numpy(np.asarray(d["depth"], np.float32)).to(dev),
+                torch.from_numpy(valid.copy()).to(dev),
+                torch.from_numpy(np.asarray(arrays["kf_exposure"][i], np.float32)).to(dev)))
+        win = self.window
+        win.window = [int(x) for x in meta.get("window", [])]
+        win.last = meta.get("last")
+        win.visibility = {int(k): torch.tensor(v, dtype=torch.long, device=dev)
+                          for k, v in (meta.get("visibility") or {}).items()}
+        self.iteration = int(meta.get("iteration", 0))
+        self.n_deformations = int(meta.get("n_deformations", 0))
+        self.n_deformed_gaussians = int(meta.get("n_deformed_gaussians", 0))
+        self._scene_depth = float(meta.get("scene_depth", 0.0))
 
     def save_renders(self, folder, depth_scale: float = 1000.0) -> int:
         """Write ``kf_<id>.png`` (rendered colour with the keyframe's exposure) and

@@ -25,7 +25,7 @@ from typing import Optional, Tuple, Union
 
 import torch
 
-from splat_slam_ros.geometry import pixel_grid, project_homogeneous, se3_exp, se3_inverse
+from splat_slam_ros.geometry import intr_tensor, pixel_grid, project_homogeneous, se3_exp, se3_inverse
 
 MIN_DISP = 1e-3
 
@@ -36,13 +36,6 @@ class BAInfo:
     cost: float            # sum of weighted squared residuals (robust weights included)
     rms: float             # weighted RMS residual (BA pixels)
     n_valid: int           # pixel-edges with a positive weight and depth
-
-
-def intr_tensor(intr, dtype=torch.float32, device=None) -> torch.Tensor:
-    """(fx, fy, cx, cy) as a tensor from an Intrinsics, a sequence or a tensor."""
-    if hasattr(intr, "fx"):
-        intr = (intr.fx, intr.fy, intr.cx, intr.cy)
-    return torch.as_tensor(intr, dtype=dtype, device=device)
 
 
 def _rays(h: int, w: int, intr: torch.Tensor) -> torch.Tensor:

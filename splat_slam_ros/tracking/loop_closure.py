@@ -33,11 +33,13 @@ import numpy as np
 import torch
 
 from splat_slam_ros.config import SlamConfig
-from splat_slam_ros.tracking.dense_ba import bundle_adjust, intr_tensor, reproject
+from splat_slam_ros.geometry import intr_tensor, pixel_grid
+from splat_slam_ros.runtime import limit_threads, resolve_device
+from splat_slam_ros.tracking.dense_ba import bundle_adjust, reproject
 from splat_slam_ros.tracking.factor_graph import FactorGraph, proximity_pairs
 from splat_slam_ros.tracking.flow_frontend import make_flow_predictor
-from splat_slam_ros.geometry import pixel_grid, se3_inverse, se3_log
-from splat_slam_ros.tracking.global_ba import normalized_global_ba, spatial_pairs, temporal_pairs
+from splat_slam_ros.tracking.global_ba import normalized_global_ba, spatial_pairs
+from splat_slam_ros.tracking.keyframe_set import KeyframeSet, KeyframeState
 from splat_slam_ros.tracking.motion_filter import MotionFilter
 from splat_slam_ros.types import LOOP_SEQ_START, Intrinsics, KeyframeData, UpdateEvent
 
@@ -49,20 +51,15 @@ class LoopCloser:
 
     def __init__(self, cfg: SlamConfig, intrinsics: Optional[Intrinsics] = None,
                  flow_predictor=None, seq_start: int = LOOP_SEQ_START):
-        from splat_slam_ros.tracking.tracker import resolve_device
         self.cfg = cfg
         self.tc = tc = cfg.tracking
-        self.device = resolve_device(tc.device)
+        self.device = resolve_device(tc.device, "tracking.device")
         self.flow = flow_predictor if flow_predictor is not None else make_flow_predictor(tc)
         self.raw_intrinsics = intrinsics
         self.intr = None                       # BA-grid (fx, fy, cx, cy), from the keyframes
         self.h = self.w = 0
         self.graph: Optional[FactorGraph] = None
-        self.poses: Dict[int, torch.Tensor] = {}
-        self.disps: Dict[int, torch.Tensor] = {}
-        self.prep: Dict[int, object] = {}
-        self.meta: Dict[int, Tuple[int, float]] = {}
-        self.ids: List[int] = []
+        self.kfs = KeyframeSet()               # pose, disparity, prepared image per keyframe
         self.loop_pairs: set = set()           # accepted loop edges (i, j)
         self.checked: set = set()              # candidate pairs already measured (rejected)
         self.new_since_gba: List[int] = []
@@ -70,7 +67,6 @@ class LoopCloser:
         self.motion = MotionFilter(tc.motion_filter_thresh, min_valid_frac=tc.lost_min_valid)
         self.huber = tc.robust_huber_px / tc.ba_downsample if tc.robust_huber_px > 0 else None
         self.gate = tc.edge_gate_px / tc.ba_downsample
-        self.loop_fit_rms = 0.25            # BA px: a loop edge fitting this well needs no loop BA
         self.timings: Dict[str, float] = defaultdict(float)
         self.n_loops = 0
 
@@ -88,19 +84,14 @@ class LoopCloser:
         """Store a new keyframe and measure its odometry edges to the previous ones."""
         if self.graph is None:
             self._setup(kf)
-        from splat_slam_ros.tracking.tracker import limit_threads
         with limit_threads(self.tc.threads):
             t0 = time.perf_counter()
             k = int(kf.kf_id)
-            self.poses[k] = torch.as_tensor(np.asarray(kf.pose), dtype=torch.float64,
-                                            device=self.device)
-            self.disps[k] = torch.as_tensor(np.asarray(kf.disparity), dtype=torch.float32,
-                                            device=self.device)
-            self.prep[k] = self.flow.prepare(kf.image)
-            self.meta[k] = (int(kf.frame_index), float(kf.timestamp))
-            prev = [i for i in self.ids if i < k][-max(self.tc.global_ba_radius, 1):]
-            self.ids.append(k)
-            self.ids.sort()
+            prev = [i for i in self.kfs.ids if i < k][-max(self.tc.global_ba_radius, 1):]
+            self.kfs.add(k, KeyframeState(
+                torch.as_tensor(np.asarray(kf.pose), dtype=torch.float64, device=self.device),
+                torch.as_tensor(np.asarray(kf.disparity), dtype=torch.float32, device=self.device),
+                int(kf.frame_index), float(kf.timestamp), prep=self.flow.prepare(kf.image)))
             self.new_since_gba.append(k)
             for n, p in enumerate(reversed(prev)):
                 # the previous keyframe in both directions, further ones k -> p only
@@ -111,29 +102,25 @@ class LoopCloser:
     def _evict(self) -> None:
         """Bound the store to ``keyframe_buffer`` keyframes (oldest images dropped first)."""
         cap = self.tc.keyframe_buffer
-        if len(self.ids) > cap:
-            for k in self.ids[: len(self.ids) - cap]:
-                self.prep.pop(k, None)
+        ids = self.kfs.ids
+        for k in ids[: max(len(ids) - cap, 0)]:
+            self.kfs.drop_prep(k)
 
     def apply_update(self, ev: UpdateEvent) -> None:
         """Pose/disparity changes made elsewhere (the tracker's local BA)."""
         for n, k in enumerate(ev.kf_ids):
             k = int(k)
-            if k not in self.poses:
+            if k not in self.kfs:
                 continue
-            self.poses[k] = torch.as_tensor(np.asarray(ev.poses[n]), dtype=torch.float64,
+            self.kfs[k].pose = torch.as_tensor(np.asarray(ev.poses[n]), dtype=torch.float64,
                                             device=self.device)
             if ev.disparities is not None:
-                self.disps[k] = torch.as_tensor(np.asarray(ev.disparities[n]),
+                self.kfs[k].disp = torch.as_tensor(np.asarray(ev.disparities[n]),
                                                 dtype=torch.float32, device=self.device)
 
     # ------------------------------------------------------------ helpers
-    def _stack(self, ids):
-        return (torch.stack([self.poses[k] for k in ids]),
-                torch.stack([self.disps[k] for k in ids]))
-
     def _induced_pair(self, a, b):
-        P, D = self._stack([a, b])
+        P, D = self.kfs.stack([a, b])
         uv, _ = reproject(P, D, self.intr, torch.tensor([0, 1], device=self.device),
                           torch.tensor([1, 0], device=self.device))
         return uv - self.grid
@@ -150,7 +137,8 @@ class LoopCloser:
         ``gate`` (BA px, > 0): cells whose measured flow is further than this
         from the induced one get zero weight (DIS locking onto a wrong period
         of a repetitive texture is confident but wrong)."""
-        if a not in self.prep or b not in self.prep:
+        if not (a in self.kfs and b in self.kfs) or self.kfs[a].prep is None \
+                or self.kfs[b].prep is None:
             return None
         from splat_slam_ros.tracking.flow_frontend import predict_both
         t0 = time.perf_counter()
@@ -161,9 +149,9 @@ class LoopCloser:
         best = None
         for how in order:
             if how == "scratch":
-                res = predict_both(self.flow, self.prep[a], self.prep[b])
+                res = predict_both(self.flow, self.kfs[a].prep, self.kfs[b].prep)
             else:
-                res = self.flow.predict_pair(self.prep[a], self.prep[b],
+                res = self.flow.predict_pair(self.kfs[a].prep, self.kfs[b].prep,
                                              init_ij=init[0].cpu(), init_ji=init[1].cpu())
             f, w, fb, wb = (x.to(self.device) for x in res)
             if gate > 0:
@@ -172,7 +160,7 @@ class LoopCloser:
             fc = self.motion.check(f, w)
             if best is None or fc.valid_frac > best[0].valid_frac:
                 best = (fc, f, w, fb, wb)
-            if fc.ok and fc.valid_frac >= 0.6 * (self.motion._typical or 0.0):
+            if fc.ok and fc.valid_frac >= 0.6 * self.motion.typical_valid_frac:
                 break
         self.timings["flow"] += time.perf_counter() - t0
         fc, f, w, fb, wb = best
@@ -185,29 +173,14 @@ class LoopCloser:
 
     def _event(self, reason: str, before: Dict[int, Tuple[torch.Tensor, torch.Tensor]]
                ) -> List[UpdateEvent]:
-        tc = self.tc
-        ids = []
-        for k, (P0, D0) in before.items():
-            P1, D1 = self.poses[k], self.disps[k]
-            dxi = se3_log(se3_inverse(P0) @ P1)
-            scale = 1.0 / max(float(D1.mean()), 1e-6)
-            moved = float(dxi[:3].norm()) > tc.event_pose_thresh * scale or \
-                float(dxi[3:].norm()) > tc.event_pose_thresh
-            dd = float((D1 - D0).abs().mean()) / max(float(D0.abs().mean()), 1e-9)
-            if moved or dd > tc.event_disp_thresh:
-                ids.append(k)
-        if not ids:
-            return []
-        return [UpdateEvent(seq=next(self._seq), reason=reason, kf_ids=ids,
-                            poses=np.stack([self.poses[k].cpu().numpy() for k in ids]),
-                            disparities=np.stack([self.disps[k].cpu().numpy()
-                                                  for k in ids]).astype(np.float32))]
+        ids = self.kfs.changed(before, self.tc.event_pose_thresh, self.tc.event_disp_thresh)
+        return [self.kfs.update_event(next(self._seq), reason, ids)] if ids else []
 
     def _optimize(self, ids: Sequence[int], iters: int, fixed: int, normalize: bool):
         ii, jj, tgt, wgt, pairs = self.graph.gather(ids)
         if not pairs:
             return None
-        P, D = self._stack(ids)
+        P, D = self.kfs.stack(ids)
         if normalize:
             P, D, infos = normalized_global_ba(P, D, self.intr, ii, jj, tgt, wgt, iters,
                                                fixed=fixed, huber=self.huber)
@@ -221,7 +194,7 @@ class LoopCloser:
         a, o = pair
         if poses is None:
             ids = [a, o]
-            poses, disps = self._stack(ids)
+            poses, disps = self.kfs.stack(ids)
         pos = {k: n for n, k in enumerate(ids)}
         tgt, wgt = self.graph.edges[(a, o)]
         uv, valid = reproject(poses, disps, self.intr, torch.tensor([pos[a]], device=self.device),
@@ -234,14 +207,14 @@ class LoopCloser:
     def detect(self) -> List[Tuple[int, int, float]]:
         """Loop candidates (active, old, induced distance) by the Sec. 3.1 criteria."""
         tc = self.tc
-        if len(self.ids) <= tc.loop_time_gap:
+        if len(self.kfs) <= tc.loop_time_gap:
             return []
-        active = self.ids[-tc.loop_window:]
-        old = [k for k in self.ids if k < active[-1] - tc.loop_time_gap and k in self.prep]
+        active = self.kfs.ids[-tc.loop_window:]
+        old = [k for k in self.kfs.with_prep() if k < active[-1] - tc.loop_time_gap]
         if not old:
             return []
         cand_ids = sorted(set(active) | set(old))
-        P, D = self._stack(cand_ids)
+        P, D = self.kfs.stack(cand_ids)
         excl = set(self.loop_pairs) | set(self.checked) | set(self.graph.pairs())
         cands = proximity_pairs(cand_ids, P, D, self.intr, active, tc.loop_flow_thresh,
                                 max_pairs=10 * max(tc.loop_max_edges, 1), exclude=excl,
@@ -268,20 +241,20 @@ class LoopCloser:
         for act, o, d in cands:
             fc = self._measure(act, o, kind="loop", both=True, mode="scratch")
             self.checked.add((act, o))
-            if fc is not None and fc.ok and fc.valid_frac >= 0.5 * (self.motion._typical or 0):
+            if fc is not None and fc.ok and fc.valid_frac >= 0.5 * self.motion.typical_valid_frac:
                 added.append((act, o))
         if not added:
             return []
         # a loop the current estimate already agrees with needs no loop BA: keep its
         # edges for the global BA (saves most loop BAs when there is little drift)
-        fits = [self._edge_rms(p) < self.loop_fit_rms for p in added]
+        fits = [self._edge_rms(p) < self.tc.loop_fit_rms for p in added]
         if all(fits):
             self.loop_pairs.update(added)
             self.n_loops += len(added)
             log.info("loop closure: %d edge(s) %s already consistent, no loop BA",
                      len(added), added)
             return []
-        active = self.ids[-tc.loop_window:]
+        active = self.kfs.ids[-tc.loop_window:]
         nodes = set(active)
         for act, o in added:
             nodes.add(o)
@@ -296,7 +269,7 @@ class LoopCloser:
         fixed = torch.tensor([k not in act_set for k in ids], device=self.device)
         if int(fixed.sum()) < 2:
             fixed[:2] = True
-        before = {k: (self.poses[k].clone(), self.disps[k].clone()) for k in ids}
+        before = self.kfs.snapshot(ids)
         t0 = time.perf_counter()
         res = self._optimize(ids, tc.loop_ba_iters, fixed=fixed, normalize=True)
         self.timings["loop_ba"] += time.perf_counter() - t0
@@ -316,9 +289,7 @@ class LoopCloser:
         if len(ok_pairs) < len(added):      # re-run without the rejected edges
             res = self._optimize(ids, tc.loop_ba_iters, fixed=fixed, normalize=True)
             P, D, infos, pairs = res
-        for n, k in enumerate(ids):
-            self.poses[k] = P[n]
-            self.disps[k] = D[n]
+        self.kfs.write_back(ids, P, D)
         self.loop_pairs.update(ok_pairs)
         self.n_loops += len(ok_pairs)
         log.info("loop closure: %d edge(s) %s, loop BA rms %.3f BA px over %d keyframes",
@@ -328,11 +299,11 @@ class LoopCloser:
     # ------------------------------------------------------------ global BA
     def _add_spatial_edges(self) -> None:
         tc = self.tc
-        ids = [k for k in self.ids]
+        ids = self.kfs.ids
         if len(ids) < 3:
             return
-        P, D = self._stack(ids)
-        sources = [k for k in self.new_since_gba if k in self.prep]
+        P, D = self.kfs.stack(ids)
+        sources = [k for k in self.new_since_gba if k in self.kfs and self.kfs[k].prep is not None]
         pairs = spatial_pairs(ids, P, D, self.intr, sources, tc.global_ba_radius,
                               tc.global_ba_thresh, tc.global_ba_max_edges,
                               exclude=set(self.graph.pairs()) | self.checked)
@@ -345,21 +316,19 @@ class LoopCloser:
 
     def global_ba(self, iters: int, reason: str = "global_ba") -> List[UpdateEvent]:
         """Global BA over all stored keyframes (temporal + spatial + loop edges)."""
-        if len(self.ids) < 3:
+        if len(self.kfs) < 3:
             return []
         t0 = time.perf_counter()
         self._add_spatial_edges()
         self.new_since_gba = []
-        ids = list(self.ids)
-        before = {k: (self.poses[k].clone(), self.disps[k].clone()) for k in ids}
+        ids = self.kfs.ids
+        before = self.kfs.snapshot(ids)
         res = self._optimize(ids, iters, fixed=2, normalize=True)
         self.timings["global_ba"] += time.perf_counter() - t0
         if res is None:
             return []
         P, D, infos, pairs = res
-        for n, k in enumerate(ids):
-            self.poses[k] = P[n]
-            self.disps[k] = D[n]
+        self.kfs.write_back(ids, P, D)
         log.info("global BA (%s): %d keyframes, %d edges, rms %.3f -> %.3f BA px", reason,
                  len(ids), len(pairs), infos[0].rms, infos[-1].rms)
         return self._event(reason, before)
@@ -369,7 +338,6 @@ class LoopCloser:
         """Loop detection + loop BA, and the online global BA when it is due."""
         if self.graph is None:
             return []
-        from splat_slam_ros.tracking.tracker import limit_threads
         events: List[UpdateEvent] = []
         with limit_threads(self.tc.threads):
             t0 = time.perf_counter()
@@ -387,20 +355,16 @@ class LoopCloser:
         """Final global BA (two passes, ``final_ba_iters``); one event per changed set."""
         if self.graph is None or not self.tc.global_ba:
             return []
-        from splat_slam_ros.tracking.tracker import limit_threads
         with limit_threads(self.tc.threads):
             if self.tc.loop_closure:
                 pre = self._close_loops()
             else:
                 pre = []
-            start = {k: (self.poses[k].clone(), self.disps[k].clone()) for k in self.ids}
+            start = self.kfs.snapshot(self.kfs.ids)
             for it in self.tc.final_ba_iters:
                 self.global_ba(int(it), reason="final")
             ev = self._event("final", start)
         return pre + ev
 
     def trajectory_keyframes(self) -> Tuple[np.ndarray, np.ndarray]:
-        ids = list(self.ids)
-        return (np.array([self.meta[k][1] for k in ids]),
-                np.stack([self.poses[k].cpu().numpy() for k in ids]) if ids else
-                np.zeros((0, 4, 4)))
+        return self.kfs.trajectory(self.kfs.ids)

@@ -46,5 +46,10 @@ class MotionFilter:
             self._typical = valid if self._typical is None else 0.9 * self._typical + 0.1 * valid
         return FlowCheck(mf, valid, ok)
 
+    @property
+    def typical_valid_frac(self) -> float:
+        """Running mean of the confident-cell fraction over good frames (0 before the first)."""
+        return 0.0 if self._typical is None else float(self._typical)
+
     def is_candidate(self, fc: FlowCheck) -> bool:
         return fc.ok and fc.mean_flow >= self.thresh

@@ -15,26 +15,27 @@ ROS graph); their events come back through :meth:`Tracker.apply_update`.
 """
 from __future__ import annotations
 
-import contextlib
 import itertools
 import logging
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
-import cv2
 import numpy as np
 import torch
 
 from splat_slam_ros.config import SlamConfig
-from splat_slam_ros.tracking.dense_ba import (bundle_adjust, induced_flow_distance, intr_tensor, pose_only_refine,
+from splat_slam_ros.tracking.dense_ba import (bundle_adjust, induced_flow_distance, pose_only_refine,
                        reproject)
 from splat_slam_ros.tracking.factor_graph import FactorGraph, proximity_pairs
+from splat_slam_ros.tracking.keyframe_set import KeyframeSet, KeyframeState
 from splat_slam_ros.tracking.flow_frontend import (ImagePreprocessor, compose_flows, image_is_degenerate,
                             make_flow_predictor, predict_both)
-from splat_slam_ros.geometry import pixel_grid, pose_from_tq, pose_to_tq, se3_exp, se3_inverse, se3_log
+from splat_slam_ros.geometry import intr_tensor, pixel_grid, pose_from_tq, pose_to_tq, se3_exp, se3_inverse, se3_log
 from splat_slam_ros.tracking.motion_filter import MotionFilter
+from splat_slam_ros.depth.dspo import make_depth_prior
+from splat_slam_ros.runtime import limit_threads, resolve_device
 from splat_slam_ros.tracking.trajectory_filler import FrameRecord, fill_trajectory
 from splat_slam_ros.types import TRACKER_SEQ_START, Frame, Intrinsics, KeyframeData, UpdateEvent
 
@@ -43,36 +44,6 @@ log = logging.getLogger(__name__)
 
 class TrackingError(ValueError):
     """A user-facing tracking configuration/input mistake."""
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise TrackingError(f"tracking.device={name} but CUDA is not available")
-    try:
-        return torch.device(name)
-    except RuntimeError:
-        raise TrackingError(f"tracking.device={name!r} is not a torch device "
-                            "(use cpu, cuda or auto)") from None
-
-
-@contextlib.contextmanager
-def limit_threads(n: int):
-    """Run a block with ``n`` torch/OpenCV threads (0: unchanged). The tracker's
-    tensors are small: on a shared 2-core machine one thread avoids the thread
-    pools' spinning and oversubscription (measured several times faster)."""
-    if n <= 0:
-        yield
-        return
-    old_t, old_cv = torch.get_num_threads(), cv2.getNumThreads()
-    torch.set_num_threads(n)
-    cv2.setNumThreads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old_t)
-        cv2.setNumThreads(old_cv)
 
 
 def orthonormalize(T: torch.Tensor) -> torch.Tensor:
@@ -142,7 +113,7 @@ class Tracker:
                  seq_start: int = TRACKER_SEQ_START):
         self.cfg = cfg
         tc = self.tc = cfg.tracking
-        self.device = resolve_device(tc.device)
+        self.device = resolve_device(tc.device, "tracking.device")
         cam = cfg.camera
         self.pre = ImagePreprocessor(intrinsics, tc.ba_downsample, cam.width, cam.height,
                                      cam.crop, cam.undistort)
@@ -156,12 +127,7 @@ class Tracker:
         self.grid = pixel_grid(self.h, self.w, device=self.device)
         self.huber = tc.robust_huber_px / tc.ba_downsample if tc.robust_huber_px > 0 else None
         # keyframe store (all keyframes: pose + disparity; images only while needed)
-        self.poses: Dict[int, torch.Tensor] = {}
-        self.disps: Dict[int, torch.Tensor] = {}
-        self.conf: Dict[int, torch.Tensor] = {}
-        self.prep: Dict[int, Any] = {}
-        self.images: Dict[int, np.ndarray] = {}
-        self.kf_meta: Dict[int, Tuple[int, float]] = {}
+        self.kfs = KeyframeSet()
         self.window: List[int] = []
         self.published: set = set()
         self.records: List[FrameRecord] = []
@@ -181,13 +147,7 @@ class Tracker:
     def _default_prior(self, intrinsics):
         if not (self.cfg.depth.mono_model and self.tc.dspo):
             return None
-        try:
-            from splat_slam_ros import dspo  # noqa: WPS433 (optional stage, written separately)
-            return dspo.make_depth_prior(self.cfg, self.intrinsics)
-        except (ImportError, AttributeError) as e:
-            log.warning("DSPO requested (depth.mono_model set) but unavailable (%s); "
-                        "using plain DBA", e)
-            return None
+        return make_depth_prior(self.cfg, self.intrinsics)   # Eq. 2 (DSPO); errors propagate
 
     def next_seq(self) -> int:
         return next(self._seq)
@@ -211,17 +171,11 @@ class Tracker:
                           torch.tensor([1], device=self.device))
         return uv[0] - self.grid
 
-    def _stack(self, ids):
-        return (torch.stack([self.poses[k] for k in ids]),
-                torch.stack([self.disps[k] for k in ids]))
-
-    MAX_STORED_FLOWS = 20000     # frames whose flow is kept for the final refinement
-
     def _record(self, frame: Frame, **kw) -> FrameRecord:
         r = FrameRecord(frame.index, float(frame.timestamp), **kw)
         self.records.append(r)
         # bound memory on long live runs: older frames keep only their relative pose
-        old = len(self.records) - 1 - self.MAX_STORED_FLOWS
+        old = len(self.records) - 1 - self.tc.max_stored_flows
         if old >= 0:
             self.records[old].flow = self.records[old].weight = None
         return r
@@ -230,15 +184,15 @@ class Tracker:
         return f.detach().to("cpu", torch.float16), w.detach().to("cpu", torch.float16)
 
     def _keyframe_data(self, kid: int) -> KeyframeData:
-        fi, ts = self.kf_meta[kid]
+        ks = self.kfs[kid]
         mono = None
         if self.depth_prior is not None and hasattr(self.depth_prior, "take_mono_depth"):
             mono = self.depth_prior.take_mono_depth(kid)     # DSPO ran the mono model already
-        return KeyframeData(kf_id=kid, frame_index=fi, timestamp=ts,
-                            pose=self.poses[kid].cpu().numpy().copy(),
-                            image=self.images[kid], intrinsics=self.intrinsics,
-                            disparity=self.disps[kid].cpu().numpy().astype(np.float32),
-                            confidence=self.conf[kid].cpu().numpy().astype(np.float32),
+        return KeyframeData(kf_id=kid, frame_index=ks.frame_index, timestamp=ks.timestamp,
+                            pose=ks.pose.cpu().numpy().copy(),
+                            image=ks.image, intrinsics=self.intrinsics,
+                            disparity=ks.disp.cpu().numpy().astype(np.float32),
+                            confidence=ks.conf.cpu().numpy().astype(np.float32),
                             mono_depth=mono)
 
     def _new_kf_id(self) -> int:
@@ -284,12 +238,10 @@ class Tracker:
     # ------------------------------------------------------------ warm-up
     def _add_keyframe(self, frame, img, prep, pose, disp) -> int:
         kid = self._new_kf_id()
-        self.poses[kid] = orthonormalize(pose.to(self.device, torch.float64))
-        self.disps[kid] = disp.to(self.device, torch.float32)
-        self.conf[kid] = torch.ones(self.h, self.w, device=self.device)
-        self.prep[kid] = prep
-        self.images[kid] = img
-        self.kf_meta[kid] = (frame.index, float(frame.timestamp))
+        self.kfs.add(kid, KeyframeState(
+            orthonormalize(pose.to(self.device, torch.float64)), disp.to(self.device, torch.float32),
+            frame.index, float(frame.timestamp), prep=prep, image=img,
+            conf=torch.ones(self.h, self.w, device=self.device)))
         self.window.append(kid)
         return kid
 
@@ -304,7 +256,7 @@ class Tracker:
         ref = self.window[-1]
         init = self._last_flow[1] if self._last_flow is not None and \
             self._last_flow[0] == ref else None
-        f, w, fb, wb = self._flows(self.prep[ref], prep, init)
+        f, w, fb, wb = self._flows(self.kfs[ref].prep, prep, init)
         fc = self.motion.check(f, w)
         if not fc.ok:
             self._last_flow = None
@@ -322,7 +274,7 @@ class Tracker:
             return TrackStep(frame.index, float(frame.timestamp), False, None,
                              eye.cpu().numpy(), initialized=False, info=info)
         kid = self._add_keyframe(frame, img, prep, eye, ones)
-        self.conf[kid] = wb.mean(-1)
+        self.kfs[kid].conf = wb.mean(-1)
         self.graph.add(ref, kid, f, w)
         self.graph.add(kid, ref, fb, wb)
         self._record(frame, kf_id=kid)
@@ -332,9 +284,7 @@ class Tracker:
         return self._initialize(frame, info)
 
     def _reset(self) -> None:
-        for k in list(self.poses):
-            for d in (self.poses, self.disps, self.conf, self.prep, self.images, self.kf_meta):
-                d.pop(k, None)
+        self.kfs.clear()
         self.graph = FactorGraph(self.h, self.w, self.device)
         self.window = []
         self.lost_count = 0
@@ -346,10 +296,10 @@ class Tracker:
         # extra edges k -> k-2 (and back) for a stiffer warm-up graph
         for a, m, b in zip(ids[:-2], ids[1:-1], ids[2:]):
             init = compose_flows(self.graph.flow(a, m), self.graph.flow(m, b))
-            f, w, fb, wb = self._flows(self.prep[a], self.prep[b], init)
+            f, w, fb, wb = self._flows(self.kfs[a].prep, self.kfs[b].prep, init)
             self.graph.add(a, b, f, w, kind="init")
             self.graph.add(b, a, fb, wb, kind="init")
-        poses, disps = self._stack(ids)
+        poses, disps = self.kfs.stack(ids)
         ii, jj, tgt, wgt, pairs = self.graph.gather(ids)
         t0 = time.perf_counter()
         n = self.tc.init_iters
@@ -365,9 +315,7 @@ class Tracker:
         self.timings["ba"] += time.perf_counter() - t0
         log.info("initialised from %d keyframes: reprojection rms %.3f -> %.3f BA px",
                  len(ids), infos[0].rms, infos2[-1].rms)
-        for n_, k in enumerate(ids):
-            self.poses[k] = poses[n_]
-            self.disps[k] = disps[n_]
+        self.kfs.write_back(ids, poses, disps)
         self.initialized = True
         self.last_pose = poses[-1].clone()
         self.velocity = torch.eye(4, dtype=torch.float64, device=self.device)
@@ -378,7 +326,7 @@ class Tracker:
         self._trim_window()
         kid = ids[-1]
         return TrackStep(frame.index, float(frame.timestamp), True, kid,
-                         self.poses[kid].cpu().numpy().copy(), keyframe=kds[-1], keyframes=kds,
+                         self.kfs[kid].pose.cpu().numpy().copy(), keyframe=kds[-1], keyframes=kds,
                          info={**info, "ba_rms": infos2[-1].rms})
 
     # ------------------------------------------------------------ tracking
@@ -388,7 +336,7 @@ class Tracker:
         # cannot corrupt it)
         init = self._last_flow[1] if use_last and self._last_flow is not None and \
             self._last_flow[0] == ref else None
-        f, w, fb, wb = self._flows(self.prep[ref], prep, init)
+        f, w, fb, wb = self._flows(self.kfs[ref].prep, prep, init)
         return (f, w, fb, wb), self.motion.check(f, w)
 
     def _fit_pose(self, ref, f, w, inits):
@@ -396,7 +344,7 @@ class Tracker:
         best = None
         t0 = time.perf_counter()
         for T0 in inits:
-            T, info = pose_only_refine(self.poses[ref], self.disps[ref], T0, self.intr,
+            T, info = pose_only_refine(self.kfs[ref].pose, self.kfs[ref].disp, T0, self.intr,
                                        self.grid + f, w, iters=self.tc.pose_iters,
                                        huber=self.huber)
             if info is not None and np.isfinite(info.rms) and (best is None or
@@ -424,7 +372,7 @@ class Tracker:
         if not fc.ok:
             return self._lost(frame, f"low flow confidence ({fc.valid_frac:.2f} valid)")
         f, w, fb, wb = flows
-        T_ref = self.poses[ref]
+        T_ref = self.kfs[ref].pose
         inits = [T_ref.clone()] if was_lost else [pred, self.last_pose.clone(), T_ref.clone()]
         T, pinfo = self._fit_pose(ref, f, w, inits)
         if pinfo is None or not np.isfinite(pinfo.rms) or pinfo.rms > tc.lost_rms:
@@ -441,7 +389,7 @@ class Tracker:
         self._set_pose(T)
         sf, sw = self._store_flow(f, w)
         self._record(frame, ref_kf=ref, rel_pose=(se3_inverse(T_ref) @ T).cpu().numpy(),
-                     ref_scale=float(self.disps[ref].mean()), flow=sf, weight=sw,
+                     ref_scale=float(self.kfs[ref].disp.mean()), flow=sf, weight=sw,
                      online_pose=T.cpu().numpy())
         return TrackStep(frame.index, float(frame.timestamp), False, None,
                          T.cpu().numpy().copy(), info=info)
@@ -454,7 +402,7 @@ class Tracker:
 
     def _init_disparity(self, ref, T_ref, T_new, fb, wb) -> torch.Tensor:
         """Disparity of a new keyframe from the reference's via the flow new -> ref."""
-        d_ref = self.disps[ref]
+        d_ref = self.kfs[ref].disp
         h, w = self.h, self.w
         coords = self.grid + fb
         gxy = torch.stack([2 * coords[..., 0] / (w - 1) - 1, 2 * coords[..., 1] / (h - 1) - 1],
@@ -481,9 +429,9 @@ class Tracker:
         for k in self.window[-1 - self.tc.frontend_radius:-2]:
             if (k, kid) in self.graph:
                 continue
-            init_ab = self._induced(self.poses[k], self.disps[k], self.poses[kid])
-            init_ba = self._induced(self.poses[kid], self.disps[kid], self.poses[k])
-            f, w, fb, wb = self._flows(self.prep[k], self.prep[kid], init_ab, init_ba)
+            init_ab = self._induced(self.kfs[k].pose, self.kfs[k].disp, self.kfs[kid].pose)
+            init_ba = self._induced(self.kfs[kid].pose, self.kfs[kid].disp, self.kfs[k].pose)
+            f, w, fb, wb = self._flows(self.kfs[k].prep, self.kfs[kid].prep, init_ab, init_ba)
             if self.motion.check(f, w).ok:
                 self.graph.add(k, kid, f, w, kind="radius")
                 self.graph.add(kid, k, fb, wb, kind="radius")
@@ -493,7 +441,7 @@ class Tracker:
         if tc.frontend_new_edges <= 0 or len(self.window) < 3:
             return
         ids = list(self.window)
-        poses, disps = self._stack(ids)
+        poses, disps = self.kfs.stack(ids)
         cands = proximity_pairs(ids, poses, disps, self.intr, [kid], tc.frontend_thresh,
                                 tc.frontend_new_edges, exclude=self.graph.pairs(),
                                 min_gap=1, nms=tc.frontend_nms)
@@ -503,9 +451,9 @@ class Tracker:
             ib = torch.tensor([pos[b], pos[a]], device=self.device)
             uv, _valid = reproject(poses, disps, self.intr, ia, ib)
             init = uv - self.grid
-            f, w, fb, wb = self._flows(self.prep[a], self.prep[b], init[0], init[1])
+            f, w, fb, wb = self._flows(self.kfs[a].prep, self.kfs[b].prep, init[0], init[1])
             fc = self.motion.check(f, w)
-            if fc.valid_frac < 0.5 * max(self.motion._typical or 0.0, tc.lost_min_valid):
+            if fc.valid_frac < 0.5 * max(self.motion.typical_valid_frac, tc.lost_min_valid):
                 continue
             self.graph.add(a, b, f, w, kind="proximity")
             self.graph.add(b, a, fb, wb, kind="proximity")
@@ -514,42 +462,24 @@ class Tracker:
         tc = self.tc
         while len(self.window) > tc.frontend_window:
             old = self.window.pop(0)
-            self.prep.pop(old, None)
-            self.images.pop(old, None)
+            self.kfs.drop_prep(old)
+            self.kfs.drop_image(old)
         self.graph.prune(self.window, tc.max_edge_age, tc.frontend_max_factors,
                          protect=self.window[-2:])
-        for k in list(self.images):
+        for k in self.kfs.with_image():
             if k in self.published:
-                self.images.pop(k, None)
+                self.kfs.drop_image(k)
 
     def _snapshot(self, ids):
-        return {k: (self.poses[k].clone(), self.disps[k].clone()) for k in ids
-                if k in self.published}
+        return self.kfs.snapshot(k for k in ids if k in self.published)
 
     def _events(self, reason: str, before) -> List[UpdateEvent]:
-        tc = self.tc
-        ids = []
-        for k, (P0, D0) in before.items():
-            if k not in self.poses:
-                continue
-            P1, D1 = self.poses[k], self.disps[k]
-            dxi = se3_log(se3_inverse(P0) @ P1)
-            scale = 1.0 / max(float(D1.mean()), 1e-6)
-            moved = float(dxi[:3].norm()) > tc.event_pose_thresh * scale or \
-                float(dxi[3:].norm()) > tc.event_pose_thresh
-            ddisp = float((D1 - D0).abs().mean()) / max(float(D0.abs().mean()), 1e-9)
-            if moved or ddisp > tc.event_disp_thresh:
-                ids.append(k)
-        if not ids:
-            return []
-        return [UpdateEvent(seq=self.next_seq(), reason=reason, kf_ids=ids,
-                            poses=np.stack([self.poses[k].cpu().numpy() for k in ids]),
-                            disparities=np.stack([self.disps[k].cpu().numpy()
-                                                  for k in ids]).astype(np.float32))]
+        ids = self.kfs.changed(before, self.tc.event_pose_thresh, self.tc.event_disp_thresh)
+        return [self.kfs.update_event(self.next_seq(), reason, ids)] if ids else []
 
     def _local_ba(self, iters: int):
         ids = list(self.window)
-        poses, disps = self._stack(ids)
+        poses, disps = self.kfs.stack(ids)
         ii, jj, tgt, wgt, pairs = self.graph.gather(ids)
         if len(pairs) == 0:
             return None
@@ -561,14 +491,13 @@ class Tracker:
         if self.depth_prior is not None:
             t0 = time.perf_counter()
             st = BAState(ids, poses, disps, self.intr, ii, jj, tgt, wgt,
-                         {k: self.images[k] for k in ids if k in self.images}, fixed)
+                         {k: self.kfs[k].image for k in ids
+                          if self.kfs[k].image is not None}, fixed)
             out = self.depth_prior(st)
             if out is not None:
                 disps = out.to(disps)
             self.timings["dspo"] += time.perf_counter() - t0
-        for n, k in enumerate(ids):
-            self.poses[k] = poses[n]
-            self.disps[k] = disps[n]
+        self.kfs.write_back(ids, poses, disps)
         self.graph.age_edges(pairs)
         return infos[-1]
 
@@ -576,8 +505,8 @@ class Tracker:
         tc = self.tc
         before = self._snapshot(self.window)
         kid = self._add_keyframe(frame, img, prep, T, self._init_disparity(
-            ref, self.poses[ref], T, fb, wb))
-        self.conf[kid] = wb.mean(-1)
+            ref, self.kfs[ref].pose, T, fb, wb))
+        self.kfs[kid].conf = wb.mean(-1)
         self.graph.add(ref, kid, f, w)
         self.graph.add(kid, ref, fb, wb)
         self._add_radius_edges(kid)
@@ -585,10 +514,10 @@ class Tracker:
         self._trim_window()
         binfo = self._local_ba(tc.ba_iters)
         events = self._events("local_ba", before)
-        T_new = self.poses[kid]
+        T_new = self.kfs[kid].pose
         # keyframe threshold tau on the flow induced by the optimised estimate
         ids = [ref, kid]
-        P, D = self._stack(ids)
+        P, D = self.kfs.stack(ids)
         i0 = torch.tensor([0, 1], device=self.device)
         i1 = torch.tensor([1, 0], device=self.device)
         dist = float(induced_flow_distance(P, D, self.intr, i0, i1).mean())
@@ -597,9 +526,9 @@ class Tracker:
             self._drop_keyframe(kid)
             self._set_pose(T_new)
             sf, sw = self._store_flow(f, w)
-            T_ref = self.poses[ref]
+            T_ref = self.kfs[ref].pose
             self._record(frame, ref_kf=ref, rel_pose=(se3_inverse(T_ref) @ T_new).cpu().numpy(),
-                         ref_scale=float(self.disps[ref].mean()), flow=sf, weight=sw,
+                         ref_scale=float(self.kfs[ref].disp.mean()), flow=sf, weight=sw,
                          online_pose=T_new.cpu().numpy())
             return TrackStep(frame.index, float(frame.timestamp), False, None,
                              T_new.cpu().numpy().copy(), events=events, info=info)
@@ -607,7 +536,7 @@ class Tracker:
         self._record(frame, kf_id=kid)
         kd = self._keyframe_data(kid)
         self.published.add(kid)
-        self.images.pop(kid, None)
+        self.kfs.drop_image(kid)
         return TrackStep(frame.index, float(frame.timestamp), True, kid,
                          T_new.cpu().numpy().copy(), events=events, keyframe=kd,
                          keyframes=[kd], info=info)
@@ -615,8 +544,7 @@ class Tracker:
     def _drop_keyframe(self, kid: int) -> None:
         self.graph.remove_node(kid)
         self.window.remove(kid)
-        for d in (self.poses, self.disps, self.conf, self.prep, self.images, self.kf_meta):
-            d.pop(kid, None)
+        self.kfs.remove(kid)
         self.next_kf = kid          # ids stay contiguous
 
     # ------------------------------------------------------------ updates
@@ -628,27 +556,27 @@ class Tracker:
         as is the current frame pose.
         """
         ids = [int(k) for k in ev.kf_ids]
-        known = [k for k in ids if k in self.poses]
+        known = [k for k in ids if k in self.kfs]
         if not known:
             return
         newest = max(known)
         corr = None
         for n, k in enumerate(ids):
-            if k not in self.poses:
+            if k not in self.kfs:
                 continue
             T_new = torch.as_tensor(np.asarray(ev.poses[n]), dtype=torch.float64,
                                     device=self.device)
             if k == newest:
-                corr = T_new @ se3_inverse(self.poses[k])
-            self.poses[k] = T_new
+                corr = T_new @ se3_inverse(self.kfs[k].pose)
+            self.kfs[k].pose = T_new
             if ev.disparities is not None:
-                self.disps[k] = torch.as_tensor(np.asarray(ev.disparities[n]),
+                self.kfs[k].disp = torch.as_tensor(np.asarray(ev.disparities[n]),
                                                 dtype=torch.float32, device=self.device)
-        later = [k for k in self.poses if k > newest and k not in ids]
+        later = [k for k in self.kfs if k > newest and k not in ids]
         if corr is not None:
             corr = orthonormalize(corr)
             for k in later:
-                self.poses[k] = corr @ self.poses[k]
+                self.kfs[k].pose = corr @ self.kfs[k].pose
             # the current frame hangs off the newest keyframe
             self.last_pose = corr @ self.last_pose
 
@@ -664,23 +592,19 @@ class Tracker:
 
     # ------------------------------------------------------------ outputs
     def trajectory_keyframes(self) -> Tuple[np.ndarray, np.ndarray]:
-        ids = sorted(k for k in self.poses if k in self.published)
-        if not ids:
-            return np.zeros(0), np.zeros((0, 4, 4))
-        return (np.array([self.kf_meta[k][1] for k in ids]),
-                np.stack([self.poses[k].cpu().numpy() for k in ids]))
+        return self.kfs.trajectory(self.keyframe_ids())
 
     def keyframe_ids(self) -> List[int]:
-        return sorted(k for k in self.poses if k in self.published)
+        return [k for k in self.kfs if k in self.published]
 
     def trajectory_full(self) -> Tuple[np.ndarray, np.ndarray]:
         """(timestamps, poses) of every input frame (non-keyframes filled)."""
         t0 = time.perf_counter()
         if self.initialized:
-            kp = {k: self.poses[k].cpu() for k in self.published}
-            kd = {k: self.disps[k].cpu() for k in self.published}
+            kp = {k: self.kfs[k].pose.cpu() for k in self.published}
+            kd = {k: self.kfs[k].disp.cpu() for k in self.published}
         else:    # never initialised (static camera): everything at the first keyframe
-            kp = {k: self.poses[k].cpu() for k in self.window[:1]}
+            kp = {k: self.kfs[k].pose.cpu() for k in self.window[:1]}
             kd = {}
         with limit_threads(self.tc.threads):
             ts, poses = fill_trajectory(self.records, kp, kd, self.intr.cpu(),

@@ -1,8 +1,13 @@
-"""Topic table shared by the DDS test scripts (import after apply_ros_environment())."""
+"""Shared by the DDS test scripts: importing it applies the project's ROS environment, so
+import it before rclpy. Topic table and argument parsing."""
+import argparse
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from splat_slam_ros.ros_env import apply_ros_environment  # noqa: E402
+
+apply_ros_environment()
 
 KINDS = ("keyframe", "pose_graph", "proxy_depth", "image")
 
@@ -21,3 +26,13 @@ def topic_types():
 
 def topic_name(ns: str, kind: str) -> str:
     return f"/{ns}/{kind}"
+
+
+def parse_args(**options):
+    """``--ns NAME`` plus ``--OPTION`` (dashes for underscores) with the given defaults,
+    typed like the default."""
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--ns", required=True)
+    for name, default in options.items():
+        ap.add_argument("--" + name.replace("_", "-"), type=type(default), default=default)
+    return ap.parse_args()

@@ -1,19 +1,15 @@
 """Publisher side of tests/test_msgs_dds.py: waits for matched subscribers, publishes
 ``--count`` messages of every kind, waits until all are acknowledged, prints JSON lines."""
-import argparse
 import json
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from splat_slam_ros.ros_env import apply_ros_environment  # noqa: E402
-
-apply_ros_environment()
+import dds_common  # noqa: E402  (applies the ROS environment: before rclpy)
 import rclpy  # noqa: E402
 from rclpy.duration import Duration  # noqa: E402
 
-import dds_common  # noqa: E402
 import dds_payloads  # noqa: E402
 
 
@@ -22,12 +18,7 @@ def out(**kw):
 
 
 def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--ns", required=True)
-    ap.add_argument("--count", type=int, default=5)
-    ap.add_argument("--subs", type=int, default=1, help="subscribers to wait for per topic")
-    ap.add_argument("--match-timeout", type=float, default=20.0)
-    a = ap.parse_args()
+    a = dds_common.parse_args(count=5, subs=1, match_timeout=20.0)   # subs: per topic
     # Build every message before DDS starts, so publishing is not slowed by imports.
     msgs = {k: [dds_payloads.build(k, i) for i in range(a.count)] for k in dds_common.KINDS}
     rclpy.init()

@@ -1,28 +1,20 @@
 """Subscriber side of tests/test_msgs_dds.py: receives raw CDR of every kind, checks the
 contents against the deterministic payloads, prints one JSON line with the results."""
-import argparse
 import json
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from splat_slam_ros.ros_env import apply_ros_environment  # noqa: E402
-
-apply_ros_environment()
+import dds_common  # noqa: E402  (applies the ROS environment: before rclpy)
 import rclpy  # noqa: E402
 from rclpy.serialization import deserialize_message  # noqa: E402
 
-import dds_common  # noqa: E402
 import dds_payloads  # noqa: E402
 
 
 def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--ns", required=True)
-    ap.add_argument("--count", type=int, default=5)
-    ap.add_argument("--timeout", type=float, default=30.0)
-    a = ap.parse_args()
+    a = dds_common.parse_args(count=5, timeout=30.0)
     import splat_slam_nodes.convert  # noqa: F401  (import before timing: pulls torch lazily later)
     rclpy.init()
     node = rclpy.create_node("splat_dds_test_sub")

@@ -1,14 +1,11 @@
 """Publisher for the splat-slam-topic test in tests/test_msgs_dds.py: a small rgb8 Image at --rate Hz on
 /NS/image and one Keyframe (RELIABLE + TRANSIENT_LOCAL) on /NS/keyframes, for --duration s."""
-import argparse
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from splat_slam_ros.ros_env import apply_ros_environment  # noqa: E402
-
-apply_ros_environment()
+import dds_common  # noqa: E402  (applies the ROS environment: before rclpy)
 import numpy as np  # noqa: E402
 import rclpy  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
@@ -18,11 +15,7 @@ from splat_slam_nodes import convert, qos  # noqa: E402
 
 
 def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--ns", required=True)
-    ap.add_argument("--rate", type=float, default=20.0)
-    ap.add_argument("--duration", type=float, default=15.0)
-    a = ap.parse_args()
+    a = dds_common.parse_args(rate=20.0, duration=15.0)
     import dds_payloads
     kf = convert.keyframe_to_msg(dds_payloads.keyframe(3))
     img = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)

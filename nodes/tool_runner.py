@@ -1,0 +1,25 @@
+"""The rclpy session of the command-line tools (bag player, splat-slam-topic): init, run,
+user errors as ``error: ...`` with exit status 2, clean exit on Ctrl-C / external shutdown.
+rclpy is imported when a tool runs, after it applied the project's ROS environment."""
+from __future__ import annotations
+
+import sys
+from typing import Callable, List, Optional, Tuple, Type
+
+
+def run_rclpy_tool(body: Callable[[], int], user_errors: Tuple[Type[BaseException], ...],
+                   rclpy_args: Optional[List[str]] = None, interrupted: int = 130) -> int:
+    """``rclpy.init(rclpy_args)``, ``body()``; returns its status, 2 for ``user_errors`` and
+    ``interrupted`` when stopped by SIGINT / SIGTERM; rclpy is always shut down."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    rclpy.init(args=rclpy_args)
+    try:
+        return body()
+    except user_errors as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return interrupted
+    finally:
+        rclpy.try_shutdown()

@@ -1,0 +1,43 @@
+"""Synthetic RGB-D sequences in the TUM layout, driven by real recorded camera trajectories.
+
+``generate_sequence`` samples N camera frames at ``fps`` along a trajectory (TUM, KITTI,
+EuRoC or the built-in hand-held path), fits a textured room with furniture-like boxes
+around it, renders RGB + exact z-depth by vectorised ray casting (analytic ray/box slab
+intersections, trilinear mip-mapped textures, Lambertian shading with contact shadows)
+and writes::
+
+    OUT/rgb/<t>.png  OUT/depth/<t>.png (uint16, 5000 per metre)  OUT/rgb.txt  OUT/depth.txt
+    OUT/groundtruth.txt (TUM, camera-to-world, the exact pose each frame was rendered with)
+    OUT/intrinsics.yaml (Intrinsics.to_yaml + depth_scale, fps, generation record)
+
+Camera realism (motion blur, auto-exposure drift, vignetting, shot/read noise, JPEG) is
+applied to RGB only; depth stays clean for evaluation.
+
+Conventions follow ``types.py``: poses camera-to-world, OpenCV camera axes (x right,
+y down, z forward), pixel centres at integer coordinates. Internally the scene lives in a
+"room frame" (z up, origin at the mean camera position); ``Scene.T_room_world`` maps
+world points into it.
+
+Modules: ``options`` (constants, errors, realism settings), ``trajectories`` (built-in path,
+file loading, interpolation), ``textures``, ``scene`` (room + boxes fitted to a trajectory),
+``render`` (ray casting), ``camera`` (photometric effects) and ``sequence`` (plan + write).
+"""
+from splat_slam_ros.io.synth.camera import CameraEffects
+from splat_slam_ros.io.synth.options import (DEPTH_SCALE, GAP_WARN_S, REALISM_PRESETS, TEX_LEVELS,
+                                            TEX_SIZE, RealismOptions, SynthError,
+                                            default_intrinsics, parse_size, resolve_realism)
+from splat_slam_ros.io.synth.render import render_frame
+from splat_slam_ros.io.synth.scene import Scene, build_scene, make_scene
+from splat_slam_ros.io.synth.sequence import (SequencePlan, depth_to_png16, generate_sequence,
+                                             plan_sequence)
+from splat_slam_ros.io.synth.textures import PROCEDURAL, procedural_texture
+from splat_slam_ros.io.synth.trajectories import (PoseInterpolator, builtin_trajectory, estimate_up,
+                                                 frame_stamps, load_trajectory)
+
+__all__ = [
+    "CameraEffects", "DEPTH_SCALE", "GAP_WARN_S", "REALISM_PRESETS", "TEX_LEVELS", "TEX_SIZE",
+    "RealismOptions", "SynthError", "default_intrinsics", "parse_size", "resolve_realism",
+    "render_frame", "Scene", "build_scene", "make_scene", "SequencePlan", "depth_to_png16",
+    "generate_sequence", "plan_sequence", "PROCEDURAL", "procedural_texture", "PoseInterpolator",
+    "builtin_trajectory", "estimate_up", "frame_stamps", "load_trajectory",
+]

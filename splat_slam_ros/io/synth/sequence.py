@@ -1,0 +1,218 @@
+"""Planning and writing a synthetic TUM-layout RGB-D sequence (see the package docstring)."""
+from __future__ import annotations
+
+import shutil
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Dict, Optional, Tuple
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from splat_slam_ros.io.synth.camera import CameraEffects
+from splat_slam_ros.io.synth.options import (DEPTH_SCALE, GAP_WARN_S, RealismOptions, SynthError,
+                                            default_intrinsics, parse_size, resolve_realism)
+from splat_slam_ros.io.synth.render import render_view
+from splat_slam_ros.io.synth.scene import Scene, build_scene
+from splat_slam_ros.io.synth.trajectories import PoseInterpolator, frame_stamps, load_trajectory
+from splat_slam_ros.io.trajectory_io import write_tum
+from splat_slam_ros.runtime import DeviceError, limit_threads, resolve_device
+from splat_slam_ros.types import Intrinsics
+
+
+def depth_to_png16(depth: np.ndarray) -> np.ndarray:
+    """Metres -> uint16 at 5000/m; 0 where missing or beyond 13.1 m (the uint16 range)."""
+    d = np.nan_to_num(np.asarray(depth, np.float64), nan=0.0, posinf=0.0) * DEPTH_SCALE
+    d = np.where((d > 0) & (d <= 65535), np.round(d), 0)
+    return d.astype(np.uint16)
+
+
+def _prepare_out(out: Path, overwrite: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise SynthError(f"--out {out} exists and is not a directory")
+    if out.is_dir() and any(out.iterdir()):
+        if not overwrite:
+            raise SynthError(f"output directory {out} is not empty (use --overwrite to replace "
+                             "a previous synthetic sequence there)")
+        for sub in ("rgb", "depth"):
+            if (out / sub).is_dir():
+                shutil.rmtree(out / sub)
+        for name in ("rgb.txt", "depth.txt", "groundtruth.txt", "intrinsics.yaml"):
+            if (out / name).is_file():
+                (out / name).unlink()
+    (out / "rgb").mkdir(parents=True, exist_ok=True)
+    (out / "depth").mkdir(parents=True, exist_ok=True)
+
+
+@dataclass
+class SequencePlan:
+    """Everything a sequence is rendered from (what ``generate_sequence`` writes out)."""
+    stamps: np.ndarray              # (N,) frame stamps, seconds
+    poses: np.ndarray               # (N, 4, 4) camera-to-world at the stamps (world frame)
+    intrinsics: Intrinsics
+    realism: RealismOptions
+    scene: Scene
+    interpolator: PoseInterpolator
+    fps: float
+    seed: int
+    record: Dict                    # generation options (written to intrinsics.yaml)
+    device: str = "cpu"             # torch device used for rendering
+
+    def render(self, k: int, effects: Optional["CameraEffects"] = None
+               ) -> Tuple[np.ndarray, np.ndarray]:
+        """Frame ``k`` exactly as written: (rgb uint8 with the realism effects, clean depth)."""
+        effects = effects or CameraEffects(self.realism, self.intrinsics, self.seed)
+        with torch.no_grad():
+            rgb, depth = render_view(self.scene, self.poses[k], self.intrinsics, self.device)
+            n_sub = self.realism.motion_blur
+            if n_sub > 1:   # sub-exposures over [t - E, t]; the last one is the frame's pose
+                E = self.realism.exposure_ms * 1e-3
+                sub_t = self.stamps[k] - E * (1.0 - np.arange(n_sub - 1) / (n_sub - 1))
+                acc = rgb.clone()
+                for T_sub in self.interpolator(sub_t):
+                    acc += render_view(self.scene, T_sub, self.intrinsics, self.device)[0]
+                rgb = acc / n_sub
+        img = effects(rgb.cpu().numpy(), k, float(self.stamps[k] - self.stamps[0]))
+        return img, depth.cpu().numpy().astype(np.float32)
+
+
+def _resolve_intrinsics(size, intrinsics, fov) -> Intrinsics:
+    if intrinsics is None:
+        w, h = parse_size("640x480" if size is None else size)
+        return default_intrinsics(w, h, fov)
+    if fov is not None:
+        raise SynthError("give either --fov or --intrinsics, not both")
+    K = intrinsics if isinstance(intrinsics, Intrinsics) else Intrinsics.from_yaml(intrinsics)
+    if K.width <= 0 or K.height <= 0 or K.fx == 0 or K.fy == 0:
+        raise SynthError(f"intrinsics need positive width/height and non-zero fx, fy: {K}")
+    if K.has_distortion and K.distortion_model not in ("plumb_bob", "rational_polynomial",
+                                                       "equidistant"):
+        raise SynthError(f"unsupported distortion model '{K.distortion_model}' "
+                         "(plumb_bob, rational_polynomial or equidistant)")
+    if size is not None:
+        w, h = parse_size(size)
+        if (w, h) != (K.width, K.height):
+            sx, sy = w / K.width, h / K.height
+            if abs(sx - sy) > 1e-3 * max(sx, sy):
+                raise SynthError(f"--size {w}x{h} has another aspect ratio than the intrinsics "
+                                 f"({K.width}x{K.height}); omit --size to use theirs")
+            K = K.scaled(sx, sy)
+    return K
+
+
+def plan_sequence(trajectory, frames: int, size="640x480", *, fps: float = 30.0,
+                  start: float = 0.0, fmt: str = "auto", kitti_dt: float = 0.1, seed: int = 0,
+                  textures=None, fov: Optional[float] = None, intrinsics=None, up=None,
+                  realism: Optional[str] = None, motion_blur: Optional[int] = None,
+                  exposure_ms: Optional[float] = None, auto_exposure: Optional[float] = None,
+                  vignetting: Optional[float] = None, noise: Optional[float] = None,
+                  jpeg: Optional[int] = None, device: str = "cpu",
+                  warn: bool = True) -> SequencePlan:
+    """Validate the options, sample the frame stamps and poses, fit the scene (no rendering).
+    Same options as :func:`generate_sequence`."""
+    if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames <= 0:
+        raise SynthError(f"--frames must be a positive integer, got {frames}")
+    frames = int(frames)
+    try:
+        device = str(resolve_device(device, "--device"))
+    except DeviceError as e:
+        raise SynthError(str(e)) from None
+    if not (isinstance(fps, (int, float)) and 0 < fps <= 1000):
+        raise SynthError(f"--fps must be in (0, 1000], got {fps}")
+    fps = float(fps)
+    K = _resolve_intrinsics(size, intrinsics, fov)
+    ropts = resolve_realism(realism, motion_blur=motion_blur, exposure_ms=exposure_ms,
+                            auto_exposure=auto_exposure, vignetting=vignetting, noise=noise,
+                            jpeg=jpeg).validate(fps)
+    ts, P, fmt_used = load_trajectory(trajectory, fmt=fmt, kitti_dt=kitti_dt,
+                                      min_duration=start + frames / fps + 1.0, seed=seed)
+    interp = PoseInterpolator(ts, P)
+    stamps = frame_stamps(interp.t_start, interp.t_end, frames, fps, start)
+    poses = interp(stamps)
+    gaps = interp.gap_at(stamps)
+    n_gap = int((gaps > GAP_WARN_S).sum())
+    if n_gap and warn:
+        a, b = interp.longest_gap_free()
+        print(f"warning: {n_gap} of {frames} frames fall in ground-truth gaps longer than "
+              f"{GAP_WARN_S:g} s (longest {gaps.max():.2f} s); their poses are interpolated "
+              f"linearly across the gap. The longest gap-free stretch is {a:.1f}-{b:.1f} s "
+              f"(--start {a:.1f}, at most {int((b - a) * fps) + 1} frames)", file=sys.stderr)
+    # every position the camera passes through, exposure windows included, stays clear of boxes
+    dense = interp.positions_between(max(stamps[0] - 1.0 / fps, interp.t_start), stamps[-1])
+    scene = build_scene(poses, seed=seed, textures=textures, up=up, fmt=fmt_used,
+                        positions=dense)
+    src = "array" if isinstance(trajectory, (tuple, list)) else str(trajectory)
+    record = {
+        "tool": "splat-slam-synth", "trajectory": src, "trajectory_format": fmt_used,
+        "frames": frames, "fps": fps, "start": float(start), "seed": int(seed),
+        "size": [K.width, K.height], "fov": fov,
+        "intrinsics_file": None if intrinsics is None or isinstance(intrinsics, Intrinsics)
+        else str(intrinsics),
+        "textures": None if textures is None else str(textures),
+        "up": None if up is None else (up if isinstance(up, str) else [float(x) for x in up]),
+        "realism": realism or "clean", "realism_options": asdict(ropts), "device": device,
+        "first_stamp": float(stamps[0]), "last_stamp": float(stamps[-1]),
+        "gt_gap_frames": n_gap, "gt_longest_gap_s": round(float(gaps.max()), 4),
+        "gt_duplicates_dropped": interp.dropped_duplicates,
+        "scene": scene.summary(),
+    }
+    return SequencePlan(stamps, poses, K, ropts, scene, interp, fps, int(seed), record, device)
+
+
+def generate_sequence(trajectory, frames: int, size="640x480", out=None, *,
+                      overwrite: bool = False, threads: Optional[int] = 1,
+                      progress: bool = True, stats: Optional[Dict] = None,
+                      **options) -> Path:
+    """Render a TUM-layout RGB-D sequence into ``out``; returns the output folder.
+
+    ``trajectory``: a TUM/KITTI/EuRoC file, ``"builtin"`` or ``(timestamps, poses)``.
+    ``frames`` camera frames are sampled at ``fps`` (default 30) from the trajectory's first
+    stamp + ``start`` seconds (poses interpolated: linear translation, SLERP rotation).
+    ``size``: ``'WxH'`` or (W, H); None with ``intrinsics`` (YAML path or Intrinsics) keeps
+    the file's size. Other options (see :func:`plan_sequence`): fps, start, fmt, kitti_dt,
+    seed, textures, fov, intrinsics, up, realism ('clean' | 'realistic'), motion_blur,
+    exposure_ms, auto_exposure, vignetting, noise, jpeg, device ('cpu' | 'cuda' | 'auto').
+    ``threads``: torch/OpenCV CPU threads while rendering (1 by default: fastest on a shared
+    2-core machine; None = leave torch's setting). ``stats`` (a dict) receives timings.
+    """
+    if out is None:
+        raise SynthError("an output directory is required (--out)")
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not overwrite)):
+        _prepare_out(out, overwrite)          # raises the clear error before any work
+    t_setup = time.perf_counter()
+    plan = plan_sequence(trajectory, frames, size, **options)
+    t_setup = time.perf_counter() - t_setup
+    _prepare_out(out, overwrite)
+    names = [f"{t:.6f}.png" for t in plan.stamps]
+    effects = CameraEffects(plan.realism, plan.intrinsics, plan.seed)
+    it = range(len(plan.stamps))
+    if progress:
+        it = tqdm(it, desc="synth", unit="frame")
+    t_render = time.perf_counter()
+    with limit_threads(threads or 0):
+        for k in it:
+            img, depth = plan.render(k, effects)
+            cv2.imwrite(str(out / "rgb" / names[k]), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+            cv2.imwrite(str(out / "depth" / names[k]), depth_to_png16(depth))
+    t_render = time.perf_counter() - t_render
+    # ---- index files, ground truth, intrinsics
+    src_name = Path(plan.record["trajectory"]).name
+    for kind, label in (("rgb", "color images"), ("depth", "depth maps")):
+        with open(out / f"{kind}.txt", "w") as fh:
+            fh.write(f"# {label}\n# file: 'splat-slam-synth {src_name}'\n# timestamp filename\n")
+            for t, n in zip(plan.stamps, names):
+                fh.write(f"{t:.6f} {kind}/{n}\n")
+    write_tum(out / "groundtruth.txt", plan.stamps, plan.poses)
+    plan.intrinsics.to_yaml(out / "intrinsics.yaml", depth_scale=DEPTH_SCALE, fps=plan.fps,
+                            generation=plan.record)
+    if stats is not None:
+        n = len(plan.stamps)
+        stats.update(setup_s=t_setup, render_s=t_render, s_per_frame=t_render / n, frames=n,
+                     size=[plan.intrinsics.width, plan.intrinsics.height],
+                     boxes=plan.scene.n_boxes)
+    return out
