@@ -31,7 +31,7 @@ from splat_slam_ros.io.bag_reader import BagFile
 from splat_slam_ros.io.dataset_base import DatasetError
 
 from .msg_types import UnknownMessageType, message_class
-from .node_common import TOPICS, events_qos, init_process
+from .node_common import TOPICS, events_qos, graph_event, init_process
 from .tool_runner import run_rclpy_tool
 
 ROLE_TOPICS = ("image", "camera_info", "depth", "gt_pose")
@@ -132,11 +132,8 @@ class Player:
             a["kf"] = max(a["kf"], int(m.kf_id))
 
     def _on_event(self, m) -> None:
-        try:
-            d = json.loads(m.data)
-        except ValueError:
-            return
-        if d.get("event") == "ready":
+        d = graph_event(m)
+        if d is not None and d.get("event") == "ready":
             self.ready_nodes.add(d.get("node"))
 
     def spin_until(self, cond, timeout: float, what: str) -> bool:

@@ -33,7 +33,7 @@ import numpy as np
 
 from splat_slam_ros.types import Intrinsics, IntrinsicsError
 
-from .node_common import TOPICS, events_qos, init_process
+from .node_common import TOPICS, events_qos, graph_event, init_process
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
@@ -191,11 +191,8 @@ class CameraNode:
         self.node.create_subscription(String, TOPICS["events"], self._on_event, events_qos())
 
     def _on_event(self, m) -> None:
-        try:
-            d = json.loads(m.data)
-        except ValueError:
-            return
-        if isinstance(d, dict) and d.get("event") == "ready":
+        d = graph_event(m)
+        if d is not None and d.get("event") == "ready":
             self.ready.add(d.get("node"))
 
     def event(self, event: str, **kw) -> None:

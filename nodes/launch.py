@@ -284,11 +284,9 @@ class Launcher:
         self.node.create_subscription(String, TOPICS["events"], self._on_event, events_qos())
 
     def _on_event(self, m) -> None:
-        try:
-            d = json.loads(m.data)
-        except ValueError:
-            return
-        if not isinstance(d, dict):
+        from .node_common import graph_event
+        d = graph_event(m)
+        if d is None:
             return
         self.events.append(d)
         ev, node = d.get("event"), d.get("node")

@@ -67,6 +67,15 @@ def init_process() -> None:
         sys.exit(2)
 
 
+def graph_event(msg) -> Optional[dict]:
+    """The JSON object of a /splat/graph_events message, or None when it is not one."""
+    try:
+        d = json.loads(msg.data)
+    except ValueError:
+        return None
+    return d if isinstance(d, dict) else None
+
+
 def raw_hash(raw: bytes) -> str:
     """Identity of a serialized message (deduplication of replayed messages after restarts)."""
     return hashlib.sha1(raw).hexdigest()
@@ -272,11 +281,8 @@ class SplatNode:
             prof = events_qos()
 
             def cb(msg, raw):
-                try:
-                    d = json.loads(msg.data)
-                except ValueError:
-                    return
-                if not isinstance(d, dict) or d.get("node") == self.name:
+                d = graph_event(msg)
+                if d is None or d.get("node") == self.name:
                     return
                 for h in self._event_handlers:
                     h(d)

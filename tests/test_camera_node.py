@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import yaml
 
-from test_graph_support import PY, REPO, isolated_env, need_ros, read_jsonl, start, \
-    start_probe, stop
+from test_graph_support import TINY_TRACKING_CFG, PY, REPO, isolated_env, need_ros, read_jsonl, \
+    start, start_probe, stop
 
 pytestmark = pytest.mark.ros
 
@@ -123,14 +123,7 @@ def test_camera_publishes_images_and_infos_at_the_rate(video, tmp_path):
     assert abs(np.median(dt) - 1 / 8) < 0.02 and abs(dt.mean() - 1 / 8) < 0.03
 
 
-CFG = """
-tracking:
-  warmup: 4
-  motion_filter_thresh: 2.0
-  keyframe_thresh: 2.0
-  loop_closure: false
-  global_ba: false
-"""
+CFG = TINY_TRACKING_CFG
 
 
 def test_launch_with_camera_tracks_the_video(video, tmp_path):

@@ -293,17 +293,9 @@ rclpy.try_shutdown()
 '''
 
 
-def _tracker_node(tmp_path, flow_model, n_frames, timeout, expect_exit=False):
-    from test_graph_support import PY, isolated_env, need_ros, start, stop, wait_for
-    need_ros()
-    env = isolated_env()
-    log = tmp_path / "tracker.log"
-    node = start([PY, "-m", "splat_slam_nodes.tracker_node", "--ros-args",
-                  "-p", "ros.image_topic:=/cam/image", "-p", "ros.camera_info_topic:=/cam/info",
-                  "-p", "node.input_qos:=reliable", "-p", "node.loop_closure:=false",
-                  "-p", f"tracking.flow_model:={flow_model}", "-p", "tracking.flow_device:=cpu",
-                  "-p", "tracking.flow_model_iters:=1"], env, log)
-    feed = start([PY, "-c", FEED, str(n_frames), str(timeout)], env, tmp_path / "feed.log")
+def _finish(tmp_path, node, feed, log, expect_exit):
+    """Wait for the feeder; the node's exit status (None: still running), its RESULT, its log."""
+    from test_graph_support import stop, wait_for
     try:
         assert feed.wait(timeout=300) == 0, (tmp_path / "feed.log").read_text()[-3000:]
         if expect_exit:
@@ -316,6 +308,20 @@ def _tracker_node(tmp_path, flow_model, n_frames, timeout, expect_exit=False):
            if x.startswith("RESULT ")]
     assert res, (tmp_path / "feed.log").read_text()[-3000:]
     return res[0], rc, log.read_text(errors="replace")
+
+
+def _tracker_node(tmp_path, flow_model, n_frames, timeout, expect_exit=False):
+    from test_graph_support import PY, isolated_env, need_ros, start
+    need_ros()
+    env = isolated_env()
+    log = tmp_path / "tracker.log"
+    node = start([PY, "-m", "splat_slam_nodes.tracker_node", "--ros-args",
+                  "-p", "ros.image_topic:=/cam/image", "-p", "ros.camera_info_topic:=/cam/info",
+                  "-p", "node.input_qos:=reliable", "-p", "node.loop_closure:=false",
+                  "-p", f"tracking.flow_model:={flow_model}", "-p", "tracking.flow_device:=cpu",
+                  "-p", "tracking.flow_model_iters:=1"], env, log)
+    feed = start([PY, "-c", FEED, str(n_frames), str(timeout)], env, tmp_path / "feed.log")
+    return _finish(tmp_path, node, feed, log, expect_exit)
 
 
 @pytest.mark.ros
@@ -378,7 +384,7 @@ rclpy.try_shutdown()
 
 
 def _loop_node(tmp_path, flow_model, timeout, expect_exit=False):
-    from test_graph_support import PY, isolated_env, need_ros, start, stop, wait_for
+    from test_graph_support import PY, isolated_env, need_ros, start
     need_ros()
     env = isolated_env()
     log = tmp_path / "loop.log"
@@ -387,18 +393,7 @@ def _loop_node(tmp_path, flow_model, timeout, expect_exit=False):
                   "-p", "tracking.flow_model_iters:=1", "-p", "tracking.global_ba_every:=100"],
                  env, log)
     feed = start([PY, "-c", FEED_KF, "2", str(timeout)], env, tmp_path / "feed.log")
-    try:
-        assert feed.wait(timeout=300) == 0, (tmp_path / "feed.log").read_text()[-3000:]
-        if expect_exit:
-            wait_for(lambda: node.poll() is not None, 30)
-        rc = node.poll()
-    finally:
-        stop(feed)
-        stop(node)
-    res = [json.loads(x[7:]) for x in (tmp_path / "feed.log").read_text().splitlines()
-           if x.startswith("RESULT ")]
-    assert res, (tmp_path / "feed.log").read_text()[-3000:]
-    return res[0], rc, log.read_text(errors="replace")
+    return _finish(tmp_path, node, feed, log, expect_exit)
 
 
 @pytest.mark.ros

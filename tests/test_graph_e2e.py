@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from test_graph_support import (PY, REPO, isolated_env, need_ros, read_jsonl, start,
-                                start_probe, stop, wait_for)
+from test_graph_support import (PY, REPO, isolated_env, need_ros, read_jsonl, run_launch,
+                                start, start_probe, stop, wait_for)
 
 pytestmark = pytest.mark.ros
 
@@ -64,9 +64,13 @@ def tiny_bag(tmp_path_factory):
     return d / "bag", cfg
 
 
+def _launch_args(bag, cfg, out):
+    return [PY, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out", str(out),
+            "--config", str(cfg)]
+
+
 def _launch(bag, cfg, out, env, log):
-    return start([PY, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out", str(out),
-                  "--config", str(cfg)], env, log)
+    return start(_launch_args(bag, cfg, out), env, log)
 
 
 @pytest.fixture(scope="module")
@@ -75,14 +79,7 @@ def graph_run(tiny_bag, tmp_path_factory):
     d = tmp_path_factory.mktemp("graph_run")
     env = isolated_env()
     probe = start_probe({"name": "probe", "subs": SUBS, "duration": 600}, env, d / "probe.log")
-    time.sleep(1.0)
-    launch = _launch(bag, cfg, d / "out", env, d / "launch.log")
-    try:
-        rc = launch.wait(timeout=900)
-    finally:
-        stop(launch)
-        time.sleep(0.5)
-        stop(probe)
+    rc = run_launch(_launch_args(bag, cfg, d / "out"), env, d / "launch.log", probe)
     (d / "bag_path.txt").write_text(str(bag))
     return rc, d
 

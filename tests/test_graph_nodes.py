@@ -8,18 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from test_graph_support import PY, isolated_env, need_ros, read_jsonl, start, stop, wait_for
+from test_graph_support import (TINY_TRACKING_CFG, PY, isolated_env, need_ros, read_jsonl,
+                                start, stop, wait_for)
 
 pytestmark = pytest.mark.ros
 
-FAST_CFG = """
-tracking:
-  warmup: 4
-  motion_filter_thresh: 2.0
-  keyframe_thresh: 2.0
-  loop_closure: false
-  global_ba: false
-mapping:
+FAST_CFG = TINY_TRACKING_CFG + """mapping:
   iters_first: 20
   iters_per_keyframe: 5
   final_refine_iters: 5

@@ -66,6 +66,30 @@ def stop(p: subprocess.Popen, timeout: float = 8.0) -> None:
             p.wait()
 
 
+# tracking settings that initialise on the tiny synthetic test sequences (no loop closure)
+TINY_TRACKING_CFG = """
+tracking:
+  warmup: 4
+  motion_filter_thresh: 2.0
+  keyframe_thresh: 2.0
+  loop_closure: false
+  global_ba: false
+"""
+
+
+def run_launch(args: List[str], env, log: Path, probe: subprocess.Popen,
+               timeout: float = 900) -> int:
+    """Run a launcher command to its end, then stop ``probe`` (a listener started just before)."""
+    time.sleep(1.0)
+    launch = start(args, env, log)
+    try:
+        return launch.wait(timeout=timeout)
+    finally:
+        stop(launch)
+        time.sleep(0.5)
+        stop(probe)
+
+
 def write_tiny_bag(path: Path, n: int = 12, w: int = 64, h: int = 48, with_depth: bool = True,
                    with_gt: bool = True, t0: float = 1000.0, fps: float = 30.0,
                    images=None) -> Path:

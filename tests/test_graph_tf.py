@@ -3,13 +3,12 @@ closure nodes): a subscriber decodes /tf and /tf_static and finds map -> odom ->
 camera_optical; map -> odom is the identity until a loop closure corrects the pose and changes
 afterwards; the chain equals /splat/camera_pose; keyframe markers arrive."""
 import json
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from test_graph_support import PY, isolated_env, need_ros, read_jsonl, start, stop
+from test_graph_support import PY, isolated_env, need_ros, read_jsonl, run_launch, start
 
 pytestmark = pytest.mark.ros
 
@@ -68,16 +67,9 @@ def test_tf_tree_from_the_running_graph(loop_bag, tmp_path):
     bag, cfg = loop_bag
     env = isolated_env()
     probe = start([PY, str(HELPERS / "tf_probe.py"), "900"], env, tmp_path / "probe.log")
-    time.sleep(1.0)
-    launch = start([PY, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out",
-                    str(tmp_path / "out"), "--config", str(cfg), "--tracking-only",
-                    "--set", "ros.odom_frame=odom_test"], env, tmp_path / "launch.log")
-    try:
-        rc = launch.wait(timeout=900)
-    finally:
-        stop(launch)
-        time.sleep(0.5)
-        stop(probe)
+    rc = run_launch([PY, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out",
+                     str(tmp_path / "out"), "--config", str(cfg), "--tracking-only",
+                     "--set", "ros.odom_frame=odom_test"], env, tmp_path / "launch.log", probe)
     log = (tmp_path / "launch.log").read_text(errors="replace")
     assert rc == 0, log[-4000:]
     recs = read_jsonl(tmp_path / "probe.log")
