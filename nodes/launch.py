@@ -234,6 +234,8 @@ class Launcher:
             if self.bag is not None and name == "tracker":
                 param("node.input_qos", "reliable")
                 param("node.max_queue", 0 if a.mode == "lockstep" else 2)
+        if name == "mapper" and a.allow_reset:
+            param("node.allow_reset", True)          # /splat/map/reset is off by default
         if name == "rerun":
             if a.rerun:
                 param("node.rrd", str(Path(a.rerun).resolve()))
@@ -478,6 +480,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "(every interface, for nodes on several hosts; sets SPLAT_SLAM_DDS_RANGE)")
     ap.add_argument("--nodes", metavar="LIST", help="start only these graph nodes, e.g. "
                     "tracker,loop_closure (the others run on another host, --network subnet)")
+    ap.add_argument("--allow-reset", action="store_true",
+                    help="enable the /splat/map/reset service (disabled by default)")
     ap.add_argument("--tracking-only", action="store_true", help="no depth / mapper nodes")
     ap.add_argument("--no-loop-closure", action="store_true", help="no loop_closure node")
     ap.add_argument("--max-restarts", type=int, default=3,
