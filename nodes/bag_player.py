@@ -84,7 +84,11 @@ class BagReader:
         self.types: Dict[str, str] = {}
         self.counts: Dict[str, int] = {}
         from mcap.reader import make_reader
+        from splat_slam_ros.io.mcap_recover import damaged_files
+        self.damaged = damaged_files(self.files, self.types, self.counts)   # killed recorder
         for f in self.files:
+            if f in self.damaged:
+                continue
             try:
                 with open(f, "rb") as fh:
                     summ = make_reader(fh).get_summary()
@@ -102,6 +106,11 @@ class BagReader:
     def messages(self, topics) -> Iterator[Tuple[str, int, bytes]]:
         from mcap.reader import make_reader
         for f in self.files:
+            if f in self.damaged:
+                from splat_slam_ros.io import mcap_recover
+                for topic, t, _s, _c, data in mcap_recover.iter_messages(f, topics):
+                    yield topic, t, data
+                continue
             with open(f, "rb") as fh:
                 for _schema, ch, m in make_reader(fh).iter_messages(topics=list(topics),
                                                                    log_time_order=True):

@@ -35,6 +35,7 @@ from tqdm import tqdm
 from splat_slam_ros.io.datasets import (ASSOC_TOL, Dataset, DatasetError, _check_selection, _copy_intrinsics,
                        _select, associate, ns_to_stamp, stamp_to_ns)
 from splat_slam_ros.geometry import pose_from_tq, pose_to_tq
+from splat_slam_ros.io import mcap_recover
 from splat_slam_ros.types import Frame, Intrinsics
 
 DEFAULT_TOPICS: Dict[str, Optional[str]] = {
@@ -47,7 +48,7 @@ CAMERA_FRAME = "camera"
 WORLD_FRAME = "world"
 INFO_FILE = "splat_slam_info.yaml"
 MSG_PACKAGE = "splat_slam_msgs"
-MSG_DIR = Path(__file__).resolve().parents[1] / "msg_defs" / "msg"
+MSG_DIR = Path(__file__).resolve().parents[2] / "msg_defs" / "msg"
 
 T_IMAGE = "sensor_msgs/msg/Image"
 T_INFO = "sensor_msgs/msg/CameraInfo"
@@ -335,7 +336,14 @@ class _McapBackend:
         self._factory = DecoderFactory()
         self.custom = {}
         self._topics: Dict[str, Tuple[str, int]] = {}
+        self.damaged = {f: h for f in files for h in [mcap_recover.scan_mcap(f)] if h.damaged}
+        for h in self.damaged.values():                      # read as a stream up to the damage
+            mcap_recover.warn_damaged(h)
+            for t, (name, n) in h.topics.items():
+                self._topics[t] = (name, self._topics.get(t, (name, 0))[1] + n)
         for f in files:
+            if f in self.damaged:
+                continue
             try:
                 with open(f, "rb") as fh:
                     r = make_reader(fh)
@@ -357,6 +365,13 @@ class _McapBackend:
 
     def messages(self, topics):
         for f in self.files:
+            if f in self.damaged:
+                decoders = {}
+                for topic, t, schema, ch, data in mcap_recover.iter_messages(f, topics):
+                    if ch.id not in decoders:
+                        decoders[ch.id] = self._factory.decoder_for(ch.message_encoding, schema)
+                    yield topic, t, (lambda d=decoders[ch.id], b=data: d(b))
+                continue
             with open(f, "rb") as fh:
                 r = self._make_reader(fh)
                 decoders = {}
@@ -410,6 +425,9 @@ class BagDataset(Dataset):
             raise DatasetError(f"{bag_dir}: not a rosbag2 folder (no metadata.yaml)")
         if backend == "auto":
             backend = "rosbags" if bag_dir is not None else "mcap"
+            if bag_dir is not None and any(mcap_recover.scan_mcap(f).damaged   # killed recorder
+                                           for f in _mcap_files_of(bag_dir) if f.is_file()):
+                backend = "mcap"
         if backend == "rosbags":
             if bag_dir is None:
                 raise DatasetError(f"{p}: the rosbags backend needs the bag folder (metadata.yaml)")
@@ -419,6 +437,7 @@ class BagDataset(Dataset):
         else:
             raise DatasetError(f"unknown bag backend {backend!r} (auto, rosbags, mcap)")
         self.backend = backend
+        self.mcap_files = _mcap_files_of(bag_dir) if p.is_dir() else [p]
         info = {}
         if bag_dir is not None and (bag_dir / INFO_FILE).is_file():
             info = yaml.safe_load((bag_dir / INFO_FILE).read_text()) or {}
@@ -467,6 +486,10 @@ class BagDataset(Dataset):
 
     def close(self) -> None:
         self._backend.close()
+
+    def health(self) -> List["mcap_recover.McapHealth"]:
+        """Intact / damaged state of each MCAP file of the bag (``--info``)."""
+        return [mcap_recover.scan_mcap(f) for f in self.mcap_files]
 
     def topic_counts(self) -> Dict[str, Tuple[str, int]]:
         """{topic: (message type, message count)} of the whole bag."""
