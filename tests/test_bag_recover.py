@@ -110,3 +110,30 @@ def test_splat_slam_run_on_a_bag_truncated_at_half(tmp_path):
     assert "complete messages recovered" in r.stderr
     m = json.loads((out / "metrics.json").read_text())
     assert m["frames"] == n_rec >= 0.45 * 36 and m["keyframes"] >= 3, m
+
+
+def test_splat_slam_launch_on_a_bag_truncated_at_half(tmp_path):
+    from test_graph_support import PY, isolated_env, need_ros, start, stop
+    need_ros()
+    from splat_slam_ros.io.bagio import write_bag
+    from splat_slam_ros.io.synth import generate_sequence
+    seq = tmp_path / "seq"
+    generate_sequence("builtin", 36, (160, 120), seq, overwrite=True, progress=False,
+                      realism="clean", fps=5)
+    with open_dataset(seq) as ds:
+        write_bag(ds, tmp_path / "bag", progress=False)
+    n_rec = mcap_recover.scan_mcap(_truncate(tmp_path / "bag")).topics["/camera/image_raw"][1]
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(RUN_CFG)
+    out, log = tmp_path / "out", tmp_path / "launch.log"
+    p = start([PY, "-m", "splat_slam_nodes.launch", "--bag", str(tmp_path / "bag"), "--out",
+               str(out), "--config", str(cfg)], isolated_env(), log)
+    try:
+        rc = p.wait(timeout=900)
+    finally:
+        stop(p)
+    text = log.read_text(errors="replace")
+    assert rc == 0, text[-3000:]
+    assert "complete messages recovered" in text
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["frames"] == n_rec >= 0.45 * 36 and m["keyframes"] >= 3, m
