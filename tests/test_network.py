@@ -115,3 +115,55 @@ def test_outsider_on_a_non_loopback_address_discovers_the_graph_only_with_subnet
     need_ros()
     assert not _outsider_sees_graph(tmp_path, "localhost")
     assert _outsider_sees_graph(tmp_path, "subnet")
+
+
+def test_launcher_network_switch_and_node_subset(monkeypatch):
+    monkeypatch.setenv("SPLAT_SLAM_DDS_RANGE", "localhost")        # restored after the test
+    monkeypatch.delenv("FASTRTPS_DEFAULT_PROFILES_FILE", raising=False)
+    args = ["--network", "subnet", "--nodes", "mapper,depth", "--no-loop-closure"]
+    L = launch.Launcher(launch.build_parser().parse_args(args))
+    L.plan()
+    assert L.dds_range == "subnet"
+    assert L.env["FASTRTPS_DEFAULT_PROFILES_FILE"].endswith("fastdds_subnet.xml")
+    assert L.nodes == ["tracker", "depth", "mapper"] and L.local_nodes == ["depth", "mapper"]
+
+
+SPLIT_CFG = """
+tracking: {warmup: 4, motion_filter_thresh: 2.0, keyframe_thresh: 2.0, ba_downsample: 4,
+           loop_closure: false, global_ba: false}
+mapping: {iters_first: 20, iters_per_keyframe: 3, final_refine_iters: 5,
+          random_views_per_iter: 1, window_views_per_iter: 2}
+"""
+
+
+def test_graph_split_over_two_launchers(tmp_path):
+    """'Two hosts' on one machine: launcher A runs the tracker + player, launcher B the depth
+    and mapper nodes (--nodes); together they finish the run, B saves the map."""
+    need_ros()
+    from splat_slam_ros.io.bagio import write_bag
+    from splat_slam_ros.io.datasets import open_dataset
+    from splat_slam_ros.io.synth import generate_sequence
+    from test_graph_support import PY, start, stop
+    generate_sequence("builtin", 24, (160, 120), tmp_path / "seq", overwrite=True,
+                      progress=False, realism="clean", fps=5)
+    with open_dataset(tmp_path / "seq") as ds:
+        write_bag(ds, tmp_path / "bag", progress=False)
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(SPLIT_CFG)
+    env = isolated_env()
+    base = [PY, "-m", "splat_slam_nodes.launch", "--config", str(cfg), "--no-loop-closure"]
+    b = start(base + ["--nodes", "depth,mapper", "--out", str(tmp_path / "B")], env,
+              tmp_path / "B.log")
+    a = start(base + ["--nodes", "tracker", "--bag", str(tmp_path / "bag"), "--out",
+                      str(tmp_path / "A")], env, tmp_path / "A.log")
+    try:
+        rc_a = a.wait(timeout=600)
+        rc_b = b.wait(timeout=120)
+    finally:
+        stop(a)
+        stop(b)
+    la, lb = ((tmp_path / f"{x}.log").read_text(errors="replace") for x in "AB")
+    assert rc_a == 0 and rc_b == 0, (la[-3000:], lb[-3000:])
+    assert "started tracker, player" in la and "started depth, mapper" in lb
+    assert (tmp_path / "A" / "trajectory_full.txt").is_file()
+    assert (tmp_path / "B" / "map.ply").is_file()
