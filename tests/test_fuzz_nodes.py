@@ -1,6 +1,5 @@
 """Fuzzing: malformed and random messages on every topic the graph's nodes subscribe to never
 crash a node; they are logged and dropped, and the graph still works afterwards."""
-import sys
 from pathlib import Path
 
 import pytest

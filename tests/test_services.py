@@ -2,7 +2,6 @@
 default, render sizes bounded, bad requests answered with an error (node keeps running)."""
 import json
 import math
-import os
 from pathlib import Path
 from types import SimpleNamespace as NS
 
