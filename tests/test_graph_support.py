@@ -11,7 +11,6 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 import numpy as np
-import pytest
 
 from splat_slam_ros import ros_env
 
