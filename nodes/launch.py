@@ -169,9 +169,11 @@ class Launcher:
             self.cfg = load_config(a.config, self.overrides)
         except ConfigError as e:
             raise LaunchError(str(e)) from None
+        from .launch_net import NetworkArgError, apply_network
         try:
+            self.dds_range = apply_network(a.network)   # before the env is built (--network)
             self.env = ros_environment()
-        except RosEnvError as e:
+        except (RosEnvError, NetworkArgError) as e:
             raise LaunchError(str(e)) from None
         self.env.setdefault("PYTHONUNBUFFERED", "1")
         self.out_dir = Path(a.out).resolve() if a.out else None
@@ -192,6 +194,11 @@ class Launcher:
         self.with_mapping = not a.tracking_only
         self.nodes = ["tracker"] + (["loop_closure"] if self.with_loop else []) + \
             (["depth", "mapper"] if self.with_mapping else [])
+        from .launch_net import select_nodes
+        try:
+            self.local_nodes = select_nodes(a.nodes, self.nodes)   # --nodes: this host's share
+        except NetworkArgError as e:
+            raise LaunchError(str(e)) from None
         if a.camera:
             from .camera_node import CameraError, check_camera_args
             try:
@@ -227,6 +234,8 @@ class Launcher:
             if self.bag is not None and name == "tracker":
                 param("node.input_qos", "reliable")
                 param("node.max_queue", 0 if a.mode == "lockstep" else 2)
+        if name == "mapper" and a.allow_reset:
+            param("node.allow_reset", True)          # /splat/map/reset is off by default
         if name == "rerun":
             if a.rerun:
                 param("node.rrd", str(Path(a.rerun).resolve()))
@@ -250,7 +259,7 @@ class Launcher:
 
     def start_all(self) -> None:
         from .camera_node import launch_args
-        names = list(self.nodes) + (["rerun"] if self.args.rerun or self.args.rerun_connect
+        names = list(self.local_nodes) + (["rerun"] if self.args.rerun or self.args.rerun_connect
                                     else []) + \
             (["player"] if self.bag is not None else []) + (["camera"] if self.args.camera else [])
         w = max(len(n) for n in names)
@@ -262,7 +271,8 @@ class Launcher:
             self.children[n] = c
         for n in names:
             self.children[n].start()
-        self.say(f"started {', '.join(names)} (ROS_DOMAIN_ID={self.env.get('ROS_DOMAIN_ID', '0')})")
+        self.say(f"started {', '.join(names)} (ROS_DOMAIN_ID={self.env.get('ROS_DOMAIN_ID', '0')}, "
+                 f"network {self.dds_range})")
 
     def say(self, text: str) -> None:
         self.out.write(f"[launch] {text}\n")
@@ -463,6 +473,13 @@ def build_parser() -> argparse.ArgumentParser:
                     "/ OpenCV YAML)")
     ap.add_argument("--camera-rate", type=float, default=0.0, metavar="HZ",
                     help="--camera frame rate (default: the source's own)")
+    ap.add_argument("--network", choices=["localhost", "subnet"], default=None,
+                    help="DDS discovery range: localhost (default, this machine only) or subnet "
+                         "(every interface, for nodes on several hosts; sets SPLAT_SLAM_DDS_RANGE)")
+    ap.add_argument("--nodes", metavar="LIST", help="start only these graph nodes, e.g. "
+                    "tracker,loop_closure (the others run on another host, --network subnet)")
+    ap.add_argument("--allow-reset", action="store_true",
+                    help="enable the /splat/map/reset service (disabled by default)")
     ap.add_argument("--tracking-only", action="store_true", help="no depth / mapper nodes")
     ap.add_argument("--no-loop-closure", action="store_true", help="no loop_closure node")
     ap.add_argument("--max-restarts", type=int, default=3,

@@ -11,7 +11,8 @@ Publishes   /splat/map/rendered_rgb + rendered_depth (at the latest keyframe, ev
             Gaussian centres with colours), /splat/map/status (MapperStatus),
             /splat/frame_ack (consumer "mapper", one per keyframe consumed: lockstep).
 Services    /splat/map/save (SaveMap: PLY + trajectory + metrics), /splat/map/reset (Trigger),
-            /splat/map/render (RenderPose).
+            /splat/map/render (RenderPose). Inputs are checked by service_guard (save inside
+            node.output_dir, reset only with node.allow_reset, renders <= node.max_render_pixels).
 The protocol (pending keyframes/depths, replayed revisions, snapshots to ``node.state_dir``,
 final refinement) is :class:`splat_slam_ros.roles.MapperRole`.
 """
@@ -19,18 +20,19 @@ from __future__ import annotations
 
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
+from . import service_guard as G
 from .node_common import SERVICES, TOPICS, SplatNode, run_node
 
 
 class MapperNode(SplatNode):
     def __init__(self):
         super().__init__("mapper", {"loop_closure": True, "mapping": True, "snapshot_every": 1,
-                                    "points_every": 1, "render_width": 0, "render_height": 0})
+                                    "points_every": 1, "render_width": 0, "render_height": 0,
+                                    "allow_reset": False, "max_render_pixels": 0})
         from geometry_msgs.msg import PoseStamped
         from sensor_msgs.msg import CameraInfo, Image, PointCloud2
         from splat_slam_msgs.msg import MapperStatus
@@ -155,8 +157,8 @@ class MapperNode(SplatNode):
 
     # ------------------------------------------------------------ services
     def _srv_save(self, req, resp):
-        d = Path(req.directory or (str(self.output_dir) if self.output_dir else "map_save"))
         try:
+            d = G.save_dir(req.directory, self.output_dir)        # inside node.output_dir only
             with self.worker.lock:
                 if self.role.mapper is None:
                     resp.success, resp.message = False, "the map is empty: nothing to save"
@@ -167,29 +169,39 @@ class MapperNode(SplatNode):
                            f"{d / 'metrics.json'}, {d / 'renders'}" \
                            + (f", {d / 'map_mesh.ply'}" if self.cfg.mapping.mesh else "")
         except Exception as e:
-            resp.success, resp.message = False, f"{type(e).__name__}: {e}"
+            resp.success, resp.message = False, G.message(e)
         return resp
 
     def _srv_reset(self, req, resp):
-        with self.worker.lock:
-            self.role.reset()
-            self._status()
+        try:
+            G.check_reset(bool(self.opts["allow_reset"]))            # off unless enabled
+            with self.worker.lock:
+                self.role.reset()
+                self._status()
+        except Exception as e:
+            resp.success, resp.message = False, G.message(e)
+            return resp
         resp.success, resp.message = True, "map reset: the next keyframes start a new map"
         return resp
 
     def _srv_render(self, req, resp):
         from .convert import msg_to_pose
         try:
+            G.check_pose_msg(req.pose)                                # input first
             with self.worker.lock:
                 if self.role.mapper is None:
                     resp.success, resp.message = False, "the map is empty"
                     return resp
-                rgb, depth = self._render(msg_to_pose(req.pose), req.width, req.height,
-                                          list(req.intrinsics))
+                mp = self.role.mapper
+                w, h = G.render_size(req.width or self.opts["render_width"], req.height or
+                                     self.opts["render_height"], mp.W, mp.H,
+                                     self.opts["max_render_pixels"])
+                rgb, depth = self._render(msg_to_pose(req.pose), w, h,
+                                          G.check_intrinsics(req.intrinsics))
             resp.rgb, resp.depth = self._images(rgb, depth, self.now(), self.frame_id)
             resp.success, resp.message = True, f"rendered {rgb.shape[1]}x{rgb.shape[0]}"
         except Exception as e:
-            resp.success, resp.message = False, f"{type(e).__name__}: {e}"
+            resp.success, resp.message = False, G.message(e)
         return resp
 
 

@@ -255,13 +255,16 @@ class SplatNode:
             self.subscribe(kind, TOPICS[topic], qos,
                            lambda m, raw: self.worker.submit(handle, fn, convert, m),
                            kind.__name__)
+        from .msg_checks import check_keyframe, check_proxy_depth, check_update  # fuzz-proof
         if updates:        # first: an update and a keyframe both waiting -> the update first
-            sub(PoseGraphUpdate, "updates", Q.pose_graph_qos(), role.on_update, msg_to_update)
+            sub(PoseGraphUpdate, "updates", Q.pose_graph_qos(), role.on_update,
+                lambda m: msg_to_update(check_update(m)))
         if keyframes:
-            sub(Keyframe, "keyframes", Q.keyframe_qos(), role.on_keyframe, msg_to_keyframe)
+            sub(Keyframe, "keyframes", Q.keyframe_qos(), role.on_keyframe,
+                lambda m: msg_to_keyframe(check_keyframe(m)))
         if proxy_depth:
             sub(ProxyDepth, "proxy_depth", Q.proxy_depth_qos(), role.on_proxy_depth,
-                msg_to_proxy_depth)
+                lambda m: msg_to_proxy_depth(check_proxy_depth(m)))
         self.on_events(lambda d: d.get("event") == "finalized" and self.worker.submit(
             handle, lambda info: role.on_final(str(info.get("node")), info), lambda d: d, d))
 

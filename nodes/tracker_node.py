@@ -107,9 +107,10 @@ class TrackerNode(SplatNode):
 
     def _apply_update(self, msg) -> None:
         from .convert import msg_to_update
+        from .msg_checks import check_update
         if self.role is not None:
             trk = self.role.tracker
-            self.frames.around_update(trk, msg_to_update(msg),
+            self.frames.around_update(trk, msg_to_update(check_update(msg)),
                                       lambda ev: self.emit(self.role.on_update(ev)))
             self.frames.on_keyframes(trk, self.frames.last_stamp or 0.0)
         self._maybe_save()

@@ -4,8 +4,11 @@ Every project process (nodes, launcher, bag player, topic tool, tests) uses the 
 environment so that they discover each other quickly and move large messages through shared
 memory:
 
-- ``FASTRTPS_DEFAULT_PROFILES_FILE``: the shipped Fast DDS profile ``config/fastdds.xml``
-  (shared memory 32 MiB + UDPv4, fast discovery), unless the user already set one;
+- ``FASTRTPS_DEFAULT_PROFILES_FILE``: the shipped Fast DDS profile for the discovery range
+  ``SPLAT_SLAM_DDS_RANGE`` (default ``localhost``: ``config/fastdds.xml``, shared memory 32 MiB +
+  UDPv4 on 127.0.0.1 only, the equivalent of ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``;
+  ``subnet``: ``config/fastdds_subnet.xml``, UDPv4 on every interface, for multi-host graphs),
+  unless the user already set one;
 - ``RMW_IMPLEMENTATION``: ``rmw_fastrtps_cpp`` (the only RMW on PyPI) unless set;
 - ``ROS_DOMAIN_ID`` and the other ``ROS_*`` variables: passed through (validated).
 
@@ -29,6 +32,8 @@ PROFILE_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"
 RMW_ENV = "RMW_IMPLEMENTATION"
 DEFAULT_RMW = "rmw_fastrtps_cpp"
 OVERRIDE_ENV = "SPLAT_SLAM_DDS_PROFILE"
+RANGE_ENV = "SPLAT_SLAM_DDS_RANGE"
+RANGES = {"localhost": "fastdds.xml", "subnet": "fastdds_subnet.xml"}  # range -> shipped profile
 MAX_DOMAIN_ID = 232  # the largest domain id the RTPS port mapping allows (ROS 2 docs)
 
 
@@ -36,13 +41,22 @@ class RosEnvError(ValueError):
     """The ROS environment given by the user is invalid (one-line message)."""
 
 
-def shipped_profile() -> Optional[Path]:
-    """Path of the shipped Fast DDS profile, or None when it cannot be found."""
+def dds_range(env: Mapping[str, str]) -> str:
+    """The discovery range named by ``SPLAT_SLAM_DDS_RANGE`` in ``env`` (default ``localhost``)."""
+    r = env.get(RANGE_ENV, "").strip().lower() or "localhost"
+    if r not in RANGES:
+        raise RosEnvError(f"{RANGE_ENV} must be one of {', '.join(RANGES)}, got {env[RANGE_ENV]!r}")
+    return r
+
+
+def shipped_profile(dds_range_name: str = "localhost") -> Optional[Path]:
+    """Path of the shipped Fast DDS profile of a discovery range, or None when not found."""
+    name = RANGES[dds_range_name]
     here = Path(__file__).resolve().parent
     candidates = [
-        here.parent / "config" / "fastdds.xml",                       # source / editable install
-        here / "config" / "fastdds.xml",                              # packaged as package data
-        Path(sys.prefix) / "share" / "splat_slam_ros" / "config" / "fastdds.xml",  # data_files
+        here.parent / "config" / name,                                # source / editable install
+        here / "config" / name,                                       # packaged as package data
+        Path(sys.prefix) / "share" / "splat_slam_ros" / "config" / name,  # data_files
     ]
     for c in candidates:
         if c.is_file():
@@ -50,11 +64,16 @@ def shipped_profile() -> Optional[Path]:
     return None
 
 
+def _is_shipped(path: str) -> bool:
+    shipped = {shipped_profile(r) for r in RANGES} - {None}
+    return Path(path).expanduser().resolve() in shipped
+
+
 def ros_environment(base: Optional[Mapping[str, str]] = None) -> dict:
     """A copy of ``base`` (default ``os.environ``) with the project's ROS/DDS settings.
 
-    Raises :class:`RosEnvError` for an invalid ``ROS_DOMAIN_ID`` or a missing profile file
-    named by ``SPLAT_SLAM_DDS_PROFILE``.
+    Raises :class:`RosEnvError` for an invalid ``ROS_DOMAIN_ID`` or ``SPLAT_SLAM_DDS_RANGE``, or
+    a missing profile file named by ``SPLAT_SLAM_DDS_PROFILE``.
     """
     env = dict(os.environ if base is None else base)
 
@@ -76,6 +95,7 @@ def ros_environment(base: Optional[Mapping[str, str]] = None) -> dict:
     if not env[RMW_ENV]:
         env[RMW_ENV] = DEFAULT_RMW
 
+    rng = dds_range(env)
     choice = env.get(OVERRIDE_ENV, "").strip()
     if choice.lower() == "none":
         pass                                         # user wants Fast DDS defaults / own file
@@ -84,10 +104,13 @@ def ros_environment(base: Optional[Mapping[str, str]] = None) -> dict:
         if not p.is_file():
             raise RosEnvError(f"{OVERRIDE_ENV} names a missing file: {p}")
         env[PROFILE_ENV] = str(p.resolve())
-    elif not env.get(PROFILE_ENV):
-        prof = shipped_profile()
-        if prof is not None:
-            env[PROFILE_ENV] = str(prof)
+    elif not env.get(PROFILE_ENV) or _is_shipped(env[PROFILE_ENV]):
+        # a shipped profile inherited from a parent process follows this process's range
+        prof = shipped_profile(rng)
+        if prof is None:
+            raise RosEnvError(f"the shipped Fast DDS profile {RANGES[rng]} is missing "
+                              "(broken install)")
+        env[PROFILE_ENV] = str(prof)
     return env
 
 

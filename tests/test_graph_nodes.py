@@ -125,6 +125,9 @@ res["image_frames"] = [got["rgb"][-1].header.frame_id if got["rgb"] else "",
 cli_s = node.create_client(SaveMap, SERVICES["save_map"]); cli_s.wait_for_service(timeout_sec=30)
 f = cli_s.call_async(SaveMap.Request(directory=out_dir)); spin_until(lambda: f.done(), 120)
 res["save"] = [f.result().success, f.result().message]
+rq = RenderPose.Request(); rq.pose = convert.pose_to_msg(new[0]); rq.width = 4 * W; rq.height = 2 * H
+f = cli_r.call_async(rq); spin_until(lambda: f.done(), 60)
+res["render_big"] = [f.result().success, f.result().message]
 cli_t = node.create_client(Trigger, SERVICES["reset_map"]); cli_t.wait_for_service(timeout_sec=30)
 f = cli_t.call_async(Trigger.Request()); spin_until(lambda: f.done(), 60)
 res["reset"] = f.result().success
@@ -157,8 +160,9 @@ def test_depth_and_mapper_nodes(tmp_path):
     cfg.write_text(FAST_CFG)
     env = isolated_env()
     depth = _node("depth", env, cfg, tmp_path / "depth.log")
-    mapper = _node("mapper", env, cfg, tmp_path / "mapper.log")
-    feeder = start([PY, "-c", FEEDER, str(tmp_path / "saved")], env, tmp_path / "feeder.log")
+    mapper = _node("mapper", env, cfg, tmp_path / "mapper.log", f"node.output_dir:={tmp_path}",
+                   "node.allow_reset:=true")
+    feeder = start([PY, "-c", FEEDER, "saved"], env, tmp_path / "feeder.log")
     try:
         assert feeder.wait(timeout=400) == 0, (tmp_path / "feeder.log").read_text()[-3000:]
     finally:
@@ -200,6 +204,9 @@ def test_depth_and_mapper_nodes(tmp_path):
     rgb, dep = mp.render(np.eye(4))
     assert (dep > 0).mean() > 0.3
     assert r["reset"] and r["after_reset"]
+    # 8x the camera image area: refused with an error response (default bound 4x)
+    assert r["render_big"] == [False, "render size 256x96 exceeds the limit of 12288 pixels "
+                               "(node.max_render_pixels; default 4x the camera image area)"]
     assert r["render_empty"][0] is False and "empty" in r["render_empty"][1]
 
 

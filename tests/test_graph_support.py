@@ -15,6 +15,7 @@ import pytest
 
 from splat_slam_ros import ros_env
 
+
 REPO = Path(__file__).resolve().parents[1]
 PY = sys.executable
 

@@ -21,6 +21,7 @@ import pytest
 from splat_slam_ros import ros_env
 from test_graph_support import isolated_env, need_ros
 
+
 HELPERS = Path(__file__).resolve().parent / "ros_helpers"
 REPO = Path(__file__).resolve().parents[1]
 

@@ -1,6 +1,7 @@
 """splat-slam-convert: any supported dataset -> rosbag2 (MCAP) with the project's topic layout.
 
-    splat-slam-convert INPUT --info       (describe a dataset or bag)
+    splat-slam-convert INPUT --info       (describe a dataset or bag, reports damaged MCAP files)
+    splat-slam-convert BAG --recover --out NEW   (repair a bag whose recorder was killed)
     splat-slam-convert INPUT --out BAG_DIR [--format auto|tum|replica|scannet|euroc|folder|
         video|posefolder] [--intrinsics FILE] [--max-frames N] [--stride K] [--fps F]
         [--depth-scale S] [--overwrite] [--compress] [--quiet]
@@ -36,6 +37,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--depth-scale", type=float,
                     help="raw depth units per metre (default per format: TUM/ICL 5000, "
                     "Replica 6553.5, ScanNet 1000)")
+    ap.add_argument("--recover", action="store_true",
+                    help="INPUT is a damaged bag (recorder killed: no index/footer): write every "
+                         "complete message to a new indexed bag --out")
     ap.add_argument("--overwrite", action="store_true", help="replace an existing bag folder")
     ap.add_argument("--compress", action="store_true",
                     help="zstd-compress the MCAP chunks (smaller, slower to write)")
@@ -60,6 +64,9 @@ def describe(ds) -> None:
     print(f"  gt_pose={ds.has_gt_pose} gt_depth={ds.has_gt_depth}")
     if ds.format == "bag":
         print(f"  converted from: {ds.source_format or 'unknown'}")
+        for h in ds.health():
+            print(f"  {'DAMAGED ' if h.damaged else ''}{h.describe()}"
+                  + ("; repair: splat-slam-convert --recover BAG --out NEW" if h.damaged else ""))
         for topic, (msgtype, n) in sorted(ds.topic_counts().items()):
             print(f"  {topic}: {msgtype}, {n} messages")
     tr = ds.gt_trajectory()
@@ -69,11 +76,38 @@ def describe(ds) -> None:
         print(f"  note: {note}")
 
 
+def recover(src: str, out: str) -> int:
+    """``--recover``: copy every complete message of a (damaged) bag into a new indexed bag."""
+    from pathlib import Path
+
+    from splat_slam_ros.io.mcap_recover import recover_bag
+    p = Path(src)
+    if not p.exists():
+        print(f"error: bag not found: {p}", file=sys.stderr)
+        return 2
+    if not (p.is_dir() and (p / "metadata.yaml").is_file()) and p.suffix.lower() != ".mcap":
+        print(f"error: {p}: a bag is a rosbag2 folder or a .mcap file", file=sys.stderr)
+        return 2
+    try:
+        healths = recover_bag(p, out)
+    except (OSError, ValueError, KeyError) as e:
+        print(f"error: cannot recover {p}: {e}", file=sys.stderr)
+        return 2
+    for h in healths:
+        print(f"  {h.describe()}")
+    n = sum(h.messages for h in healths)
+    print(f"wrote {out}: {n} messages recovered, indexed"
+          + ("" if any(h.damaged for h in healths) else " (the input was intact)"))
+    return 0
+
+
 def main(argv=None) -> int:
     ap = build_parser()
     args = ap.parse_args(argv)
     if not args.info and not args.out:
         ap.error("--out is required (or use --info to only describe INPUT)")
+    if args.recover:
+        return recover(args.input, args.out)
     from splat_slam_ros.io.bagio import write_bag
     try:
         if args.info:

@@ -13,6 +13,7 @@ from typing import Callable, Dict, Iterator, List, Tuple
 
 import yaml
 
+from splat_slam_ros.io import mcap_recover
 from splat_slam_ros.io.dataset_base import DatasetError
 
 INFO_FILE = "splat_slam_info.yaml"
@@ -89,7 +90,15 @@ class _McapBackend:
         self._factory = DecoderFactory()
         self.custom = {}
         self._topics: Dict[str, Tuple[str, int]] = {}
+        # a file whose recorder was killed (no footer / index) is read as a stream up to the damage
+        self.damaged = {f: h for f in files for h in [mcap_recover.scan_mcap(f)] if h.damaged}
+        for h in self.damaged.values():
+            mcap_recover.warn_damaged(h)
+            for t, (name, n) in h.topics.items():
+                self._topics[t] = (name, self._topics.get(t, (name, 0))[1] + n)
         for f in files:
+            if f in self.damaged:
+                continue
             try:
                 with open(f, "rb") as fh:
                     r = make_reader(fh)
@@ -111,6 +120,10 @@ class _McapBackend:
 
     def raw_messages(self, topics):
         for f in self.files:
+            if f in self.damaged:
+                for topic, t, _schema, _ch, data in mcap_recover.iter_messages(f, topics):
+                    yield topic, t, data
+                continue
             with open(f, "rb") as fh:
                 for _schema, ch, m in self._make_reader(fh).iter_messages(
                         topics=list(topics), log_time_order=True):
@@ -118,6 +131,13 @@ class _McapBackend:
 
     def messages(self, topics):
         for f in self.files:
+            if f in self.damaged:
+                decoders = {}
+                for topic, t, schema, ch, data in mcap_recover.iter_messages(f, topics):
+                    if ch.id not in decoders:
+                        decoders[ch.id] = self._factory.decoder_for(ch.message_encoding, schema)
+                    yield topic, t, (lambda d=decoders[ch.id], b=data: d(b))
+                continue
             with open(f, "rb") as fh:
                 r = self._make_reader(fh)
                 decoders = {}
@@ -175,8 +195,12 @@ class BagFile:
                 bag_dir = p.parent
         if bag_dir is not None and not is_bag_dir(bag_dir):
             raise DatasetError(f"{bag_dir}: not a rosbag2 folder (no metadata.yaml)")
+        self.mcap_files = _mcap_files_of(bag_dir) if p.is_dir() else [p]
         if backend == "auto":
             backend = "rosbags" if bag_dir is not None else "mcap"
+            if bag_dir is not None and _storage_of(bag_dir) == "mcap" and any(
+                    mcap_recover.scan_mcap(f).damaged for f in self.mcap_files if f.is_file()):
+                backend = "mcap"                 # rosbags rejects a file without its footer
         if backend == "rosbags":
             if bag_dir is None:
                 raise DatasetError(f"{p}: the rosbags backend needs the bag folder (metadata.yaml)")
@@ -187,7 +211,7 @@ class BagFile:
                 if storage != "mcap":
                     raise DatasetError(f"{p}: storage {storage!r} is not mcap "
                                        "(read it with the rosbags backend)")
-            self._backend = _McapBackend(_mcap_files_of(bag_dir) if p.is_dir() else [p])
+            self._backend = _McapBackend(self.mcap_files)
         else:
             raise DatasetError(f"unknown bag backend {backend!r} (auto, rosbags, mcap)")
         self.path, self.bag_dir, self.backend = p, bag_dir, backend

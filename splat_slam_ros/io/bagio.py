@@ -36,6 +36,7 @@ from tqdm import tqdm
 from splat_slam_ros.io.dataset_base import (ASSOC_TOL, Dataset, DatasetError, check_selection, copy_intrinsics,
                        select_frames, associate, ns_to_stamp, stamp_to_ns)
 from splat_slam_ros.geometry import pose_from_tq, pose_to_tq
+from splat_slam_ros.io import mcap_recover
 from splat_slam_ros.io.bag_reader import INFO_FILE, BagFile, is_bag_dir, make_typestore
 from splat_slam_ros.io.bag_reader import register_project_types  # noqa: F401 (public re-export)
 from splat_slam_ros.io.sensor_codec import (camera_info_to_intrinsics, decode_depth, decode_rgb,
@@ -284,6 +285,11 @@ class BagDataset(Dataset):
 
     def close(self) -> None:
         self._bag.close()
+
+    def health(self) -> List["mcap_recover.McapHealth"]:
+        """Intact / damaged state of each MCAP file of the bag (``--info``)."""
+        return [mcap_recover.scan_mcap(f) for f in self._bag.mcap_files
+                if f.suffix.lower() == ".mcap" and f.is_file()]
 
     def topic_counts(self) -> Dict[str, Tuple[str, int]]:
         """{topic: (message type, message count)} of the whole bag."""
