@@ -24,8 +24,8 @@ import time
 import numpy as np
 import torch
 
-from . import service_guard as G
-from .node_common import SERVICES, TOPICS, SplatNode, run_node
+from .map_services import MapServices
+from .node_common import TOPICS, SplatNode, run_node
 
 
 class MapperNode(SplatNode):
@@ -36,8 +36,6 @@ class MapperNode(SplatNode):
         from geometry_msgs.msg import PoseStamped
         from sensor_msgs.msg import CameraInfo, Image, PointCloud2
         from splat_slam_msgs.msg import MapperStatus
-        from splat_slam_msgs.srv import RenderPose, SaveMap
-        from std_srvs.srv import Trigger
 
         from splat_slam_ros.roles import MapperRole
 
@@ -61,9 +59,7 @@ class MapperNode(SplatNode):
         self.route(self.role, keyframes=True, updates=True, proxy_depth=True, after=self._after)
         self.subscribe(PoseStamped, TOPICS["render_request"], Q.pose_qos(),
                        lambda m, raw: self.worker.submit(self._view, m), "render request")
-        n.create_service(SaveMap, SERVICES["save_map"], self._srv_save)
-        n.create_service(Trigger, SERVICES["reset_map"], self._srv_reset)
-        n.create_service(RenderPose, SERVICES["render"], self._srv_render)
+        self.services = MapServices(self)                 # save / reset / render
         self.publish_event("ready")
 
     # ------------------------------------------------------------ outputs
@@ -154,55 +150,6 @@ class MapperNode(SplatNode):
             return
         self._publish_view(msg_to_pose(msg.pose), from_stamp(msg.header.stamp),
                            (self.pub_vrgb, self.pub_vdepth, self.pub_vinfo))
-
-    # ------------------------------------------------------------ services
-    def _srv_save(self, req, resp):
-        try:
-            d = G.save_dir(req.directory, self.output_dir)        # inside node.output_dir only
-            with self.worker.lock:
-                if self.role.mapper is None:
-                    resp.success, resp.message = False, "the map is empty: nothing to save"
-                    return resp
-                self.role.save(d)
-            resp.success = True
-            resp.message = f"wrote {d / 'map.ply'}, {d / 'trajectory_keyframes.txt'}, " \
-                           f"{d / 'metrics.json'}, {d / 'renders'}" \
-                           + (f", {d / 'map_mesh.ply'}" if self.cfg.mapping.mesh else "")
-        except Exception as e:
-            resp.success, resp.message = False, G.message(e)
-        return resp
-
-    def _srv_reset(self, req, resp):
-        try:
-            G.check_reset(bool(self.opts["allow_reset"]))            # off unless enabled
-            with self.worker.lock:
-                self.role.reset()
-                self._status()
-        except Exception as e:
-            resp.success, resp.message = False, G.message(e)
-            return resp
-        resp.success, resp.message = True, "map reset: the next keyframes start a new map"
-        return resp
-
-    def _srv_render(self, req, resp):
-        from .convert import msg_to_pose
-        try:
-            G.check_pose_msg(req.pose)                                # input first
-            with self.worker.lock:
-                if self.role.mapper is None:
-                    resp.success, resp.message = False, "the map is empty"
-                    return resp
-                mp = self.role.mapper
-                w, h = G.render_size(req.width or self.opts["render_width"], req.height or
-                                     self.opts["render_height"], mp.W, mp.H,
-                                     self.opts["max_render_pixels"])
-                rgb, depth = self._render(msg_to_pose(req.pose), w, h,
-                                          G.check_intrinsics(req.intrinsics))
-            resp.rgb, resp.depth = self._images(rgb, depth, self.now(), self.frame_id)
-            resp.success, resp.message = True, f"rendered {rgb.shape[1]}x{rgb.shape[0]}"
-        except Exception as e:
-            resp.success, resp.message = False, G.message(e)
-        return resp
 
 
 def main(argv=None) -> int:
