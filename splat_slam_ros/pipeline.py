@@ -21,7 +21,6 @@ from splat_slam_ros.coordinator import Coordinator
 from splat_slam_ros.evaluation import ate
 from splat_slam_ros.io.trajectory_io import read_trajectory, write_tum
 from splat_slam_ros.mapping.mapper import map_sequence
-from splat_slam_ros.mapping.mesh import map_mesh_output
 from splat_slam_ros.report import WarningRecorder, write_report
 
 
@@ -121,13 +120,19 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
     return result
 
 
+def _mesh(mapper, cfg, out: Path, progress: bool, metrics: dict) -> None:
+    if cfg.mapping.mesh:
+        # Open3D takes 1.5 s to import: loaded when a mesh is written (not for tracking only)
+        from splat_slam_ros.mapping.mesh import map_mesh_output
+        metrics["mesh"] = map_mesh_output(mapper, out / "map_mesh.ply", progress)
+
+
 def _run_gt_mapping(dataset, cfg, out, progress, max_frames, result, metrics) -> None:
     frames = (f for i, f in enumerate(dataset) if max_frames is None or i < max_frames)
     mapper, m = map_sequence(frames, cfg, dataset.intrinsics, use_gt_depth=True,
                              progress=progress)
     mapper.save_ply(out / "map.ply")
-    if cfg.mapping.mesh:
-        metrics["mesh"] = map_mesh_output(mapper, out / "map_mesh.ply", progress)
+    _mesh(mapper, cfg, out, progress, metrics)
     metrics.update(m)
     mapper.save_renders(out / "renders")
     gt = dataset.gt_trajectory()
@@ -157,7 +162,6 @@ def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics) ->
     mp = co.mapper.mapper if co.mapper is not None else None
     if mp is not None:
         mp.save_ply(out / "map.ply")
-        if cfg.mapping.mesh:
-            metrics["mesh"] = map_mesh_output(mp, out / "map_mesh.ply", progress)
+        _mesh(mp, cfg, out, progress, metrics)
         metrics.update(mp.evaluate_keyframes(out / "renders"))
         metrics["map"] = mp.stats()

@@ -35,7 +35,6 @@ from splat_slam_ros.io.keyframe_store import (KeyframeStore, keyframe_depth, map
                                               restore_mapper)
 from splat_slam_ros.io.trajectory_io import write_tum
 from splat_slam_ros.mapping.mapper import Mapper
-from splat_slam_ros.mapping.mesh import map_mesh_output
 from splat_slam_ros.tracking.loop_closure import LoopCloser
 from splat_slam_ros.tracking.tracker import Tracker, TrackStep
 from splat_slam_ros.types import (LOOP_SEQ_START, Frame, Intrinsics, KeyframeData, ProxyDepth,
@@ -423,6 +422,8 @@ class MapperRole:
             return metrics
         self.mapper.save_ply(d / "map.ply")
         if self.cfg.mapping.mesh:
+            # Open3D takes 1.5 s to import: loaded when a mesh is written, not by every stage
+            from splat_slam_ros.mapping.mesh import map_mesh_output
             metrics["mesh"] = map_mesh_output(self.mapper, d / "map_mesh.ply")
         metrics.update(self.mapper.evaluate_keyframes(d / "renders"))
         metrics["map"] = self.mapper.stats()
