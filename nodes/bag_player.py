@@ -28,7 +28,7 @@ import time
 from typing import Dict, List, Optional, Tuple
 
 from splat_slam_ros.io.bag_reader import BagFile
-from splat_slam_ros.io.dataset_base import DatasetError
+from splat_slam_ros.types import DatasetError
 
 from .msg_types import UnknownMessageType, message_class
 from .node_common import TOPICS, events_qos, graph_event, init_process

@@ -19,6 +19,10 @@ import numpy as np
 import yaml
 
 
+class DatasetError(ValueError):
+    """A dataset or bag is missing, malformed or inconsistent (one-line, user-facing message)."""
+
+
 class IntrinsicsError(ValueError):
     """An intrinsics file is missing, unreadable or incomplete."""
 

@@ -14,7 +14,7 @@ from typing import Callable, Dict, Iterator, List, Tuple
 import yaml
 
 from splat_slam_ros.io import mcap_recover
-from splat_slam_ros.io.dataset_base import DatasetError
+from splat_slam_ros.types import DatasetError
 
 INFO_FILE = "splat_slam_info.yaml"
 MSG_PACKAGE = "splat_slam_msgs"

@@ -19,11 +19,7 @@ import yaml
 
 from splat_slam_ros.geometry import interpolate_pose
 from splat_slam_ros.io.trajectory_io import TrajectoryFormatError, read_trajectory
-from splat_slam_ros.types import Frame, Intrinsics, IntrinsicsError
-
-
-class DatasetError(ValueError):
-    """A dataset is missing, malformed or inconsistent (one-line, user-facing message)."""
+from splat_slam_ros.types import DatasetError, Frame, Intrinsics, IntrinsicsError
 
 
 FORMATS = ("tum", "replica", "scannet", "euroc", "folder", "video", "posefolder", "bag")
