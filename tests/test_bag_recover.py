@@ -12,7 +12,7 @@ from splat_slam_ros.cli import convert
 from splat_slam_ros.io import mcap_recover
 from splat_slam_ros.io.datasets import open_dataset
 
-from test_graph_support import write_tiny_bag
+from test_graph_support import TINY_FAST_RUN_CFG, write_tiny_bag
 
 
 def _truncate(bag: Path, frac: float = 0.5) -> Path:
@@ -83,12 +83,7 @@ def test_partial_compressed_chunk_is_recovered(tmp_path):
     assert h.damaged and h.topics["/camera/image_raw"][1] >= 10, h.describe()
 
 
-RUN_CFG = """
-tracking: {warmup: 4, motion_filter_thresh: 2.0, keyframe_thresh: 2.0, ba_downsample: 4,
-           loop_closure: false, global_ba: false}
-mapping: {iters_first: 20, iters_per_keyframe: 3, final_refine_iters: 5,
-          random_views_per_iter: 1, window_views_per_iter: 2}
-"""
+RUN_CFG = TINY_FAST_RUN_CFG
 
 
 def test_splat_slam_run_on_a_bag_truncated_at_half(tmp_path):

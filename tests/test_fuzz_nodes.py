@@ -4,20 +4,13 @@ from pathlib import Path
 
 import pytest
 
-from test_graph_support import PY, isolated_env, need_ros, start, stop
+from test_graph_support import TINY_LOOP_TRACKING_CFG, PY, isolated_env, need_ros, start, stop
 from test_graph_nodes import _result
 
 pytestmark = pytest.mark.ros
 
 FUZZER = Path(__file__).resolve().parent / "ros_helpers" / "fuzz_corpus.py"
-CFG = """
-tracking:
-  warmup: 4
-  motion_filter_thresh: 2.0
-  keyframe_thresh: 2.0
-  loop_closure: true
-  global_ba: true
-mapping:
+CFG = TINY_LOOP_TRACKING_CFG + """mapping:
   iters_first: 10
   iters_per_keyframe: 3
   final_refine_iters: 3

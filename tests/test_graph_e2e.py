@@ -11,19 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from test_graph_support import (PY, REPO, isolated_env, need_ros, read_jsonl, run_launch,
-                                start, start_probe, stop, wait_for)
+from test_graph_support import (TINY_LOOP_TRACKING_CFG, PY, REPO, isolated_env, need_ros,
+                                read_jsonl, run_launch, start, start_probe, stop, wait_for)
 
 pytestmark = pytest.mark.ros
 
-CFG = """
-tracking:
-  warmup: 4
-  motion_filter_thresh: 2.0
-  keyframe_thresh: 2.0
-  loop_closure: true
-  global_ba: true
-mapping:
+CFG = TINY_LOOP_TRACKING_CFG + """mapping:
   iters_first: 30
   iters_per_keyframe: 5
   final_refine_iters: 10

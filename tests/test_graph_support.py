@@ -78,6 +78,16 @@ tracking:
 """
 
 
+TINY_LOOP_TRACKING_CFG = TINY_TRACKING_CFG.replace("false", "true")   # + loop closure, global BA
+# the whole method, fastest schedule (a run of a few seconds on a tiny bag)
+TINY_FAST_RUN_CFG = """
+tracking: {warmup: 4, motion_filter_thresh: 2.0, keyframe_thresh: 2.0, ba_downsample: 4,
+           loop_closure: false, global_ba: false}
+mapping: {iters_first: 20, iters_per_keyframe: 3, final_refine_iters: 5,
+          random_views_per_iter: 1, window_views_per_iter: 2}
+"""
+
+
 def run_launch(args: List[str], env, log: Path, probe: subprocess.Popen,
                timeout: float = 900) -> int:
     """Run a launcher command to its end, then stop ``probe`` (a listener started just before)."""

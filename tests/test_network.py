@@ -11,7 +11,7 @@ import pytest
 from splat_slam_nodes import launch, launch_net
 from splat_slam_ros import ros_env
 
-from test_graph_support import isolated_env, need_ros
+from test_graph_support import TINY_FAST_RUN_CFG, isolated_env, need_ros
 
 REPO = Path(__file__).resolve().parents[1]
 PROBE = REPO / "tests" / "ros_helpers" / "dds_discovery_probe.py"
@@ -128,12 +128,7 @@ def test_launcher_network_switch_and_node_subset(monkeypatch):
     assert L.nodes == ["tracker", "depth", "mapper"] and L.local_nodes == ["depth", "mapper"]
 
 
-SPLIT_CFG = """
-tracking: {warmup: 4, motion_filter_thresh: 2.0, keyframe_thresh: 2.0, ba_downsample: 4,
-           loop_closure: false, global_ba: false}
-mapping: {iters_first: 20, iters_per_keyframe: 3, final_refine_iters: 5,
-          random_views_per_iter: 1, window_views_per_iter: 2}
-"""
+SPLIT_CFG = TINY_FAST_RUN_CFG
 
 
 def test_graph_split_over_two_launchers(tmp_path):
