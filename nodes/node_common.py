@@ -13,7 +13,6 @@ TRANSIENT_LOCAL) carry the control protocol: ``ready``, ``end_of_stream``, ``fin
 from __future__ import annotations
 
 import array
-import hashlib
 import json
 import os
 import queue
@@ -54,8 +53,6 @@ SERVICES = {
 }
 NODE_NAMES = ("tracker", "depth", "loop_closure", "mapper")
 
-# update reasons: the tracker publishes local_ba, the loop closer the others
-TRACKER_REASONS = ("local_ba",)
 
 
 def init_process() -> None:
@@ -76,9 +73,13 @@ def graph_event(msg) -> Optional[dict]:
     return d if isinstance(d, dict) else None
 
 
-def raw_hash(raw: bytes) -> str:
-    """Identity of a serialized message (deduplication of replayed messages after restarts)."""
-    return hashlib.sha1(raw).hexdigest()
+def takes_update(msg, sources) -> bool:
+    """Whether a PoseGraphUpdate message comes from one of ``sources`` (checked before any
+    decoding: every node also receives its own updates back on the shared topic). A message
+    with an unknown reason is taken, so that the message checks report it."""
+    from splat_slam_ros.types import UpdateEvent, update_source
+    r = int(msg.reason)
+    return r >= len(UpdateEvent.REASONS) or update_source(UpdateEvent.REASONS[r]) in sources
 
 
 class Throttle:
@@ -251,14 +252,15 @@ class SplatNode:
             if after is not None:
                 after(out)
 
-        def sub(kind, topic, qos, fn, convert):
+        def sub(kind, topic, qos, fn, convert, take=lambda m: True):
             self.subscribe(kind, TOPICS[topic], qos,
-                           lambda m, raw: self.worker.submit(handle, fn, convert, m),
+                           lambda m, raw: take(m) and self.worker.submit(handle, fn, convert, m),
                            kind.__name__)
         from .msg_checks import check_keyframe, check_proxy_depth, check_update  # fuzz-proof
         if updates:        # first: an update and a keyframe both waiting -> the update first
             sub(PoseGraphUpdate, "updates", Q.pose_graph_qos(), role.on_update,
-                lambda m: msg_to_update(check_update(m)))
+                lambda m: msg_to_update(check_update(m)),
+                lambda m: takes_update(m, role.update_sources))
         if keyframes:
             sub(Keyframe, "keyframes", Q.keyframe_qos(), role.on_keyframe,
                 lambda m: msg_to_keyframe(check_keyframe(m)))

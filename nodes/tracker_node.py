@@ -25,7 +25,7 @@ import numpy as np
 
 from splat_slam_ros.types import TRACKER_REASONS
 
-from .node_common import TOPICS, SplatNode, run_node
+from .node_common import TOPICS, SplatNode, run_node, takes_update
 
 
 class TrackerNode(SplatNode):
@@ -37,7 +37,7 @@ class TrackerNode(SplatNode):
         from nav_msgs.msg import Path as PathMsg
         from splat_slam_msgs.msg import PoseGraphUpdate
 
-        import splat_slam_ros.roles  # noqa: F401  (torch, OpenCV before 'ready')
+        from splat_slam_ros.roles import TrackerRole  # (torch, OpenCV before 'ready')
 
         from . import qos as Q
         from .camera_input import CameraInput
@@ -49,8 +49,8 @@ class TrackerNode(SplatNode):
         self.frames = TrackerFrames(self, TRACKER_REASONS)     # /tf, /tf_static, markers
         # updates first: when an update and a frame are both ready, the update runs first
         self.subscribe(PoseGraphUpdate, TOPICS["updates"], Q.pose_graph_qos(),
-                       lambda m, raw: self.worker.submit(self._apply_update, m),
-                       "PoseGraphUpdate")
+                       lambda m, raw: takes_update(m, TrackerRole.update_sources) and
+                       self.worker.submit(self._apply_update, m), "PoseGraphUpdate")
         self.camera = CameraInput(self, self._track)
         self.on_events(self._on_event)
         self.role = None                    # splat_slam_ros.roles.TrackerRole, on the first frame

@@ -6,7 +6,8 @@ order, to the roles that subscribe to it, until nothing is left in flight; ``fin
 starts the end-of-stream sequence (see :mod:`splat_slam_ros.roles`) and runs it to the
 mapper's final refinement. Topics and subscribers (the same in ``nodes/``):
 
-  updates      tracker, loop closure -> tracker (loop's), loop closure (tracker's), depth, mapper
+  updates      tracker, loop closure -> each role whose ``update_sources`` has the source:
+                                       tracker (loop's), loop closure (tracker's), depth, mapper
   keyframes    tracker               -> loop closure, depth, mapper
   proxy depth  depth                 -> mapper
   finalized    every role            -> every other role
@@ -77,7 +78,8 @@ class Coordinator:
         q = self._queue
         for ev in out.updates:                   # before keyframes: the order of publication
             self.updates.append(ev)
-            q.extend((r, "update", ev) for r in self.roles if r is not origin)
+            q.extend((r, "update", ev) for r in self.roles
+                     if r is not origin and ev.source in r.update_sources)
         for kf in out.keyframes:
             self.n_keyframes += 1
             q.extend((r, "keyframe", kf) for r in (self.loop, self.depth, self.mapper)

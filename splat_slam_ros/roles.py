@@ -83,6 +83,10 @@ class KeyframeBatcher:
         return sum(len(p) for p in self._parts.values())
 
 
+def _newest_seq(seq: int, events) -> int:
+    return max([int(seq)] + [int(e.seq) for e in events])
+
+
 def _ack(kf: KeyframeData) -> Tuple[int, int, float]:
     return int(kf.frame_index), int(kf.kf_id), float(kf.timestamp)
 
@@ -104,6 +108,7 @@ def _persist_events(store: Optional[KeyframeStore], events, meta: dict) -> None:
 class TrackerRole:
     """Frames -> local-BA updates + keyframes (§3.1); applies the loop closer's updates."""
     name = "tracker"
+    update_sources = ("loop",)              # whose PoseGraphUpdates it applies
 
     def __init__(self, cfg: SlamConfig, intrinsics: Intrinsics, loop_closure: bool,
                  flow_predictor=None):
@@ -120,11 +125,11 @@ class TrackerRole:
         if len(kfs) > 1:                    # the warm-up's keyframes: one batch
             for kf in kfs:
                 kf.batch_id, kf.batch_size = int(kfs[0].kf_id), len(kfs)
-        self.last_seq = max([self.last_seq] + [int(e.seq) for e in step.events])
+        self.last_seq = _newest_seq(self.last_seq, step.events)
         return step, Outbox(updates=list(step.events), keyframes=kfs)
 
     def on_update(self, ev: UpdateEvent) -> Outbox:
-        if ev.source == "tracker" or ev.seq <= self.loop_seq:      # ours, or a replay
+        if ev.source not in self.update_sources or ev.seq <= self.loop_seq:   # ours, a replay
             return Outbox()
         self.tracker.apply_update(ev)
         self.loop_seq = int(ev.seq)
@@ -135,7 +140,7 @@ class TrackerRole:
         if self.finalized:
             return Outbox()
         evs = list(self.tracker.finalize())
-        self.last_seq = max([self.last_seq] + [int(e.seq) for e in evs])
+        self.last_seq = _newest_seq(self.last_seq, evs)
         self.finalized = True
         return Outbox(updates=evs, final={"last_seq": self.last_seq,
                                           "keyframes": len(self.tracker.published)})
@@ -158,6 +163,7 @@ class TrackerRole:
 class LoopRole:
     """Keyframes -> loop closure, online global BA and final global BA updates (§3.1)."""
     name = "loop_closure"
+    update_sources = ("tracker",)
 
     def __init__(self, cfg: SlamConfig, store: Optional[KeyframeStore] = None,
                  flow_predictor=None):
@@ -202,7 +208,7 @@ class LoopRole:
             self.loop.add_keyframe(k)
             self.kf_ids[k.kf_id] = k.timestamp
         events = self.loop.step()           # loop detection + loop BA / online global BA
-        self.last_seq = max([self.last_seq] + [int(e.seq) for e in events])
+        self.last_seq = _newest_seq(self.last_seq, events)
         if self.store is not None:
             for k in batch:
                 self.store.put_keyframe(k, meta=self.meta())
@@ -210,7 +216,7 @@ class LoopRole:
         return Outbox(updates=events, acks=[_ack(k) for k in batch])
 
     def on_update(self, ev: UpdateEvent) -> Outbox:
-        if ev.source != "tracker" or ev.seq <= self.trk_seq:
+        if ev.source not in self.update_sources or ev.seq <= self.trk_seq:
             return Outbox()
         if self.loop is not None:
             self.loop.apply_update(ev)
@@ -229,7 +235,7 @@ class LoopRole:
             return Outbox()
         self.finalized = True
         events = self.loop.finalize() if self.loop is not None else []   # final global BA
-        self.last_seq = max([self.last_seq] + [int(e.seq) for e in events])
+        self.last_seq = _newest_seq(self.last_seq, events)
         _persist_events(self.store, events, self.meta())
         return Outbox(updates=list(events), final={"last_seq": self.last_seq,
                                                    "keyframes": len(self.kf_ids)})
@@ -239,6 +245,7 @@ class LoopRole:
 class DepthRole:
     """Keyframes + updates -> proxy depth (Eq. 4-5), one ordered stream per keyframe (§3.2)."""
     name = "depth"
+    update_sources = ("tracker", "loop")
 
     def __init__(self, cfg: SlamConfig, loop_closure: bool,
                  store: Optional[KeyframeStore] = None):
@@ -351,6 +358,7 @@ class DepthRole:
 class MapperRole:
     """Keyframes + proxy depths -> Gaussian map (Eq. 8), deformed by every newer depth (§3.2)."""
     name = "mapper"
+    update_sources = ("tracker", "loop")
 
     def __init__(self, cfg: SlamConfig, store: Optional[KeyframeStore] = None,
                  snapshot_every: int = 1):

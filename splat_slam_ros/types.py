@@ -154,8 +154,13 @@ class UpdateEvent:
 
     @property
     def source(self) -> str:
-        """``"tracker"`` (local BA) or ``"loop"`` (loop closure, global BA, final)."""
-        return "tracker" if self.reason in TRACKER_REASONS else "loop"
+        return update_source(self.reason)
+
+
+def update_source(reason: str) -> str:
+    """Who makes updates of ``reason``: ``"tracker"`` (local BA) or ``"loop"`` (loop closure,
+    global BA, final)."""
+    return "tracker" if reason in TRACKER_REASONS else "loop"
 
 
 # Update sequence numbers: the tracker's from 1, the loop closer's from 1e9 (0 = none).
