@@ -88,7 +88,10 @@ def fig_png(fig) -> bytes:
     return buf.getvalue()
 
 
-def _note(ax, text: str) -> None:
+def _note(ax, text: str, title: str = "") -> None:
+    """An empty panel saying why (``text``), under ``title``."""
+    if title:
+        ax.set_title(title, fontsize=9)
     ax.text(0.5, 0.5, text, ha="center", va="center", fontsize=9, wrap=True,
             transform=ax.transAxes, color="0.35")
     ax.set_xticks([])
@@ -129,8 +132,7 @@ def draw_trajectory(ax, est: Optional[np.ndarray], gt: Optional[np.ndarray],
 def draw_error(ax, t: Optional[np.ndarray], err: Optional[np.ndarray], rmse: Optional[float],
                missing: str) -> None:
     if t is None or err is None or len(err) == 0:
-        _note(ax, missing)
-        ax.set_title("trajectory error over time", fontsize=9)
+        _note(ax, missing, "trajectory error over time")
         return
     ax.plot(t - t[0], err, "-", color="tab:purple", lw=1.0)
     if rmse is not None:
@@ -144,8 +146,7 @@ def draw_error(ax, t: Optional[np.ndarray], err: Optional[np.ndarray], rmse: Opt
 
 def draw_map_size(ax, history: Sequence[dict], missing: str) -> None:
     if not history:
-        _note(ax, missing)
-        ax.set_title("map size", fontsize=9)
+        _note(ax, missing, "map size")
         return
     stamps = [h.get("timestamp") for h in history]
     if all(isinstance(t, (int, float)) for t in stamps):
@@ -168,8 +169,7 @@ def draw_map_size(ax, history: Sequence[dict], missing: str) -> None:
 
 def draw_timings(ax, stages: Dict[str, float], unit: str, missing: str) -> None:
     if not stages:
-        _note(ax, missing)
-        ax.set_title("time per stage", fontsize=9)
+        _note(ax, missing, "time per stage")
         return
     names = list(stages)
     vals = np.array([stages[n] for n in names], dtype=np.float64)
@@ -187,8 +187,7 @@ def draw_timings(ax, stages: Dict[str, float], unit: str, missing: str) -> None:
 
 def draw_keyframe_metrics(ax, kfs: Sequence[dict], missing: str) -> None:
     if not kfs:
-        _note(ax, missing)
-        ax.set_title("keyframe quality", fontsize=9)
+        _note(ax, missing, "keyframe quality")
         return
     x = [k["kf_id"] for k in kfs]
     ax.plot(x, [k["psnr"] for k in kfs], "o-", color="tab:red", ms=3, lw=0.8, label="PSNR")
@@ -205,8 +204,7 @@ def draw_tiles(ax, tiles: Optional[List[np.ndarray]], labels: Sequence[str], tit
                missing: str) -> None:
     """A 2-row mosaic of equally sized RGB tiles."""
     if not tiles:
-        _note(ax, missing)
-        ax.set_title("keyframe", fontsize=9)
+        _note(ax, missing, "keyframe")
         return
     h, w = tiles[0].shape[:2]
     cols = (len(tiles) + 1) // 2
