@@ -40,11 +40,14 @@ class RunResult:
 
 def not_initialized_reason(cfg: SlamConfig, frames: int) -> str:
     tc = cfg.tracking
+    # the hint halves what is set now (suggesting the values already in use would not help)
+    hint = f"--set tracking.motion_filter_thresh={tc.motion_filter_thresh / 2:g}"
+    if tc.warmup > 2:
+        hint += f" --set tracking.warmup={max(2, tc.warmup // 2)}"
     return (f"the tracker never initialised over {frames} frames: the camera moved too little "
             f"between frames for a keyframe (mean flow below tracking.motion_filter_thresh="
             f"{tc.motion_filter_thresh:g} BA px, tracking.warmup={tc.warmup} keyframes needed). "
-            "Lower them (e.g. --set tracking.motion_filter_thresh=2 --set tracking.warmup=4) or "
-            "give a sequence with more motion")
+            f"Lower them (e.g. {hint}) or give a sequence with more motion")
 
 
 def _write_json(path: Path, data: dict) -> None:

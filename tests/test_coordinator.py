@@ -213,3 +213,15 @@ def test_splat_slam_run_without_motion_fails_clearly(synth_seq, tmp_path):
     assert "Traceback" not in r.stderr
     assert "error" in json.loads((out / "metrics.json").read_text())
     assert not (out / "trajectory_full.txt").exists()
+
+
+def test_not_initialised_hint_lowers_the_values_in_use():
+    from splat_slam_ros.config import SlamConfig
+    from splat_slam_ros.pipeline import not_initialized_reason
+    cfg = SlamConfig()
+    cfg.tracking.motion_filter_thresh, cfg.tracking.warmup = 2.0, 4
+    msg = not_initialized_reason(cfg, 60)
+    assert "over 60 frames" in msg and "thresh=2 BA px" in msg
+    assert "--set tracking.motion_filter_thresh=1 --set tracking.warmup=2)" in msg
+    cfg.tracking.warmup = 2                              # no lower warm-up to suggest
+    assert "tracking.warmup=" not in not_initialized_reason(cfg, 60).split("e.g.")[1]
