@@ -37,8 +37,10 @@ from splat_slam_ros.io.trajectory_io import write_tum
 from splat_slam_ros.mapping.mapper import Mapper
 from splat_slam_ros.tracking.loop_closure import LoopCloser
 from splat_slam_ros.tracking.tracker import Tracker, TrackStep
-from splat_slam_ros.types import (LOOP_SEQ_START, Frame, Intrinsics, KeyframeData, ProxyDepth,
-                                  UpdateEvent)
+from splat_slam_ros.tracking.tracker_state import (TrackerCheckpoint, intrinsics_from_list,
+                                                   intrinsics_to_list)
+from splat_slam_ros.types import (LOOP_SEQ_START, TRACKER_SEQ_START, Frame, Intrinsics,
+                                  KeyframeData, ProxyDepth, UpdateEvent)
 
 
 @dataclass
@@ -106,18 +108,71 @@ def _persist_events(store: Optional[KeyframeStore], events, meta: dict) -> None:
 
 # ============================================================================ tracker
 class TrackerRole:
-    """Frames -> local-BA updates + keyframes (§3.1); applies the loop closer's updates."""
+    """Frames -> local-BA updates + keyframes (§3.1); applies the loop closer's updates.
+
+    With a ``store`` the tracker checkpoints itself after every step that changed the pose
+    graph (:mod:`splat_slam_ros.tracking.tracker_state`) and a new role on the same store
+    resumes: new keyframe ids and update numbers continue after the published ones, and
+    :attr:`resume_stamp` says after which frame the input must continue."""
     name = "tracker"
     update_sources = ("loop",)              # whose PoseGraphUpdates it applies
 
     def __init__(self, cfg: SlamConfig, intrinsics: Intrinsics, loop_closure: bool,
-                 flow_predictor=None):
+                 flow_predictor=None, store: Optional[KeyframeStore] = None):
         self.tracker = Tracker(cfg, intrinsics, flow_predictor=flow_predictor)
+        self.intrinsics = intrinsics
         self.wait_loop = bool(loop_closure)
         self.last_seq = 0                   # our newest update
         self.loop_seq = 0                   # the loop closer's newest update applied
         self.loop_final: Optional[int] = None
         self.finalized = False
+        self.ckpt = TrackerCheckpoint(store) if store is not None else None
+        self.resumed = self.ckpt is not None and self.ckpt.exists
+        if self.resumed:
+            m = self.ckpt.meta
+            self.last_seq, self.loop_seq = int(m.get("last_seq", 0)), int(m.get("loop_seq", 0))
+            self.ckpt.restore(self.tracker, max(TRACKER_SEQ_START, self.last_seq + 1))
+
+    @staticmethod
+    def stored_intrinsics(store: Optional[KeyframeStore]) -> Optional[Intrinsics]:
+        """The camera a checkpointed tracker ran on (None: nothing to resume)."""
+        if store is None or "trk_intrinsics" not in store.meta:
+            return None
+        return intrinsics_from_list(store.meta["trk_intrinsics"])
+
+    @property
+    def resume_stamp(self) -> Optional[float]:
+        """Timestamp of the newest frame the restored tracker holds (None: from the start)."""
+        return self.ckpt.resume_stamp if self.resumed else None
+
+    def _checkpoint(self, published=(), events=None) -> None:
+        if self.ckpt is None:
+            return
+        meta = {"last_seq": self.last_seq, "loop_seq": self.loop_seq,
+                "trk_intrinsics": intrinsics_to_list(self.intrinsics)}
+        if events is not None:              # what the step sent: sent again after a restart
+            meta["trk_last_events"] = [[int(e.seq), e.reason, [int(k) for k in e.kf_ids]]
+                                       for e in events]
+        self.ckpt.save(self.tracker, published, meta)
+
+    def resume_outbox(self) -> Outbox:
+        """After a restart: the window's published keyframes and the last step's updates again
+        (a crash may have come between the checkpoint and the messages; consumers skip the
+        ids / update numbers they hold)."""
+        out = Outbox()
+        if not self.resumed:
+            return out
+        trk = self.tracker
+        for k in trk.window:
+            if k in trk.published and self.ckpt.store.has(f"timg{k}"):
+                kd = trk._keyframe_data(k)
+                kd.image = self.ckpt.store.get(f"timg{k}")["image"]
+                out.keyframes.append(kd)
+        for seq, reason, ids in self.ckpt.meta.get("trk_last_events", []):
+            ids = [k for k in ids if k in trk.kfs]
+            if ids:
+                out.updates.append(trk.kfs.update_event(int(seq), reason, ids))
+        return out
 
     def on_frame(self, frame: Frame) -> Tuple[TrackStep, Outbox]:
         step = self.tracker.track(frame)
@@ -126,6 +181,8 @@ class TrackerRole:
             for kf in kfs:
                 kf.batch_id, kf.batch_size = int(kfs[0].kf_id), len(kfs)
         self.last_seq = _newest_seq(self.last_seq, step.events)
+        if kfs or step.events:
+            self._checkpoint(kfs, list(step.events))
         return step, Outbox(updates=list(step.events), keyframes=kfs)
 
     def on_update(self, ev: UpdateEvent) -> Outbox:
@@ -133,6 +190,7 @@ class TrackerRole:
             return Outbox()
         self.tracker.apply_update(ev)
         self.loop_seq = int(ev.seq)
+        self._checkpoint()
         return Outbox()
 
     def finalize(self) -> Outbox:
@@ -142,6 +200,7 @@ class TrackerRole:
         evs = list(self.tracker.finalize())
         self.last_seq = _newest_seq(self.last_seq, evs)
         self.finalized = True
+        self._checkpoint(events=evs)
         return Outbox(updates=evs, final={"last_seq": self.last_seq,
                                           "keyframes": len(self.tracker.published)})
 
