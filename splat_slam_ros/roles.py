@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
+import torch
 
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.depth.proxy_depth import ProxyDepthEstimator, ProxyDepthResult
@@ -253,9 +254,44 @@ class LoopRole:
             for kf in kfs:
                 self.loop.add_keyframe(kf)
                 self.kf_ids[kf.kf_id] = kf.timestamp
+            self._restore_loop_edges(meta)
 
     def meta(self) -> dict:
-        return {"trk_seq": self.trk_seq, "last_seq": self.last_seq}
+        m = {"trk_seq": self.trk_seq, "last_seq": self.last_seq}
+        if self.loop is not None:
+            m.update(loop_pairs=sorted([int(a), int(o)] for a, o in self.loop.loop_pairs),
+                     checked=sorted([int(a), int(o)] for a, o in self.loop.checked),
+                     n_loops=int(self.loop.n_loops))
+        return m
+
+    def _loop_edges_staged(self) -> dict:
+        """Loop edges of the graph not stored yet, one record per directed edge: the flow
+        targets and weights (Eq. 1 terms) a restarted loop closer could not measure again
+        once the older keyframe's image left its buffer."""
+        staged = {}
+        if self.store is None or self.loop is None:
+            return staged
+        g = self.loop.graph
+        for (i, j), kind in sorted(g.kind.items()):
+            name = f"loop{int(i)}_{int(j)}"
+            if kind == "loop" and not self.store.has(name):
+                staged[name] = self.store.stage(name, target=g.edges[(i, j)][0].cpu().numpy(),
+                                                weight=g.edges[(i, j)][1].cpu().numpy())
+        return staged
+
+    def _restore_loop_edges(self, meta: dict) -> None:
+        g = self.loop.graph
+        for name in self.store.names():
+            if name.startswith("loop") and "_" in name:
+                i, j = (int(x) for x in name[4:].split("_"))
+                if i in self.kf_ids and j in self.kf_ids:
+                    rec = self.store.get(name)
+                    g.edges[(i, j)] = (torch.as_tensor(rec["target"], device=g.device),
+                                       torch.as_tensor(rec["weight"], device=g.device))
+                    g.age[(i, j)], g.kind[(i, j)] = 0, "loop"
+        self.loop.loop_pairs |= {(int(a), int(o)) for a, o in meta.get("loop_pairs", [])}
+        self.loop.checked |= {(int(a), int(o)) for a, o in meta.get("checked", [])}
+        self.loop.n_loops = int(meta.get("n_loops", len(self.loop.loop_pairs)))
 
     def on_keyframe(self, kf: KeyframeData) -> Outbox:
         batch = self.batcher.add(kf, lambda k: k in self.kf_ids)
@@ -272,6 +308,7 @@ class LoopRole:
             for k in batch:
                 self.store.put_keyframe(k, meta=self.meta())
             _persist_events(self.store, events, self.meta())
+            self.store.commit(self._loop_edges_staged(), self.meta())
         return Outbox(updates=events, acks=[_ack(k) for k in batch])
 
     def on_update(self, ev: UpdateEvent) -> Outbox:
@@ -296,6 +333,8 @@ class LoopRole:
         events = self.loop.finalize() if self.loop is not None else []   # final global BA
         self.last_seq = _newest_seq(self.last_seq, events)
         _persist_events(self.store, events, self.meta())
+        if self.store is not None:
+            self.store.commit(self._loop_edges_staged(), self.meta())
         return Outbox(updates=list(events), final={"last_seq": self.last_seq,
                                                    "keyframes": len(self.kf_ids)})
 

@@ -66,3 +66,32 @@ def test_tracker_resumes_from_its_checkpoint_like_an_uninterrupted_run(tmp_path)
     b._checkpoint()
     again = KeyframeStore(store_dir)._records
     assert {n for n in after if after[n] != again.get(n)} == {"tstate"}
+
+
+def test_loop_role_keeps_its_accepted_loop_edges_across_a_restart(tmp_path):
+    import torch
+
+    from splat_slam_ros.roles import LoopRole
+    from test_loop_closure import N_KF, drifted, keyframe, loop_cfg, loop_keyframes
+    data = loop_keyframes()
+    est = drifted(np.stack([d[1] for d in data]))
+    cfg = loop_cfg(global_ba=False)
+    a = LoopRole(cfg, store=KeyframeStore(tmp_path / "loop"))
+    for k in range(N_KF):
+        a.on_keyframe(keyframe(k, est[k], data))
+    pairs = set(a.loop.loop_pairs)
+    assert pairs, "no loop edge found"
+    edges = {e: v for e, v in a.loop.graph.edges.items() if a.loop.graph.kind[e] == "loop"}
+    del a                                                  # "kill -9"
+    b = LoopRole(cfg, store=KeyframeStore(tmp_path / "loop"))
+    assert b.loop.loop_pairs == pairs and b.loop.n_loops >= len(pairs)
+    assert b.loop.checked >= pairs
+    for e, (tgt, wgt) in edges.items():                    # the measured flows, not re-measured
+        assert b.loop.graph.kind[e] == "loop"
+        assert torch.equal(b.loop.graph.edges[e][0].cpu(), tgt.cpu())
+        assert torch.equal(b.loop.graph.edges[e][1].cpu(), wgt.cpu())
+    # the restarted closer does not look for the same loops again, and its final global BA
+    # uses the kept edges
+    assert not [c for c in b.loop.detect() if (c[0], c[1]) in pairs]
+    b.on_final("tracker", {"last_seq": 0})
+    assert b.finalized and set(b.loop.loop_pairs) >= pairs
