@@ -50,6 +50,16 @@ def cdr_stamp_ns(raw: bytes) -> Optional[int]:
     return sec * 1_000_000_000 + nsec
 
 
+def shift_stamp(raw: bytes, delta_ns: int) -> bytes:
+    """A serialized message (std_msgs/Header first) with header.stamp moved by ``delta_ns``."""
+    ns = cdr_stamp_ns(raw)
+    if ns is None:
+        return raw
+    ns += int(delta_ns)
+    little = raw[1] in (0x01, 0x03)
+    return raw[:4] + struct.pack("<iI" if little else ">iI", ns // 10**9, ns % 10**9) + raw[12:]
+
+
 def _import_type(name: str):
     try:
         return message_class(name)
@@ -117,6 +127,8 @@ class Player:
         self.events_pub = self.node.create_publisher(String, TOPICS["events"], events_qos())
         self.String = String
         self.ready_nodes = set()
+        self.progress = PlayerProgress(args.state) if args.state else None
+        self.rewind: Optional[int] = None       # a restarted tracker's resume stamp (ns)
         self.acks: Dict[str, Dict] = {}
         self.tracker_acks: Dict[int, Tuple[bool, int]] = {}
         self.node.create_subscription(FrameAck, TOPICS["ack"], self._on_ack, Q.ack_qos())
@@ -135,6 +147,17 @@ class Player:
         d = graph_event(m)
         if d is not None and d.get("event") == "ready":
             self.ready_nodes.add(d.get("node"))
+        if d is not None and d.get("event") == "resumed" and d.get("node") == "tracker" and \
+                self.args.mode == "lockstep":
+            inc = str(d.get("incarnation"))
+            if self.progress is None or inc not in self.progress.handled:
+                st = d.get("stamp")
+                ns = -1 if not isinstance(st, (int, float)) else int(round(st * 1e9))
+                self.rewind = ns if self.rewind is None else min(self.rewind, ns)
+                if self.progress is not None:
+                    self.progress.handled.append(inc)
+                self.log.info(f"the tracker resumed from its checkpoint: playing again from "
+                              f"the first frame after {st}")
 
     def spin_until(self, cond, timeout: float, what: str) -> bool:
         import rclpy
@@ -174,28 +197,98 @@ class Player:
         # let the matched subscribers' reliable channels settle (first-message loss)
         self.spin_until(lambda: False, 0.3, "")
 
-    def play(self) -> int:
-        import rclpy
+    def _loop_period_ns(self) -> int:
+        """Time shift between two passes of ``--loop``: the image stream's span + one frame."""
+        ts = [t for _topic, t, _raw in self.reader.raw_messages([self.roles["camera_info"]])] \
+            if self.roles["camera_info"] in self.reader.types else []
+        if len(ts) < 2:
+            ts = [t for t, _g in frames(self.reader, [self.roles["image"]], self.roles["image"])]
+        if len(ts) < 2:
+            return 10**9
+        return int(ts[-1] - ts[0] + (ts[-1] - ts[0]) // (len(ts) - 1))
+
+    def _frames_after(self, after_ns: Optional[int]):
+        """(position, log time, group, image stamp ns) of the frames whose image stamp is
+        newer than ``after_ns`` (None: all), in bag order; ``--loop N``: N passes, each one
+        shifted in time (log time and header stamps) after the previous."""
+        pos = 0
+        period = self._loop_period_ns() if self.args.loop > 1 else 0
+        for rep in range(max(1, self.args.loop)):
+            shift = rep * period
+            for t_ns, group in frames(self.reader, self.topics, self.roles["image"]):
+                if shift:
+                    t_ns, group = t_ns + shift, [(tp, shift_stamp(raw, shift)) for tp, raw in group]
+                img = next(raw for topic, raw in group if topic == self.roles["image"])
+                stamp = cdr_stamp_ns(img)
+                if after_ns is None or stamp is None or stamp > after_ns + 1000:
+                    yield pos, t_ns, group, stamp
+                pos += 1
+
+    def _publish(self, t_ns: int, group) -> None:
         from builtin_interfaces.msg import Time
         from rosgraph_msgs.msg import Clock
+        if self.clock_pub is not None:
+            self.clock_pub.publish(Clock(clock=Time(sec=t_ns // 10**9, nanosec=t_ns % 10**9)))
+        img_raw = None
+        for topic, raw in group:              # the image last: camera_info first
+            if topic == self.roles["image"]:
+                img_raw = raw
+                continue
+            self.pubs[topic].publish(raw)
+        self.pubs[self.roles["image"]].publish(img_raw)
+
+    def _wait_consumed(self, n: int, stamp, wait_kf: List[str]) -> int:
+        """Lockstep: the tracker's ack of the frame (and the consumers' acks of the keyframe it
+        made); a resumed tracker (``self.rewind``) ends the wait. Returns acks missing."""
+        a, lost = self.args, 0
+        ok = self.spin_until(lambda: stamp in self.tracker_acks or self.rewind is not None,
+                             a.ack_timeout, f"the tracker's ack of frame {n - 1}")
+        if not ok:
+            self.log.error(f"no ack of frame {n - 1} from the tracker within "
+                           f"{a.ack_timeout:g} s; going on")
+            return 1
+        if self.rewind is not None:
+            return 0
+        is_kf, kf = self.tracker_acks.pop(stamp)
+        if is_kf:
+            for c in wait_kf:
+                if not self.spin_until(
+                        lambda c=c: self.acks.get(c, {"kf": -1})["kf"] >= kf or
+                        self.rewind is not None, a.ack_timeout, f"{c}'s ack of keyframe {kf}"):
+                    lost += 1
+                    self.log.error(f"no ack of keyframe {kf} from {c} within "
+                                   f"{a.ack_timeout:g} s; going on")
+        return lost
+
+    def play(self) -> int:
+        import rclpy
         a = self.args
         self.wait_for_graph()
-        total = self.reader.counts.get(self.roles["image"], 0)
+        total = self.reader.counts.get(self.roles["image"], 0) * max(1, a.loop)
         if a.max_frames:
             total = min(total, a.max_frames)
+        start = self.progress.stamp_ns if self.progress is not None else None
+        if self.rewind is not None:            # the tracker resumed before the player did
+            start = self.rewind if start is None else min(start, self.rewind)
+            self.rewind = None
         self.log.info(f"playing {total} frames ({a.mode}"
                       f"{'' if a.mode == 'lockstep' else f', rate {a.rate:g}'}) on "
-                      f"{', '.join(self.remap.get(t, t) for t in self.topics)}")
+                      f"{', '.join(self.remap.get(t, t) for t in self.topics)}"
+                      + ("" if start is None else f", resuming after stamp {start * 1e-9:.6f}"))
         wait_kf = [c for c in (a.wait_acks.split(",") if a.wait_acks else []) if c]
         t_wall0 = t_bag0 = None
         n = 0
-        last_kf = -1
         t_start = time.monotonic()
         last_report = t_start
         lost_acks = 0
         self.event("start", frames=total, mode=a.mode)
-        for t_ns, group in frames(self.reader, self.topics, self.roles["image"]):
-            if a.max_frames and n >= a.max_frames:
+        it = self._frames_after(start)
+        while True:
+            item = next(it, None)
+            if item is None:
+                break
+            pos, t_ns, group, stamp = item
+            if a.max_frames and pos >= a.max_frames:
                 break
             if a.mode == "realtime":
                 if t_wall0 is None:
@@ -203,37 +296,18 @@ class Player:
                 due = t_wall0 + (t_ns - t_bag0) * 1e-9 / a.rate
                 while time.monotonic() < due:
                     rclpy.spin_once(self.node, timeout_sec=min(0.02, max(0.0, due - time.monotonic())))
-            if self.clock_pub is not None:
-                self.clock_pub.publish(Clock(clock=Time(sec=t_ns // 10**9, nanosec=t_ns % 10**9)))
-            img_raw = None
-            for topic, raw in group:              # the image last: camera_info first
-                if topic == self.roles["image"]:
-                    img_raw = raw
-                    continue
-                self.pubs[topic].publish(raw)
-            self.pubs[self.roles["image"]].publish(img_raw)
-            n += 1
+            self._publish(t_ns, group)
+            n = pos + 1
             if a.mode == "lockstep":
-                stamp = cdr_stamp_ns(img_raw)
-                ok = self.spin_until(lambda: stamp in self.tracker_acks, a.ack_timeout,
-                                     f"the tracker's ack of frame {n - 1}")
-                if not ok:
-                    lost_acks += 1
-                    self.log.error(f"no ack of frame {n - 1} from the tracker within "
-                                   f"{a.ack_timeout:g} s; going on")
-                else:
-                    is_kf, kf = self.tracker_acks.pop(stamp)
-                    if is_kf and wait_kf:
-                        last_kf = max(last_kf, kf)
-                        for c in wait_kf:
-                            if not self.spin_until(
-                                    lambda c=c: self.acks.get(c, {"kf": -1})["kf"] >= kf,
-                                    a.ack_timeout, f"{c}'s ack of keyframe {kf}"):
-                                lost_acks += 1
-                                self.log.error(f"no ack of keyframe {kf} from {c} within "
-                                               f"{a.ack_timeout:g} s; going on")
+                lost_acks += self._wait_consumed(n, stamp, wait_kf)
+                if self.rewind is not None:     # a restarted tracker: from its checkpoint on
+                    it, self.rewind = self._frames_after(self.rewind), None
+                    self.tracker_acks.clear()
+                    continue
             else:
                 rclpy.spin_once(self.node, timeout_sec=0)
+            if self.progress is not None and stamp is not None:
+                self.progress.save(stamp, n)
             now = time.monotonic()
             if now - last_report >= a.report_every:
                 last_report = now
@@ -250,6 +324,33 @@ class Player:
             pass
         self.spin_until(lambda: False, 0.2, "")
         return 0
+
+
+class PlayerProgress:
+    """The player's position (stamp of the newest frame consumed) in ``DIR/progress.json``,
+    replaced atomically after every frame: a restarted player continues after it."""
+
+    def __init__(self, directory):
+        from pathlib import Path
+        self.path = Path(directory) / "progress.json"
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        d = {}
+        if self.path.is_file():
+            try:
+                d = json.loads(self.path.read_text())
+            except ValueError:
+                d = {}
+        self.stamp_ns: Optional[int] = d.get("stamp_ns")
+        self.frames = int(d.get("frames", 0))
+        self.handled: List[str] = list(d.get("handled", []))   # tracker resumes followed
+
+    def save(self, stamp_ns: int, frames: int) -> None:
+        import os
+        self.stamp_ns, self.frames = int(stamp_ns), int(frames)
+        tmp = self.path.with_name(f".progress.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps({"stamp_ns": self.stamp_ns, "frames": self.frames,
+                                   "handled": self.handled}))
+        os.replace(tmp, self.path)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -279,6 +380,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="do not announce the end (act like a live camera that just stops)")
     ap.add_argument("--report-every", type=float, default=10.0, help="progress line period (s)")
     ap.add_argument("--name", default="bag_player", help="node name")
+    ap.add_argument("--loop", type=int, default=1, metavar="N",
+                    help="play the bag N times, each pass shifted in time after the previous "
+                         "(long runs from a short bag: soak tests)")
+    ap.add_argument("--state", metavar="DIR", help="keep the position in DIR/progress.json and "
+                    "resume after it when started again (the launcher passes OUT/state/player)")
     return ap
 
 
@@ -289,6 +395,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(remove_ros_args(["x"] + argv)[1:])
     if args.rate <= 0:
         print("error: --rate must be positive", file=sys.stderr)
+        return 2
+    if args.loop < 1:
+        print("error: --loop must be at least 1", file=sys.stderr)
         return 2
     try:
         reader = BagReader(args.bag)

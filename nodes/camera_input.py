@@ -25,6 +25,10 @@ class CameraInput:
         self.cam_info = None
         self.info_lock = threading.Condition()
         self.n_frames = self.n_dropped = self.queued = 0
+        self.last_ns: Optional[int] = None        # newest frame stamp taken (replays: older)
+        # a replayed frame is recognised by its stamp on the player's reliable input (a live
+        # camera's clock may jump back: its frames are never dropped for that)
+        self.dedup = self.opts["input_qos"] == "reliable"
         if self.opts["intrinsics_file"]:
             from splat_slam_ros.types import Intrinsics, IntrinsicsError
             try:
@@ -56,7 +60,23 @@ class CameraInput:
             self.cam_info = intr
             self.info_lock.notify_all()
 
+    def resume(self, intr, stamp: Optional[float], n_frames: int) -> None:
+        """A tracker restored from its checkpoint: frames up to ``stamp`` are replays."""
+        self.cam_info = self.cam_info or intr
+        self.size = (intr.width, intr.height)
+        self.n_frames = int(n_frames)
+        self.last_ns = None if stamp is None else int(round(stamp * 1e9))
+        self.dedup = True
+
     def _on_image(self, msg, raw) -> None:
+        ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        if self.last_ns is not None and ns <= self.last_ns + 1000:
+            # a replay (the player resumed from its last acknowledged frame, or the tracker
+            # from a checkpoint after it): acknowledged, not tracked twice
+            self._ack(max(self.n_frames - 1, 0), msg.header.stamp, None)
+            return
+        if self.dedup:
+            self.last_ns = ns
         mq = int(self.opts["max_queue"])
         index = self.n_frames
         self.n_frames += 1

@@ -13,9 +13,12 @@ graph finalises itself (final global BA, final map refinement) and the outputs l
 Without ``--bag`` the graph runs on live topics until Ctrl-C; the first Ctrl-C finalises and
 saves (when ``--out`` is given), a second one stops at once.
 
-Supervision: a node that dies is restarted (``--max-restarts``) when it can resume from its
-crash-safe store in ``OUT/state/<node>`` (depth, loop_closure, mapper); the tracker and the
-player cannot resume, so their death stops the graph with a non-zero exit status.
+Supervision: a node that dies is restarted (``--max-restarts``) and resumes from its
+crash-safe store in ``OUT/state/<node>``: the tracker from its last checkpoint (keyframe ids
+and update numbers continue; the player plays again from the frame after it), depth,
+loop_closure (with its loop edges) and mapper from what they stored, the player from its last
+acknowledged frame (``OUT/state/player/progress.json``). ``--resume`` after the whole graph
+was killed continues the same run from these stores.
 
 End-of-stream / finalisation protocol (graph events on /splat/graph_events; the rules are
 the stage roles' in splat_slam_ros/roles.py, the same the in-process coordinator runs):
@@ -51,7 +54,7 @@ NODE_MODULES = {
     "camera": "splat_slam_nodes.camera_node",
     "rerun": "splat_slam_nodes.rerun_logger",
 }
-RESUMABLE = ("depth", "loop_closure", "mapper")
+RESUMABLE = ("tracker", "depth", "loop_closure", "mapper", "player")
 
 
 class LaunchError(Exception):
@@ -251,6 +254,10 @@ class Launcher:
                 "--wait-acks", ",".join(acks), "--start-timeout", str(a.start_timeout)]
         if a.max_frames:
             args += ["--max-frames", str(a.max_frames)]
+        if self.out_dir is not None:
+            args += ["--state", str(self.out_dir / "state" / "player")]
+        if a.loop_bag > 1:
+            args += ["--loop", str(a.loop_bag)]
         if "ros.image_topic" in self.overrides:
             args += ["--out-image", str(self.overrides["ros.image_topic"])]
         if "ros.camera_info_topic" in self.overrides:
@@ -467,6 +474,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--rerun-connect", metavar="URL", help="also stream to a rerun viewer, e.g. "
                     "rerun+http://HOST:9876/proxy")
     ap.add_argument("--max-frames", type=int, default=0, help="play at most N frames")
+    ap.add_argument("--loop-bag", type=int, default=1, metavar="N",
+                    help="play the bag N times in a row, shifted in time (long soak runs)")
     ap.add_argument("--camera", metavar="SOURCE", help="start splat-slam-camera on SOURCE (device "
                     "index, /dev/videoN, video file or image folder) instead of a bag")
     ap.add_argument("--camera-info", metavar="YAML", help="--camera intrinsics (ROS camera_info "
@@ -503,6 +512,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 2
     if args.rate <= 0:
         print("error: --rate must be positive", file=sys.stderr)
+        return 2
+    if args.loop_bag < 1:
+        print("error: --loop-bag must be at least 1", file=sys.stderr)
         return 2
     from splat_slam_ros.report import WarningTee, write_report
     L = Launcher(args, out=WarningTee(sys.stdout))        # keeps warnings for the report

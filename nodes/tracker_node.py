@@ -57,9 +57,36 @@ class TrackerNode(SplatNode):
         self.eos = self.saved = False
         self.stamps: List[float] = []
         self.poses: List = []
+        self._store = self.store()          # node.state_dir: checkpoints, resume after a crash
+        if TrackerRole.stored_intrinsics(self._store) is not None:
+            self._resume()
         self.log.info(f"listening on {self.cfg.ros.image_topic} + {self.cfg.ros.camera_info_topic} "
                       f"({self.opts['input_qos']} QoS)")
         self.publish_event("ready")
+
+    def _resume(self) -> None:
+        """Rebuild the tracker from its checkpoint; the input continues after its newest frame
+        (``resumed`` event: the bag player rewinds to it in lockstep)."""
+        import os
+        import time
+
+        from splat_slam_ros.roles import TrackerRole
+        from splat_slam_ros.tracking.tracker import TrackingError
+        from splat_slam_ros.tracking.tracker_state import TrackerStateError
+        intr = TrackerRole.stored_intrinsics(self._store)
+        try:
+            self.role = TrackerRole(self.cfg, intr, bool(self.opts["loop_closure"]),
+                                    store=self._store)
+        except (TrackingError, TrackerStateError, ValueError) as e:
+            self.log.fatal(f"cannot resume the tracker from {self.state_dir}: {e}")
+            raise SystemExit(2)
+        trk, stamp = self.role.tracker, self.role.resume_stamp
+        self.camera.resume(intr, stamp, (trk.records[-1].index + 1) if trk.records else 0)
+        self.log.info(f"resumed from {self.state_dir}: {len(trk.published)} keyframes, "
+                      f"{len(trk.records)} frames, next keyframe id {trk.next_kf}")
+        self.emit(self.role.resume_outbox())      # consumers skip what they hold
+        self.publish_event("resumed", stamp=stamp, keyframes=len(trk.published),
+                           incarnation=f"{os.getpid()}-{time.time():.6f}")
 
     def _on_event(self, d: dict) -> None:
         if d.get("event") == "end_of_stream" and d.get("node") in ("player", "launch",
@@ -76,7 +103,8 @@ class TrackerNode(SplatNode):
         from .node_common import pose_stamped
         if self.role is None:
             try:
-                self.role = TrackerRole(self.cfg, frame.intrinsics, bool(self.opts["loop_closure"]))
+                self.role = TrackerRole(self.cfg, frame.intrinsics, bool(self.opts["loop_closure"]),
+                                        store=self._store)
             except (TrackingError, ValueError) as e:
                 self.log.fatal(f"cannot start the tracker: {e}")
                 raise SystemExit(2)
