@@ -5,8 +5,8 @@ Subscribes  /splat/keyframes (Keyframe), /splat/pose_graph_updates (the tracker'
 Publishes   /splat/pose_graph_updates (loop closure, online global BA, final global BA),
             /splat/frame_ack (consumer "loop_closure", one per keyframe handled: lockstep).
 The protocol is :class:`splat_slam_ros.roles.LoopRole`; its keyframes (latest poses and
-disparities) persist in ``node.state_dir``: a restarted node re-adds them and continues its
-update numbers where it stopped.
+disparities) and its loop edges persist in ``node.state_dir``: a restarted node re-adds them,
+keeps the accepted loops and continues its update numbers where it stopped.
 """
 from __future__ import annotations
 
@@ -22,7 +22,8 @@ class LoopClosureNode(SplatNode):
         self.publishers("updates", "ack")
         self.role = LoopRole(self.cfg, store=self.store())
         if self.role.kf_ids:
-            self.log.info(f"resumed from {self.state_dir}: {len(self.role.kf_ids)} keyframes")
+            self.log.info(f"resumed from {self.state_dir}: {len(self.role.kf_ids)} keyframes, "
+                          f"{len(self.role.loop.loop_pairs)} loop edges")
         self.route(self.role, keyframes=True, updates=True, after=self._after)
         self.publish_event("ready")
 
