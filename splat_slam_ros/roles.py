@@ -589,13 +589,38 @@ class MapperRole:
                 out.extend(self._map(self.pending_kf.pop(k), self.pending_depth.pop(k)))
         return out.extend(self._check_final())
 
+    def _revisit(self, pd: ProxyDepth) -> Optional[int]:
+        """A mapped keyframe that sees what ``pd``'s keyframe sees (``mapping.revisit_cull_deg``:
+        centre within kf_translation x median depth, optical axes within that angle)."""
+        mc = self.cfg.mapping
+        if mc.revisit_cull_deg <= 0 or self.mapper is None or not self.mapper.keyframes:
+            return None
+        d = np.asarray(pd.depth, np.float32)
+        ok = (d > 0) if pd.valid is None else (np.asarray(pd.valid, bool) & (d > 0))
+        med = float(np.median(d[ok])) if ok.any() else 0.0
+        T = np.asarray(pd.pose, np.float64)
+        cos_max = np.cos(np.radians(mc.revisit_cull_deg))
+        best = None
+        for k, m in self.mapper.keyframes.items():
+            P = np.asarray(m.pose, np.float64)
+            dist = float(np.linalg.norm(P[:3, 3] - T[:3, 3]))
+            if dist < mc.kf_translation * med and float(P[:3, 2] @ T[:3, 2]) > cos_max and \
+                    (best is None or dist < best[0]):
+                best = (dist, k)
+        return None if best is None else best[1]
+
     def _map(self, kf: KeyframeData, pd: ProxyDepth) -> Outbox:
         t0 = time.perf_counter()
         if self.mapper is None:
             self.intr = kf.intrinsics
             self.mapper = Mapper(self.cfg, kf.intrinsics)
-        st = self.mapper.add_keyframe(kf.kf_id, kf.image, pd.pose, pd.depth, pd.valid,
-                                      timestamp=kf.timestamp)
+        twin = self._revisit(pd)
+        if twin is not None:                # a revisit: consumed, not mapped (bounded map)
+            st = dict(self.mapper.stats(), kf_id=int(kf.kf_id), mapped=False,
+                      reason=f"revisit of {twin}")
+        else:
+            st = self.mapper.add_keyframe(kf.kf_id, kf.image, pd.pose, pd.depth, pd.valid,
+                                          timestamp=kf.timestamp)
         self.timings["mapping"] += time.perf_counter() - t0
         mapped = bool(st.get("mapped"))
         self.offered[kf.kf_id] = mapped

@@ -95,3 +95,31 @@ def test_loop_role_keeps_its_accepted_loop_edges_across_a_restart(tmp_path):
     assert not [c for c in b.loop.detect() if (c[0], c[1]) in pairs]
     b.on_final("tracker", {"last_seq": 0})
     assert b.finalized and set(b.loop.loop_pairs) >= pairs
+
+
+def _revisit_run(cull_deg: float):
+    from splat_slam_ros.config import MappingConfig, SlamConfig
+    from splat_slam_ros.roles import MapperRole
+    from splat_slam_ros.types import KeyframeData, ProxyDepth
+    from test_tracker import render_room
+    cfg = SlamConfig()
+    cfg.mapping = MappingConfig.fast(iters_first=5, iters_per_keyframe=1, revisit_cull_deg=cull_deg)
+    role = MapperRole(cfg)
+    xs = [0.0, 0.5, 1.0, 1.5, 1.0, 0.5, 0.0, 0.52]          # there and back (+ a near twin)
+    for k, x in enumerate(xs):
+        T = np.eye(4)
+        T[0, 3] = x
+        img, depth = render_room(T, INTR)
+        kf = KeyframeData(k, k, float(k), T, img, INTR, np.ones((30, 40), np.float32),
+                          np.ones((30, 40), np.float32))
+        role.on_keyframe(kf)
+        role.on_proxy_depth(ProxyDepth(k, depth, np.ones_like(depth, np.uint8), T, timestamp=k))
+    return role
+
+
+def test_mapper_role_does_not_map_revisits_when_asked():
+    off, on = _revisit_run(0.0), _revisit_run(10.0)
+    assert sorted(off.offered) == sorted(on.offered) == list(range(8))   # all consumed
+    assert sum(off.offered.values()) >= 6                 # the window rules map the way back
+    assert [k for k, m in on.offered.items() if m] == [0, 1, 2, 3]       # revisits are not
+    assert len(on.mapper.keyframes) == 4
