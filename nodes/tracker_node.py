@@ -82,8 +82,12 @@ class TrackerNode(SplatNode):
             raise SystemExit(2)
         trk, stamp = self.role.tracker, self.role.resume_stamp
         self.camera.resume(intr, stamp, (trk.records[-1].index + 1) if trk.records else 0)
-        self.log.info(f"resumed from {self.state_dir}: {len(trk.published)} keyframes, "
-                      f"{len(trk.records)} frames, next keyframe id {trk.next_kf}")
+        if self.role.resumed:
+            self.log.info(f"resumed from {self.state_dir}: {len(trk.published)} keyframes, "
+                          f"{len(trk.records)} frames, next keyframe id {trk.next_kf}")
+        else:
+            self.log.info(f"restarted before its first checkpoint ({self.state_dir}): "
+                          "tracking again from the first frame")
         self.emit(self.role.resume_outbox())      # consumers skip what they hold
         self.publish_event("resumed", stamp=stamp, keyframes=len(trk.published),
                            incarnation=f"{os.getpid()}-{time.time():.6f}")

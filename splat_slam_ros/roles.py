@@ -133,6 +133,10 @@ class TrackerRole:
             m = self.ckpt.meta
             self.last_seq, self.loop_seq = int(m.get("last_seq", 0)), int(m.get("loop_seq", 0))
             self.ckpt.restore(self.tracker, max(TRACKER_SEQ_START, self.last_seq + 1))
+        elif self.ckpt is not None and "trk_intrinsics" not in self.ckpt.meta:
+            # the camera, at once: a crash before the first checkpoint (warm-up) is a restart
+            # from the first frame, not a new run
+            self.ckpt.store.commit({}, {"trk_intrinsics": intrinsics_to_list(intrinsics)})
 
     @staticmethod
     def stored_intrinsics(store: Optional[KeyframeStore]) -> Optional[Intrinsics]:

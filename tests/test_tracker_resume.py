@@ -30,6 +30,9 @@ def test_tracker_resumes_from_its_checkpoint_like_an_uninterrupted_run(tmp_path)
     store_dir = tmp_path / "tracker"
     a = TrackerRole(cfg, INTR, False, store=KeyframeStore(store_dir))
     assert not a.resumed and a.resume_stamp is None
+    early = TrackerRole(cfg, INTR, False, store=KeyframeStore(store_dir))   # crash in warm-up:
+    assert not early.resumed and early.resume_stamp is None                # from frame 0 again
+    assert TrackerRole.stored_intrinsics(KeyframeStore(store_dir)).width == INTR.width
     seqs, kfs = [], []
     _feed(a, frames[:31], seqs, kfs)
     assert kfs, "the first part must publish keyframes"
