@@ -14,11 +14,13 @@ While the graph runs, the benchmark samples every ``--sample-every`` seconds: th
 node process (/proc/<pid>/status VmRSS), the tracker's keyframes (its checkpoint manifest), and
 the mapper's Gaussians and mapped keyframes (/splat/map/status). At the end it checks:
 - RSS plateau: every node's RSS at the end within 10 % of its RSS at the middle of the run;
-- bounded map: Gaussians and mapped keyframes at the end within 10 % of the middle (the
+- bounded map: Gaussians at the end within 10 % of the middle, mapped keyframes within 10 %
+  (or 3 keyframes) of the middle (the
   default config sets mapping.revisit_cull_deg: a keyframe that revisits a mapped view is
   consumed but not mapped);
-- nothing lost: no node restarted or died, every frame played was tracked or dropped by the
-  realtime queue (counted), every keyframe the tracker published reached the mapper.
+- nothing lost: no node restarted or died, every keyframe the tracker published reached the
+  mapper, every frame the tracker took is in the full trajectory (realtime mode drops frames
+  by design when the tracker is busy, and DDS may not deliver some: both are counted).
 Printed and written to ``benchmarks/results/soak.json`` (+ the samples). One run on a shared
 2-core machine takes about frames / 30 s plus finalisation; timings are noisy.
 """
@@ -229,7 +231,7 @@ def run_soak(bag: Path, cfg_path: Path, out: Path, passes: int, rate: float,
                 samples.append(s)
                 bar.update(sample_every)
                 bar.set_postfix(frames=s["frames"], kf=s["tracker_keyframes"],
-                                gauss=s["gaussians"])
+                                gauss=s["gaussians"], refresh=False)
     finally:
         if launch.poll() is None:
             launch.terminate()
@@ -258,18 +260,27 @@ def summarise(res: dict, out: Path) -> dict:
     checks = {"rss_plateau": all(g is not None and g <= 0.10 for g in growth.values()),
               "gaussians_bounded": bool(mid["gaussians"]) and
               end["gaussians"] <= 1.10 * mid["gaussians"],
-              "mapped_keyframes_bounded": end["keyframes_mapped"] <= 1.10 * max(
-                  mid["keyframes_mapped"], 1)}
+              "mapped_keyframes_bounded": end["keyframes_mapped"] <= max(
+                  1.10 * mid["keyframes_mapped"], mid["keyframes_mapped"] + 3)}
     restarts = {n: v.get("restarts", 0) for n, v in m.get("nodes", {}).items()}
     offered = {}
     mf = out / "state" / "mapper" / "manifest.json"
     if mf.is_file():
         offered = json.loads(mf.read_text())["meta"].get("offered", {})
     played = int(m.get("frames") or 0)
-    checks["nothing_lost"] = (res["rc"] == 0 and not any(restarts.values()) and played > 0 and
-                              (m.get("frames_tracked") or 0) == played and
-                              sorted(int(k) for k in offered) == list(range(m.get("keyframes", 0))))
+    taken = int(m.get("frames_tracked") or 0) - int(m.get("frames_dropped") or 0)
+    posed = 0
+    if (out / "trajectory_full.txt").is_file():
+        from splat_slam_ros.io.trajectory_io import read_trajectory
+        posed = len(read_trajectory(out / "trajectory_full.txt")[0])
+    # no crash or restart, every keyframe reached the mapper, every frame the tracker took
+    # is in the full trajectory (realtime mode drops frames by design: counted, not lost)
+    checks["nothing_lost"] = (res["rc"] == 0 and not any(restarts.values()) and taken > 0 and
+                              posed == taken and sorted(int(k) for k in offered) ==
+                              list(range(m.get("keyframes", 0))))
     return {"frames": played, "frames_dropped_realtime": m.get("frames_dropped"),
+            "frames_not_delivered": played - int(m.get("frames_tracked") or 0),
+            "frames_posed": posed,
             "wall_s": res["wall_s"], "rc": res["rc"],
             "rss_mb_start_mid_end": {n: [None if x is None else round(x, 1) for x in v]
                                      for n, v in rss.items()},
@@ -285,7 +296,8 @@ def summarise(res: dict, out: Path) -> dict:
 
 
 def table(r: dict) -> str:
-    lines = [f"frames {r['frames']} (dropped by the realtime queue {r['frames_dropped_realtime']}), "
+    lines = [f"frames {r['frames']} (dropped by the realtime queue {r['frames_dropped_realtime']}, "
+             f"not delivered {r['frames_not_delivered']}, posed {r['frames_posed']}), "
              f"wall {r['wall_s']:.0f} s, load {r['load_mean']}",
              "| node | RSS start MB | RSS middle MB | RSS end MB | growth, last half |",
              "|---|---|---|---|---|"]

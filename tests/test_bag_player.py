@@ -96,6 +96,33 @@ def test_realtime_rate_and_clock(tmp_path):
     assert [c["stamp"] for c in clocks] == [r["stamp"] for r in imgs]
 
 
+def test_loop_passes_and_state_resume(tmp_path):
+    """--loop 2: the bag twice, the second pass shifted after the first (stamps and /clock);
+    --state: a player started again continues after the last frame it had consumed."""
+    need_ros()
+    bag = write_tiny_bag(tmp_path / "bag", n=5, fps=10.0, with_depth=False, with_gt=False)
+    env = isolated_env()
+    spec = {"name": "probe", "subs": SUBS, "ack_topic": "/camera/image_raw", "duration": 90}
+    state = tmp_path / "state"
+    recs, _ = _play(bag, tmp_path, env, spec, "--wait-acks", "", "--loop", "2", "--state",
+                    str(state))
+    stamps = [r["stamp"] for r in recs if r.get("topic") == "/camera/image_raw"]
+    assert len(stamps) == 10 and all(b - a == 100_000_000 for a, b in zip(stamps, stamps[1:]))
+    assert [r["stamp"] for r in recs if r.get("topic") == "/clock"] == stamps
+    prog = json.loads((state / "progress.json").read_text())
+    assert prog["frames"] == 10 and prog["stamp_ns"] == stamps[-1]
+    # as if it had died after 7 frames: it plays the last 3 only, the count goes on
+    (state / "progress.json").write_text(json.dumps({"stamp_ns": stamps[6], "frames": 7}))
+    (tmp_path / "probe.log").unlink()
+    recs, _ = _play(bag, tmp_path, env, spec, "--wait-acks", "", "--loop", "2", "--state",
+                    str(state))
+    assert [r["stamp"] for r in recs if r.get("topic") == "/camera/image_raw"] == stamps[7:]
+    assert _eos(recs)[0]["frames"] == 10
+    r = subprocess.run([PY, "-m", "splat_slam_nodes.bag_player", str(bag), "--loop", "0"],
+                       env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "error: --loop must be at least 1" in r.stderr
+
+
 def test_all_topics_and_user_errors(tmp_path):
     need_ros()
     bag = write_tiny_bag(tmp_path / "bag", n=3)
