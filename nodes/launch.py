@@ -494,7 +494,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--max-restarts", type=int, default=3,
                     help="restarts of a resumable node before giving up (default 3)")
     ap.add_argument("--resume", action="store_true",
-                    help="keep OUT/state from an earlier run (default: start fresh)")
+                    help="continue the run in OUT from its crash-safe state (after the graph "
+                         "was killed); default: start fresh")
     ap.add_argument("--start-timeout", type=float, default=180.0,
                     help="seconds the player waits for the nodes to be ready")
     ap.add_argument("--final-timeout", type=float, default=3600.0,
