@@ -263,9 +263,16 @@ class LoopRole:
     def meta(self) -> dict:
         m = {"trk_seq": self.trk_seq, "last_seq": self.last_seq}
         if self.loop is not None:
-            m.update(loop_pairs=sorted([int(a), int(o)] for a, o in self.loop.loop_pairs),
-                     checked=sorted([int(a), int(o)] for a, o in self.loop.checked),
-                     n_loops=int(self.loop.n_loops))
+            # a pair is listed once its edge records are committed (the same commit or an
+            # earlier one): a crash in between must not keep a loop without its edges
+            st = self.store
+            unsaved = {p for p in self.loop.loop_pairs if st is not None and not (
+                st.has(f"loop{int(p[0])}_{int(p[1])}") or st.has(f"loop{int(p[1])}_{int(p[0])}"))}
+            m.update(loop_pairs=sorted([int(a), int(o)] for a, o in self.loop.loop_pairs
+                                       if (a, o) not in unsaved),
+                     checked=sorted([int(a), int(o)] for a, o in self.loop.checked
+                                    if (a, o) not in unsaved),
+                     n_loops=int(self.loop.n_loops) - len(unsaved))
         return m
 
     def _loop_edges_staged(self) -> dict:
@@ -312,7 +319,9 @@ class LoopRole:
             for k in batch:
                 self.store.put_keyframe(k, meta=self.meta())
             _persist_events(self.store, events, self.meta())
-            self.store.commit(self._loop_edges_staged(), self.meta())
+            staged = self._loop_edges_staged()
+            self.store.commit(staged, None)          # the edge records ...
+            self.store.commit({}, self.meta())       # ... then the pairs that use them
         return Outbox(updates=events, acks=[_ack(k) for k in batch])
 
     def on_update(self, ev: UpdateEvent) -> Outbox:
@@ -338,7 +347,8 @@ class LoopRole:
         self.last_seq = _newest_seq(self.last_seq, events)
         _persist_events(self.store, events, self.meta())
         if self.store is not None:
-            self.store.commit(self._loop_edges_staged(), self.meta())
+            self.store.commit(self._loop_edges_staged(), None)
+            self.store.commit({}, self.meta())
         return Outbox(updates=list(events), final={"last_seq": self.last_seq,
                                                    "keyframes": len(self.kf_ids)})
 
