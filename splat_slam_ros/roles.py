@@ -142,7 +142,10 @@ class TrackerRole:
         evs = list(self.tracker.finalize())
         self.last_seq = _newest_seq(self.last_seq, evs)
         self.finalized = True
-        return Outbox(updates=evs, final={"last_seq": self.last_seq,
+        kfs = list(self.tracker.final_keyframes)    # a late initialisation's (one batch)
+        for kf in kfs:
+            kf.batch_id, kf.batch_size = int(kfs[0].kf_id), len(kfs)
+        return Outbox(updates=evs, keyframes=kfs, final={"last_seq": self.last_seq,
                                           "keyframes": len(self.tracker.published)})
 
     def on_final(self, node: str, info: dict) -> Outbox:

@@ -33,7 +33,7 @@ from splat_slam_ros.tracking.keyframe_set import KeyframeSet, KeyframeState
 from splat_slam_ros.tracking.flow_frontend import (ImagePreprocessor, compose_flows, image_is_degenerate,
                             make_flow_predictor, predict_both)
 from splat_slam_ros.geometry import intr_tensor, pixel_grid, pose_from_tq, pose_to_tq, se3_exp, se3_inverse, se3_log
-from splat_slam_ros.tracking.motion_filter import MotionFilter
+from splat_slam_ros.tracking.motion_filter import MotionFilter, flow_scale, parallax
 from splat_slam_ros.depth.dspo import make_depth_prior
 from splat_slam_ros.runtime import limit_threads, resolve_device
 from splat_slam_ros.tracking.trajectory_filler import FrameRecord, fill_trajectory
@@ -122,7 +122,9 @@ class Tracker:
         self.intr = intr_tensor(self.ba_intrinsics, torch.float32, self.device)
         self.h, self.w = self.ba_intrinsics.height, self.ba_intrinsics.width
         self.flow = flow_predictor if flow_predictor is not None else make_flow_predictor(tc)
-        self.motion = MotionFilter(tc.motion_filter_thresh, min_valid_frac=tc.lost_min_valid)
+        # flow thresholds are in reference BA px (motion_filter.flow_scale): size-independent
+        self.px_scale = flow_scale(self.intr)
+        self.motion = self._motion_filter()
         self.graph = FactorGraph(self.h, self.w, self.device)
         self.grid = pixel_grid(self.h, self.w, device=self.device)
         self.huber = tc.robust_huber_px / tc.ba_downsample if tc.robust_huber_px > 0 else None
@@ -139,11 +141,17 @@ class Tracker:
         self.lost_count = 0
         self.n_lost = 0
         self._last_flow = None          # (ref kf, flow ref -> previous frame): DIS init
+        self._warm_best = None          # warm-up: the frame that moved most since the last kf
+        self.final_keyframes: List[KeyframeData] = []   # published by a late initialisation
         self.timings: Dict[str, float] = defaultdict(float)
         self.depth_prior = depth_prior if depth_prior is not None else self._default_prior(
             intrinsics)
 
     # ------------------------------------------------------------ helpers
+    def _motion_filter(self) -> MotionFilter:
+        return MotionFilter(self.tc.motion_filter_thresh * self.px_scale,
+                            min_valid_frac=self.tc.lost_min_valid)
+
     def _default_prior(self, intrinsics):
         if not (self.cfg.depth.mono_model and self.tc.dspo):
             return None
@@ -269,27 +277,58 @@ class Tracker:
         self._last_flow = (ref, f)
         info = {"mean_flow": fc.mean_flow, "valid": fc.valid_frac}
         if not self.motion.is_candidate(fc):
-            self._record(frame, ref_kf=ref, flow=self._store_flow(f, w)[0],
-                         weight=self._store_flow(f, w)[1])
+            sf, sw = self._store_flow(f, w)
+            self._record(frame, ref_kf=ref, flow=sf, weight=sw)
+            if self._warm_best is None or fc.mean_flow > self._warm_best[0]:
+                self._warm_best = (fc.mean_flow, frame, img, prep, (f, w, fb, wb))
             return TrackStep(frame.index, float(frame.timestamp), False, None,
                              eye.cpu().numpy(), initialized=False, info=info)
-        kid = self._add_keyframe(frame, img, prep, eye, ones)
-        self.kfs[kid].conf = wb.mean(-1)
-        self.graph.add(ref, kid, f, w)
-        self.graph.add(kid, ref, fb, wb)
-        self._record(frame, kf_id=kid)
-        if len(self.window) < max(self.tc.warmup, 2):
+        self._warm_keyframe(frame, img, prep, ref, (f, w, fb, wb))
+        if not self._ready_to_initialize(info):
             return TrackStep(frame.index, float(frame.timestamp), False, None,
                              eye.cpu().numpy(), initialized=False, info=info)
         return self._initialize(frame, info)
+
+    def _warm_keyframe(self, frame, img, prep, ref, flows) -> int:
+        """A warm-up keyframe (pose/disparity found by the initialisation BA)."""
+        f, w, fb, wb = flows
+        kid = self._add_keyframe(frame, img, prep, torch.eye(4, dtype=torch.float64),
+                                 torch.ones(self.h, self.w))
+        self.kfs[kid].conf = wb.mean(-1)
+        self.graph.add(ref, kid, f, w)
+        self.graph.add(kid, ref, fb, wb)
+        # a late keyframe (finalize: _warm_best) was recorded as a non-keyframe already
+        old = [n for n, r in enumerate(self.records) if r.index == frame.index]
+        if old:
+            self.records[old[-1]] = FrameRecord(frame.index, float(frame.timestamp), kf_id=kid)
+        else:
+            self._record(frame, kf_id=kid)
+        self._warm_best = None
+        return kid
+
+    def _ready_to_initialize(self, info: Dict[str, float]) -> bool:
+        """Initialise once ``init_min_keyframes`` keyframes span ``init_parallax`` (first ->
+        newest flow not explained by a homography), at ``warmup`` keyframes at the latest."""
+        n = len(self.window)
+        if n >= max(self.tc.warmup, 2):
+            return True
+        if n < max(self.tc.init_min_keyframes, 2):
+            return False
+        ids = self.window
+        f = self.graph.flow(ids[0], ids[1])
+        for a, b in zip(ids[1:-1], ids[2:]):
+            f = compose_flows(f, self.graph.flow(a, b))
+        par = parallax(f, self.graph.edges[(ids[0], ids[1])][1].float(), self.motion.cell_weight)
+        info["init_parallax"] = par / self.px_scale
+        return par >= self.tc.init_parallax * self.px_scale
 
     def _reset(self) -> None:
         self.kfs.clear()
         self.graph = FactorGraph(self.h, self.w, self.device)
         self.window = []
         self.lost_count = 0
-        self.motion = MotionFilter(self.tc.motion_filter_thresh,
-                                   min_valid_frac=self.tc.lost_min_valid)
+        self.motion = self._motion_filter()
+        self._warm_best = None
 
     def _initialize(self, frame, info) -> TrackStep:
         ids = list(self.window)
@@ -442,7 +481,8 @@ class Tracker:
             return
         ids = list(self.window)
         poses, disps = self.kfs.stack(ids)
-        cands = proximity_pairs(ids, poses, disps, self.intr, [kid], tc.frontend_thresh,
+        cands = proximity_pairs(ids, poses, disps, self.intr, [kid],
+                                tc.frontend_thresh * self.px_scale,
                                 tc.frontend_new_edges, exclude=self.graph.pairs(),
                                 min_gap=1, nms=tc.frontend_nms)
         pos = {k: n for n, k in enumerate(ids)}
@@ -522,7 +562,7 @@ class Tracker:
         i1 = torch.tensor([1, 0], device=self.device)
         dist = float(induced_flow_distance(P, D, self.intr, i0, i1).mean())
         info = {**info, "kf_dist": dist, "ba_rms": binfo.rms if binfo else float("nan")}
-        if dist < tc.keyframe_thresh and len(self.window) > 3:
+        if dist < tc.keyframe_thresh * self.px_scale and len(self.window) > 3:
             self._drop_keyframe(kid)
             self._set_pose(T_new)
             sf, sw = self._store_flow(f, w)
@@ -580,9 +620,33 @@ class Tracker:
             # the current frame hangs off the newest keyframe
             self.last_pose = corr @ self.last_pose
 
+    def _late_initialize(self) -> None:
+        """End of input before initialisation: initialise from every warm-up keyframe plus
+        the frame that moved most since the last one; the keyframes go to
+        :attr:`final_keyframes` (published by the tracker role with its final message)."""
+        best = self._warm_best
+        if best is not None and self.window and (len(self.window) == 1 or
+                                                 best[0] >= 0.5 * self.motion.thresh):
+            _, frame, img, prep, flows = best
+            self._warm_keyframe(frame, img, prep, self.window[-1], flows)
+        if len(self.window) < 2:
+            log.warning("end of input: too little motion to initialise (%d keyframe)",
+                        len(self.window))
+            return
+        last = max(self.kfs[k].frame_index for k in self.window)
+        rec = next(r for r in self.records if r.index == last)
+        step = self._initialize(Frame(rec.index, rec.timestamp, np.zeros((1, 1, 3), np.uint8),
+                                      self.intrinsics), {})
+        self.final_keyframes = list(step.keyframes)
+        log.info("initialised at the end of input from %d keyframes", len(step.keyframes))
+
     def finalize(self) -> List[UpdateEvent]:
-        """End of input: one more local BA round on the window (loop closure /
-        global BA finalisation is the loop closer's ``finalize``)."""
+        """End of input: initialisation if it has not happened yet (with everything
+        collected), then one more local BA round on the window (loop closure / global BA
+        finalisation is the loop closer's ``finalize``)."""
+        if not self.initialized:
+            with limit_threads(self.tc.threads):
+                self._late_initialize()
         if not self.initialized or len(self.window) < 2:
             return []
         with limit_threads(self.tc.threads):
