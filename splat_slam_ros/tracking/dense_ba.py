@@ -315,20 +315,31 @@ def pose_only_refine(T_ref: torch.Tensor, disp_ref: torch.Tensor, T_cur: torch.T
     """Refine the pose ``T_cur`` of a frame against the flow from a reference
     keyframe (pose ``T_ref``, disparity ``disp_ref`` (h,w)) into it: the target
     block of Eq. 1 with the keyframe fixed. Returns (T_cur, info of last iter)."""
-    poses = torch.stack([T_ref.to(torch.float64), T_cur.to(torch.float64)])
-    disps = disp_ref[None]
-    ii = torch.zeros(1, dtype=torch.long, device=disps.device)
-    jj = torch.ones(1, dtype=torch.long, device=disps.device)
+    return pose_only_refine_multi(T_ref[None], disp_ref[None], T_cur, intr, target[None],
+                                  weight[None], iters, huber, lm, ep)
+
+
+def pose_only_refine_multi(T_refs: torch.Tensor, disp_refs: torch.Tensor, T_cur: torch.Tensor,
+                           intr, targets: torch.Tensor, weights: torch.Tensor, iters: int = 5,
+                           huber: Optional[float] = None, lm: float = 1e-4, ep: float = 1e-3
+                           ) -> Tuple[torch.Tensor, BAInfo]:
+    """Motion-only alignment of a frame against K fixed keyframes (poses (K, 4, 4),
+    disparities (K, h, w)) through the flows keyframe k -> frame (targets/weights
+    (K, h, w, 2)): the target-pose block of Eq. 1 summed over the K edges."""
+    K = T_refs.shape[0]
+    poses = torch.cat([T_refs.to(torch.float64), T_cur.to(torch.float64)[None]])
+    disps = disp_refs
+    ii = torch.arange(K, dtype=torch.long, device=disps.device)
+    jj = torch.full((K,), K, dtype=torch.long, device=disps.device)
     info = None
     for _ in range(iters):
-        rs, wgt, Jp, _ = _edge_terms(poses, disps, intr, ii, jj, target[None], weight[None],
-                                     huber)
+        rs, wgt, Jp, _ = _edge_terms(poses, disps, intr, ii, jj, targets, weights, huber)
         cost = float((rs * rs).sum())
         wsum = float(wgt.sum())
         info = BAInfo(cost, (cost / max(wsum, 1e-12)) ** 0.5, int((wgt.sum(-1) > 0).sum()))
-        J = -Jp[0].reshape(-1, 6)                                    # target-pose Jacobian
+        J = -Jp.reshape(-1, 6)                                       # target-pose Jacobian
         H = (J.T @ J).to(torch.float64)
-        g = J.T @ rs[0].reshape(-1)
+        g = J.T @ rs.reshape(-1)
         H = H + torch.diag(lm * torch.diagonal(H) + ep)
         if wsum <= 0:
             break
@@ -338,7 +349,7 @@ def pose_only_refine(T_ref: torch.Tensor, disp_ref: torch.Tensor, T_cur: torch.T
             break
         if not torch.isfinite(dx).all():
             break
-        poses[1] = se3_exp(dx) @ poses[1]
+        poses[K] = se3_exp(dx) @ poses[K]
         if float(dx.norm()) < 1e-6:
             break
-    return poses[1], info
+    return poses[K], info

@@ -142,6 +142,10 @@ class Tracker:
         self.n_lost = 0
         self._last_flow = None          # (ref kf, flow ref -> previous frame): DIS init
         self._warm_best = None          # warm-up: the frame that moved most since the last kf
+        # non-keyframes tracked against the newest keyframe: (record, prepared image); they
+        # are aligned against the next keyframe too once it exists (_next_keyframe_flows)
+        self._pending: List[Tuple[FrameRecord, object]] = []
+        self._last_input = None         # (frame, image, prep) of the newest non-keyframe
         self.final_keyframes: List[KeyframeData] = []   # published by a late initialisation
         self.timings: Dict[str, float] = defaultdict(float)
         self.depth_prior = depth_prior if depth_prior is not None else self._default_prior(
@@ -181,11 +185,15 @@ class Tracker:
 
     def _record(self, frame: Frame, **kw) -> FrameRecord:
         r = FrameRecord(frame.index, float(frame.timestamp), **kw)
+        if self.records and self.records[-1].index == frame.index:   # promoted at the end
+            self.records[-1] = r
+            return r
         self.records.append(r)
         # bound memory on long live runs: older frames keep only their relative pose
         old = len(self.records) - 1 - self.tc.max_stored_flows
         if old >= 0:
             self.records[old].flow = self.records[old].weight = None
+            self.records[old].flow2 = self.records[old].weight2 = None
         return r
 
     def _store_flow(self, f, w):
@@ -278,7 +286,8 @@ class Tracker:
         info = {"mean_flow": fc.mean_flow, "valid": fc.valid_frac}
         if not self.motion.is_candidate(fc):
             sf, sw = self._store_flow(f, w)
-            self._record(frame, ref_kf=ref, flow=sf, weight=sw)
+            self._add_pending(self._record(frame, ref_kf=ref, flow=sf, weight=sw), frame, img,
+                              prep)
             if self._warm_best is None or fc.mean_flow > self._warm_best[0]:
                 self._warm_best = (fc.mean_flow, frame, img, prep, (f, w, fb, wb))
             return TrackStep(frame.index, float(frame.timestamp), False, None,
@@ -304,6 +313,7 @@ class Tracker:
         else:
             self._record(frame, kf_id=kid)
         self._warm_best = None
+        self._next_keyframe_flows(kid)
         return kid
 
     def _ready_to_initialize(self, info: Dict[str, float]) -> bool:
@@ -329,6 +339,7 @@ class Tracker:
         self.lost_count = 0
         self.motion = self._motion_filter()
         self._warm_best = None
+        self._pending = []
 
     def _initialize(self, frame, info) -> TrackStep:
         ids = list(self.window)
@@ -427,9 +438,10 @@ class Tracker:
             return self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, info)
         self._set_pose(T)
         sf, sw = self._store_flow(f, w)
-        self._record(frame, ref_kf=ref, rel_pose=(se3_inverse(T_ref) @ T).cpu().numpy(),
-                     ref_scale=float(self.kfs[ref].disp.mean()), flow=sf, weight=sw,
-                     online_pose=T.cpu().numpy())
+        rec = self._record(frame, ref_kf=ref, rel_pose=(se3_inverse(T_ref) @ T).cpu().numpy(),
+                           ref_scale=float(self.kfs[ref].disp.mean()), flow=sf, weight=sw,
+                           online_pose=T.cpu().numpy())
+        self._add_pending(rec, frame, img, prep)
         return TrackStep(frame.index, float(frame.timestamp), False, None,
                          T.cpu().numpy().copy(), info=info)
 
@@ -541,7 +553,8 @@ class Tracker:
         self.graph.age_edges(pairs)
         return infos[-1]
 
-    def _new_keyframe(self, frame, img, prep, ref, T, f, w, fb, wb, info) -> TrackStep:
+    def _new_keyframe(self, frame, img, prep, ref, T, f, w, fb, wb, info,
+                      force: bool = False) -> TrackStep:
         tc = self.tc
         before = self._snapshot(self.window)
         kid = self._add_keyframe(frame, img, prep, T, self._init_disparity(
@@ -562,24 +575,54 @@ class Tracker:
         i1 = torch.tensor([1, 0], device=self.device)
         dist = float(induced_flow_distance(P, D, self.intr, i0, i1).mean())
         info = {**info, "kf_dist": dist, "ba_rms": binfo.rms if binfo else float("nan")}
-        if dist < tc.keyframe_thresh * self.px_scale and len(self.window) > 3:
+        if dist < tc.keyframe_thresh * self.px_scale and len(self.window) > 3 and not force:
             self._drop_keyframe(kid)
             self._set_pose(T_new)
             sf, sw = self._store_flow(f, w)
             T_ref = self.kfs[ref].pose
-            self._record(frame, ref_kf=ref, rel_pose=(se3_inverse(T_ref) @ T_new).cpu().numpy(),
-                         ref_scale=float(self.kfs[ref].disp.mean()), flow=sf, weight=sw,
-                         online_pose=T_new.cpu().numpy())
+            rec = self._record(frame, ref_kf=ref,
+                               rel_pose=(se3_inverse(T_ref) @ T_new).cpu().numpy(),
+                               ref_scale=float(self.kfs[ref].disp.mean()), flow=sf, weight=sw,
+                               online_pose=T_new.cpu().numpy())
+            self._add_pending(rec, frame, img, prep)
             return TrackStep(frame.index, float(frame.timestamp), False, None,
                              T_new.cpu().numpy().copy(), events=events, info=info)
         self._set_pose(T_new)
         self._record(frame, kf_id=kid)
+        self._next_keyframe_flows(kid)
         kd = self._keyframe_data(kid)
         self.published.add(kid)
         self.kfs.drop_image(kid)
         return TrackStep(frame.index, float(frame.timestamp), True, kid,
                          T_new.cpu().numpy().copy(), events=events, keyframe=kd,
                          keyframes=[kd], info=info)
+
+    def _add_pending(self, rec: FrameRecord, frame, img, prep) -> None:
+        if rec.ref_kf == self.window[-1]:
+            self._pending.append((rec, prep))
+        self._last_input = (frame, img, prep)
+
+    def _next_keyframe_flows(self, kid: int) -> None:
+        """Flows from the new keyframe into the non-keyframes tracked since the previous
+        one (DIS started from the flow the current estimate induces), so that each is
+        aligned against both neighbouring keyframes (trajectory_filler)."""
+        t0 = time.perf_counter()
+        ks = self.kfs[kid]
+        for rec, prep in self._pending:
+            if rec.ref_kf not in self.kfs or rec.index == ks.frame_index:
+                continue
+            init = None                 # warm-up: no pose estimate yet
+            if rec.rel_pose is not None:
+                T = self.kfs[rec.ref_kf].pose @ torch.as_tensor(
+                    rec.rel_pose, dtype=torch.float64, device=self.device)
+                init = self._induced(ks.pose, ks.disp, T)
+            f, w, _, _ = self._flows(ks.prep, prep, init)
+            if self.motion.check(f, w).valid_frac < self.tc.lost_min_valid:
+                continue
+            rec.ref2_kf = kid
+            rec.flow2, rec.weight2 = self._store_flow(f, w)
+        self._pending = []
+        self.timings["next_kf_flows"] += time.perf_counter() - t0
 
     def _drop_keyframe(self, kid: int) -> None:
         self.graph.remove_node(kid)
@@ -650,9 +693,33 @@ class Tracker:
         if not self.initialized or len(self.window) < 2:
             return []
         with limit_threads(self.tc.threads):
+            events = self._last_frame_keyframe()
             before = self._snapshot(self.window)
             self._local_ba(self.tc.ba_iters)
-            return self._events("local_ba", before)
+            return events + self._events("local_ba", before)
+
+    def _last_frame_keyframe(self) -> List[UpdateEvent]:
+        """End of input: the last frame becomes a keyframe when it moved since the last
+        one (half the motion threshold), so the frames after the last keyframe are
+        aligned against a keyframe on both sides too."""
+        if not self._pending or self._last_input is None:
+            return []
+        frame, img, prep = self._last_input
+        rec = self.records[-1]
+        if rec.index != frame.index or rec.kf_id is not None or rec.ref_kf != self.window[-1]:
+            return []
+        ref = rec.ref_kf
+        T = self.kfs[ref].pose @ torch.as_tensor(rec.rel_pose, dtype=torch.float64,
+                                                 device=self.device)
+        init = self._induced(self.kfs[ref].pose, self.kfs[ref].disp, T)
+        f, w, fb, wb = self._flows(self.kfs[ref].prep, prep, init)
+        fc = self.motion.check(f, w)
+        if not fc.ok or fc.mean_flow < 0.5 * self.motion.thresh:
+            return []
+        self._pending = [(r, p) for r, p in self._pending if r.index != frame.index]
+        step = self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, {}, force=True)
+        self.final_keyframes.extend(step.keyframes)
+        return list(step.events)
 
     # ------------------------------------------------------------ outputs
     def trajectory_keyframes(self) -> Tuple[np.ndarray, np.ndarray]:
