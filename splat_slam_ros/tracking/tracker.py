@@ -616,7 +616,10 @@ class Tracker:
                 T = self.kfs[rec.ref_kf].pose @ torch.as_tensor(
                     rec.rel_pose, dtype=torch.float64, device=self.device)
                 init = self._induced(ks.pose, ks.disp, T)
-            f, w, _, _ = self._flows(ks.prep, prep, init)
+            if init is not None and hasattr(self.flow, "predict_forward"):   # one DIS call
+                f, w = (x.to(self.device) for x in self.flow.predict_forward(ks.prep, prep, init))
+            else:
+                f, w, _, _ = self._flows(ks.prep, prep, init)
             if self.motion.check(f, w).valid_frac < self.tc.lost_min_valid:
                 continue
             rec.ref2_kf = kid
