@@ -51,9 +51,10 @@ class TrackingConfig:
     motion_filter_thresh: float = 4.0    # keyframe candidate if mean flow to the last keyframe above
     keyframe_thresh: float = 4.0         # tau: candidate dropped if its BA-induced flow stays below
     warmup: int = 8                      # most keyframes collected before initialisation
-    init_min_keyframes: int = 3          # initialise from this many keyframes once ...
-    init_parallax: float = 2.0           # ... first -> newest shows this much parallax (median
-                                         # flow residual after the best homography, ref. BA px)
+    init_min_keyframes: int = 2          # initialise from this many keyframes once ...
+    init_parallax: float = 1.5           # ... first -> newest shows this much parallax (upper-
+                                         # quartile flow residual after the best homography,
+                                         # ref. BA px; 0 = init at init_min_keyframes)
     init_iters: int = 15                 # BA iterations of the initialisation
     frontend_window: int = 12            # keyframes in the local BA window (reference: 25)
     frontend_radius: int = 1
