@@ -42,6 +42,10 @@ from splat_slam_ros.types import TRACKER_SEQ_START, Frame, Intrinsics, KeyframeD
 log = logging.getLogger(__name__)
 
 
+# a late initialisation (end of input) accepts this fraction of tracking.init_parallax
+LATE_INIT_PARALLAX = 0.25
+
+
 class TrackingError(ValueError):
     """A user-facing tracking configuration/input mistake."""
 
@@ -324,13 +328,18 @@ class Tracker:
             return True
         if n < max(self.tc.init_min_keyframes, 2):
             return False
+        par = self._window_parallax()
+        info["init_parallax"] = par
+        return par >= self.tc.init_parallax
+
+    def _window_parallax(self) -> float:
+        """Parallax (reference BA px) first -> newest warm-up keyframe (flows composed)."""
         ids = self.window
         f = self.graph.flow(ids[0], ids[1])
         for a, b in zip(ids[1:-1], ids[2:]):
             f = compose_flows(f, self.graph.flow(a, b))
-        par = parallax(f, self.graph.edges[(ids[0], ids[1])][1].float(), self.motion.cell_weight)
-        info["init_parallax"] = par / self.px_scale
-        return par >= self.tc.init_parallax * self.px_scale
+        w = self.graph.edges[(ids[0], ids[1])][1].float()
+        return parallax(f, w, self.motion.cell_weight) / self.px_scale
 
     def _reset(self) -> None:
         self.kfs.clear()
@@ -675,16 +684,18 @@ class Tracker:
                                                  best[0] >= 0.5 * self.motion.thresh):
             _, frame, img, prep, flows = best
             self._warm_keyframe(frame, img, prep, self.window[-1], flows)
-        if len(self.window) < 2:
-            log.warning("end of input: too little motion to initialise (%d keyframe)",
-                        len(self.window))
+        par = self._window_parallax() if len(self.window) >= 2 else 0.0
+        if par < LATE_INIT_PARALLAX * self.tc.init_parallax:
+            log.warning("end of input: too little parallax to initialise (%.2f reference BA px "
+                        "over %d keyframes)", par, len(self.window))
             return
         last = max(self.kfs[k].frame_index for k in self.window)
         rec = next(r for r in self.records if r.index == last)
         step = self._initialize(Frame(rec.index, rec.timestamp, np.zeros((1, 1, 3), np.uint8),
                                       self.intrinsics), {})
         self.final_keyframes = list(step.keyframes)
-        log.info("initialised at the end of input from %d keyframes", len(step.keyframes))
+        log.info("initialised at the end of input from %d keyframes (parallax %.2f reference "
+                 "BA px)", len(step.keyframes), par)
 
     def finalize(self) -> List[UpdateEvent]:
         """End of input: initialisation if it has not happened yet (with everything
