@@ -234,7 +234,7 @@ def main() -> None:
         sys.exit(2)
     data_dir = Path(args.data_dir)
     data_dir.mkdir(parents=True, exist_ok=True)
-    results = {}
+    results, old = {}, {"cases": {}}
     for c in names:
         spec = CASES[c]
         seq = ensure_sequence(data_dir, spec)
@@ -246,18 +246,23 @@ def main() -> None:
               f"{r['posed']}/{r['frames']} posed, {r['keyframes']} kf, {r['lost']} lost, "
               f"{r['fps']:.2f} frames/s wall ({r['fps_cpu']:.2f} per CPU-second), "
               f"peak RSS {r['peak_rss_mb']:.0f} MB, load {r['load_before']:.1f}", flush=True)
+        old = _save(Path(args.out), {c: r})            # after every case
+    _table({c: old["cases"][c] for c in old["cases"] if c in results})
+    print(f"\nwrote {args.out}")
+
+
+def _save(out: Path, results: dict) -> dict:
     meta = dict(machine=platform.processor() or platform.machine(), cpus=os.cpu_count(),
                 python=platform.python_version(), date=time.strftime("%Y-%m-%d %H:%M"),
                 note="fps = input frames / wall time of the whole process (start-up, "
                      "imports and PNG decoding included); fps_cpu = frames / CPU seconds "
                      "of that process; load = 1-min load average of the shared machine")
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    old = json.loads(Path(args.out).read_text()) if Path(args.out).is_file() else {}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    old = json.loads(out.read_text()) if out.is_file() else {}
     old.setdefault("cases", {}).update(results)
     old["meta"] = meta
-    Path(args.out).write_text(json.dumps(old, indent=1))
-    _table({c: old["cases"][c] for c in old["cases"] if c in results})
-    print(f"\nwrote {args.out}")
+    out.write_text(json.dumps(old, indent=1))
+    return old
 
 
 if __name__ == "__main__":
