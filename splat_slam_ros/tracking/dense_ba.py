@@ -172,6 +172,36 @@ def _fixed_mask(fixed, N, device) -> torch.Tensor:
     return m
 
 
+EDGE_CHUNK = 24         # edges whose Jacobians are built at once (bounds the BA's memory)
+
+
+def _edge_blocks(poses, disps, intr, ii, jj, target, weight, huber):
+    """Per-edge pose blocks H_e = Jp^T W Jp (E, 6, 6) and v_e = Jp^T W r (E, 6), the
+    pose-disparity couplings a_e (E, P, 6), disparity diagonals c_e and right-hand sides
+    b_e (E, P), and the cost info - built EDGE_CHUNK edges at a time."""
+    E = len(ii)
+    P = disps.shape[1] * disps.shape[2]
+    parts, cost, wsum, n_valid = [], 0.0, 0.0, 0
+    for s in range(0, E, EDGE_CHUNK):
+        sl = slice(s, min(s + EDGE_CHUNK, E))
+        rs, wgt, Jp, Jd = _edge_terms(poses, disps, intr, ii[sl], jj[sl], target[sl],
+                                      weight[sl], huber)
+        e = rs.shape[0]
+        cost += float((rs * rs).sum())
+        wsum += float(wgt.sum())
+        n_valid += int((wgt.sum(-1) > 0).sum())
+        Jf = Jp.reshape(e, P * 2, 6)
+        JfT = Jf.transpose(1, 2)
+        parts.append((JfT @ Jf,                                          # (e, 6, 6)
+                      (JfT @ rs.reshape(e, P * 2, 1))[..., 0],           # (e, 6)
+                      Jp[:, :, 0] * Jd[:, :, 0:1] + Jp[:, :, 1] * Jd[:, :, 1:2],   # (e, P, 6)
+                      (Jd * Jd).sum(-1), (Jd * rs).sum(-1)))             # (e, P) x 2
+        del rs, wgt, Jp, Jd, Jf, JfT
+    He, ve, ae, ce, be = (torch.cat(x) for x in zip(*parts))
+    info = BAInfo(cost=cost, rms=(cost / max(wsum, 1e-12)) ** 0.5, n_valid=n_valid)
+    return He, ve, ae, ce, be, info
+
+
 def ba_step(poses: torch.Tensor, disps: torch.Tensor, intr, ii: torch.Tensor, jj: torch.Tensor,
             target: torch.Tensor, weight: torch.Tensor, fixed: Union[int, torch.Tensor] = 1,
             huber: Optional[float] = None, lm: float = 1e-4, ep: float = 1e-3,
@@ -194,21 +224,7 @@ def ba_step(poses: torch.Tensor, disps: torch.Tensor, intr, ii: torch.Tensor, jj
     dt = disps.dtype
     ii = ii.to(device)
     jj = jj.to(device)
-    rs, wgt, Jp, Jd = _edge_terms(poses, disps, intr, ii, jj, target, weight, huber)
-    cost = float((rs * rs).sum())
-    wsum = float(wgt.sum())
-    info = BAInfo(cost=cost, rms=(cost / max(wsum, 1e-12)) ** 0.5,
-                  n_valid=int((wgt.sum(-1) > 0).sum()))
-
-    # --- per-edge pose blocks: H_e = Jp^T W Jp, v_e = Jp^T W r (sqrt(W) is folded in)
-    Jf = Jp.reshape(E, P * 2, 6)
-    JfT = Jf.transpose(1, 2)
-    He = JfT @ Jf                                                    # (E, 6, 6)
-    ve = (JfT @ rs.reshape(E, P * 2, 1))[..., 0]                     # (E, 6)
-    # --- pose-disparity coupling a_e(p) = Jp^T W Jd, disparity diagonal C, rhs b
-    ae = Jp[:, :, 0] * Jd[:, :, 0:1] + Jp[:, :, 1] * Jd[:, :, 1:2]  # (E, P, 6)
-    ce = (Jd * Jd).sum(-1)                                           # (E, P)
-    be = (Jd * rs).sum(-1)                                           # (E, P)
+    He, ve, ae, ce, be, info = _edge_blocks(poses, disps, intr, ii, jj, target, weight, huber)
     C = torch.zeros(N, P, dtype=dt, device=device).index_add_(0, ii, ce)
     b = torch.zeros(N, P, dtype=dt, device=device).index_add_(0, ii, be)
     dmask = torch.zeros(N, dtype=torch.bool, device=device)
@@ -244,7 +260,9 @@ def ba_step(poses: torch.Tensor, disps: torch.Tensor, intr, ii: torch.Tensor, jj
     A = torch.zeros(ns, M, P, 6, dtype=dt, device=device)
     A[inv, slot] = ae * sqc[inv][..., None]
     At = A.permute(0, 1, 3, 2).reshape(ns, M * 6, P)
+    del A
     G = (At @ At.transpose(1, 2)).reshape(ns, M, 6, M, 6)             # (ns, M, 6, M, 6)
+    del At
     same = inv[:, None] == inv[None, :]
     e1, e2 = same.nonzero(as_tuple=True)
     F = G[inv[e1], slot[e1], :, slot[e2], :].to(torch.float64)       # (npairs, 6, 6)
