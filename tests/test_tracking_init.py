@@ -141,6 +141,8 @@ def test_frames_after_the_last_keyframe_are_refined(clip_run):
     r = clip_run
     last_kf = r["online_kfs"][-1]
     assert last_kf < 25
+    assert len(r["ts"]) == 27 and (np.diff(r["ts"]) > 0).all()    # one pose per frame
+    assert len(r["tr"].published) == len(r["online_kfs"]) + 1       # the promoted last frame
     err = _errors_cm(r["gt_ts"], r["gt"], r["ts"], r["poses"], r["kts"], r["kposes"])
     kf_err = _errors_cm(r["gt_ts"], r["gt"], r["kts"], r["kposes"])
     tail = err[r["ts"] > r["frames"][last_kf].timestamp + 1e-6]

@@ -187,10 +187,10 @@ class Tracker:
                           torch.tensor([1], device=self.device))
         return uv[0] - self.grid
 
-    def _record(self, frame: Frame, **kw) -> FrameRecord:
+    def _record(self, frame: Frame, replace: bool = False, **kw) -> FrameRecord:
         r = FrameRecord(frame.index, float(frame.timestamp), **kw)
-        if self.records and self.records[-1].index == frame.index:   # promoted at the end
-            self.records[-1] = r
+        if replace and self.records and self.records[-1].index == frame.index:
+            self.records[-1] = r                 # the last frame promoted at finalize
             return r
         self.records.append(r)
         # bound memory on long live runs: older frames keep only their relative pose
@@ -597,7 +597,7 @@ class Tracker:
             return TrackStep(frame.index, float(frame.timestamp), False, None,
                              T_new.cpu().numpy().copy(), events=events, info=info)
         self._set_pose(T_new)
-        self._record(frame, kf_id=kid)
+        self._record(frame, replace=force, kf_id=kid)
         self._next_keyframe_flows(kid)
         kd = self._keyframe_data(kid)
         self.published.add(kid)
