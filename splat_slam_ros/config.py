@@ -44,15 +44,22 @@ class TrackingConfig:
     flow_model: str = ""                 # path to droid.pth (needs ba_downsample 8)
     flow_device: str = "auto"            # where the network runs: auto | cpu | cuda
     flow_model_iters: int = 4            # GRU update iterations per flow pair
-    # motion filter / keyframes; flow thresholds in BA-grid pixels, as in the reference
+    # motion filter / keyframes. Flow thresholds are in "reference BA pixels": BA-grid pixels
+    # of a camera whose BA-grid focal length is 65.625 px (fx 525 at 1/8, the reference's
+    # 640x480 TUM setting); they are scaled by (fx / ba_downsample) / 65.625, so one value
+    # means the same viewing-angle change at any image size.
     motion_filter_thresh: float = 4.0    # keyframe candidate if mean flow to the last keyframe above
     keyframe_thresh: float = 4.0         # tau: candidate dropped if its BA-induced flow stays below
-    warmup: int = 8                      # keyframes collected before initialisation
+    warmup: int = 8                      # most keyframes collected before initialisation
+    init_min_keyframes: int = 2          # initialise from this many keyframes once ...
+    init_parallax: float = 1.5           # ... first -> newest shows this much parallax (upper-
+                                         # quartile flow residual after the best homography,
+                                         # ref. BA px; 0 = init at init_min_keyframes)
     init_iters: int = 15                 # BA iterations of the initialisation
     frontend_window: int = 12            # keyframes in the local BA window (reference: 25)
     frontend_radius: int = 1
     frontend_max_factors: int = 36       # (reference: 75; CPU budget)
-    frontend_thresh: float = 16.0        # proximity edges: induced mean flow below (BA px)
+    frontend_thresh: float = 16.0        # proximity edges: induced mean flow below (ref. BA px)
     frontend_new_edges: int = 3          # proximity edge pairs added per new keyframe
     frontend_nms: int = 1
     max_edge_age: int = 50

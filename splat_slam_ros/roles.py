@@ -205,8 +205,11 @@ class TrackerRole:
         evs = list(self.tracker.finalize())
         self.last_seq = _newest_seq(self.last_seq, evs)
         self.finalized = True
+        kfs = list(self.tracker.final_keyframes)    # a late initialisation's (one batch)
+        for kf in kfs:
+            kf.batch_id, kf.batch_size = int(kfs[0].kf_id), len(kfs)
         self._checkpoint(events=evs)
-        return Outbox(updates=evs, final={"last_seq": self.last_seq,
+        return Outbox(updates=evs, keyframes=kfs, final={"last_seq": self.last_seq,
                                           "keyframes": len(self.tracker.published)})
 
     def on_final(self, node: str, info: dict) -> Outbox:

@@ -62,9 +62,10 @@ def keyframe(k: int, pose: np.ndarray, data) -> KeyframeData:
 
 
 def loop_cfg(**kw) -> SlamConfig:
+    ref = 65.625 / 28.0          # flow thresholds in reference BA px: 8 and 6 BA px here
     cfg = small_cfg(loop_closure=True, global_ba=True, loop_time_gap=8, loop_window=6,
-                    loop_nms=3, loop_flow_thresh=8.0, global_ba_every=1000,
-                    global_ba_thresh=6.0, global_ba_max_edges=4, final_ba_iters=(4, 6))
+                    loop_nms=3, loop_flow_thresh=8.0 * ref, global_ba_every=1000,
+                    global_ba_thresh=6.0 * ref, global_ba_max_edges=4, final_ba_iters=(4, 6))
     for k, v in kw.items():
         setattr(cfg.tracking, k, v)
     return cfg

@@ -127,8 +127,9 @@ def small_cfg(**tracking) -> SlamConfig:
     cfg = SlamConfig()
     tc = cfg.tracking
     tc.ba_downsample = 4
-    tc.motion_filter_thresh = 2.0
-    tc.keyframe_thresh = 1.5
+    # reference BA px (x 28/65.625 at this BA grid): 2.0 and 1.5 BA px here
+    tc.motion_filter_thresh = 4.7
+    tc.keyframe_thresh = 3.5
     tc.warmup = 5
     tc.loop_closure = False
     tc.global_ba = False

@@ -172,6 +172,36 @@ def _fixed_mask(fixed, N, device) -> torch.Tensor:
     return m
 
 
+EDGE_CHUNK = 24         # edges whose Jacobians are built at once (bounds the BA's memory)
+
+
+def _edge_blocks(poses, disps, intr, ii, jj, target, weight, huber):
+    """Per-edge pose blocks H_e = Jp^T W Jp (E, 6, 6) and v_e = Jp^T W r (E, 6), the
+    pose-disparity couplings a_e (E, P, 6), disparity diagonals c_e and right-hand sides
+    b_e (E, P), and the cost info - built EDGE_CHUNK edges at a time."""
+    E = len(ii)
+    P = disps.shape[1] * disps.shape[2]
+    parts, cost, wsum, n_valid = [], 0.0, 0.0, 0
+    for s in range(0, E, EDGE_CHUNK):
+        sl = slice(s, min(s + EDGE_CHUNK, E))
+        rs, wgt, Jp, Jd = _edge_terms(poses, disps, intr, ii[sl], jj[sl], target[sl],
+                                      weight[sl], huber)
+        e = rs.shape[0]
+        cost += float((rs * rs).sum())
+        wsum += float(wgt.sum())
+        n_valid += int((wgt.sum(-1) > 0).sum())
+        Jf = Jp.reshape(e, P * 2, 6)
+        JfT = Jf.transpose(1, 2)
+        parts.append((JfT @ Jf,                                          # (e, 6, 6)
+                      (JfT @ rs.reshape(e, P * 2, 1))[..., 0],           # (e, 6)
+                      Jp[:, :, 0] * Jd[:, :, 0:1] + Jp[:, :, 1] * Jd[:, :, 1:2],   # (e, P, 6)
+                      (Jd * Jd).sum(-1), (Jd * rs).sum(-1)))             # (e, P) x 2
+        del rs, wgt, Jp, Jd, Jf, JfT
+    He, ve, ae, ce, be = (torch.cat(x) for x in zip(*parts))
+    info = BAInfo(cost=cost, rms=(cost / max(wsum, 1e-12)) ** 0.5, n_valid=n_valid)
+    return He, ve, ae, ce, be, info
+
+
 def ba_step(poses: torch.Tensor, disps: torch.Tensor, intr, ii: torch.Tensor, jj: torch.Tensor,
             target: torch.Tensor, weight: torch.Tensor, fixed: Union[int, torch.Tensor] = 1,
             huber: Optional[float] = None, lm: float = 1e-4, ep: float = 1e-3,
@@ -194,21 +224,7 @@ def ba_step(poses: torch.Tensor, disps: torch.Tensor, intr, ii: torch.Tensor, jj
     dt = disps.dtype
     ii = ii.to(device)
     jj = jj.to(device)
-    rs, wgt, Jp, Jd = _edge_terms(poses, disps, intr, ii, jj, target, weight, huber)
-    cost = float((rs * rs).sum())
-    wsum = float(wgt.sum())
-    info = BAInfo(cost=cost, rms=(cost / max(wsum, 1e-12)) ** 0.5,
-                  n_valid=int((wgt.sum(-1) > 0).sum()))
-
-    # --- per-edge pose blocks: H_e = Jp^T W Jp, v_e = Jp^T W r (sqrt(W) is folded in)
-    Jf = Jp.reshape(E, P * 2, 6)
-    JfT = Jf.transpose(1, 2)
-    He = JfT @ Jf                                                    # (E, 6, 6)
-    ve = (JfT @ rs.reshape(E, P * 2, 1))[..., 0]                     # (E, 6)
-    # --- pose-disparity coupling a_e(p) = Jp^T W Jd, disparity diagonal C, rhs b
-    ae = Jp[:, :, 0] * Jd[:, :, 0:1] + Jp[:, :, 1] * Jd[:, :, 1:2]  # (E, P, 6)
-    ce = (Jd * Jd).sum(-1)                                           # (E, P)
-    be = (Jd * rs).sum(-1)                                           # (E, P)
+    He, ve, ae, ce, be, info = _edge_blocks(poses, disps, intr, ii, jj, target, weight, huber)
     C = torch.zeros(N, P, dtype=dt, device=device).index_add_(0, ii, ce)
     b = torch.zeros(N, P, dtype=dt, device=device).index_add_(0, ii, be)
     dmask = torch.zeros(N, dtype=torch.bool, device=device)
@@ -244,7 +260,9 @@ def ba_step(poses: torch.Tensor, disps: torch.Tensor, intr, ii: torch.Tensor, jj
     A = torch.zeros(ns, M, P, 6, dtype=dt, device=device)
     A[inv, slot] = ae * sqc[inv][..., None]
     At = A.permute(0, 1, 3, 2).reshape(ns, M * 6, P)
+    del A
     G = (At @ At.transpose(1, 2)).reshape(ns, M, 6, M, 6)             # (ns, M, 6, M, 6)
+    del At
     same = inv[:, None] == inv[None, :]
     e1, e2 = same.nonzero(as_tuple=True)
     F = G[inv[e1], slot[e1], :, slot[e2], :].to(torch.float64)       # (npairs, 6, 6)
@@ -315,20 +333,31 @@ def pose_only_refine(T_ref: torch.Tensor, disp_ref: torch.Tensor, T_cur: torch.T
     """Refine the pose ``T_cur`` of a frame against the flow from a reference
     keyframe (pose ``T_ref``, disparity ``disp_ref`` (h,w)) into it: the target
     block of Eq. 1 with the keyframe fixed. Returns (T_cur, info of last iter)."""
-    poses = torch.stack([T_ref.to(torch.float64), T_cur.to(torch.float64)])
-    disps = disp_ref[None]
-    ii = torch.zeros(1, dtype=torch.long, device=disps.device)
-    jj = torch.ones(1, dtype=torch.long, device=disps.device)
+    return pose_only_refine_multi(T_ref[None], disp_ref[None], T_cur, intr, target[None],
+                                  weight[None], iters, huber, lm, ep)
+
+
+def pose_only_refine_multi(T_refs: torch.Tensor, disp_refs: torch.Tensor, T_cur: torch.Tensor,
+                           intr, targets: torch.Tensor, weights: torch.Tensor, iters: int = 5,
+                           huber: Optional[float] = None, lm: float = 1e-4, ep: float = 1e-3
+                           ) -> Tuple[torch.Tensor, BAInfo]:
+    """Motion-only alignment of a frame against K fixed keyframes (poses (K, 4, 4),
+    disparities (K, h, w)) through the flows keyframe k -> frame (targets/weights
+    (K, h, w, 2)): the target-pose block of Eq. 1 summed over the K edges."""
+    K = T_refs.shape[0]
+    poses = torch.cat([T_refs.to(torch.float64), T_cur.to(torch.float64)[None]])
+    disps = disp_refs
+    ii = torch.arange(K, dtype=torch.long, device=disps.device)
+    jj = torch.full((K,), K, dtype=torch.long, device=disps.device)
     info = None
     for _ in range(iters):
-        rs, wgt, Jp, _ = _edge_terms(poses, disps, intr, ii, jj, target[None], weight[None],
-                                     huber)
+        rs, wgt, Jp, _ = _edge_terms(poses, disps, intr, ii, jj, targets, weights, huber)
         cost = float((rs * rs).sum())
         wsum = float(wgt.sum())
         info = BAInfo(cost, (cost / max(wsum, 1e-12)) ** 0.5, int((wgt.sum(-1) > 0).sum()))
-        J = -Jp[0].reshape(-1, 6)                                    # target-pose Jacobian
+        J = -Jp.reshape(-1, 6)                                       # target-pose Jacobian
         H = (J.T @ J).to(torch.float64)
-        g = J.T @ rs[0].reshape(-1)
+        g = J.T @ rs.reshape(-1)
         H = H + torch.diag(lm * torch.diagonal(H) + ep)
         if wsum <= 0:
             break
@@ -338,7 +367,7 @@ def pose_only_refine(T_ref: torch.Tensor, disp_ref: torch.Tensor, T_cur: torch.T
             break
         if not torch.isfinite(dx).all():
             break
-        poses[1] = se3_exp(dx) @ poses[1]
+        poses[K] = se3_exp(dx) @ poses[K]
         if float(dx.norm()) < 1e-6:
             break
-    return poses[1], info
+    return poses[K], info

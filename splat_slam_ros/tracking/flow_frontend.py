@@ -258,17 +258,23 @@ class DISFlowPredictor:
         return self._grid_cache
 
     def _confidence(self, A: PreparedImage, B: PreparedImage, f_ab: np.ndarray,
-                    f_ba: np.ndarray) -> np.ndarray:
-        """Per flow-pixel confidence in [0, 1] of the flow a -> b."""
+                    f_ba: Optional[np.ndarray]) -> np.ndarray:
+        """Per flow-pixel confidence in [0, 1] of the flow a -> b (without ``f_ba``: no
+        forward-backward term, photometric residual only)."""
         H, W = f_ab.shape[:2]
         gx, gy = self._grid(H, W)
         mx = gx + f_ab[..., 0]
         my = gy + f_ab[..., 1]
-        back = cv2.remap(f_ba, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                         borderValue=(1e4, 1e4))
-        back += f_ab
-        bx, by = back[..., 0], back[..., 1]
-        penalty = (bx * bx + by * by) * ((self.fds / self.fb_px) ** 2)   # (err / fb_px)^2
+        if f_ba is None:
+            inside = (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)
+            bx = np.where(inside, 0.0, 1e4).astype(np.float32)
+            penalty = np.zeros((H, W), np.float32)
+        else:
+            back = cv2.remap(f_ba, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                             borderValue=(1e4, 1e4))
+            back += f_ab
+            bx, by = back[..., 0], back[..., 1]
+            penalty = (bx * bx + by * by) * ((self.fds / self.fb_px) ** 2)   # (err / fb_px)^2
         if self.photo_sigma > 0:
             warped = cv2.remap(B.gray, mx, my, cv2.INTER_LINEAR,
                                borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
@@ -343,6 +349,14 @@ class DISFlowPredictor:
         a = self._pool(A, f_ij, c_ij)
         b = self._pool(B, f_ji, c_ji)
         return a[0], a[1], b[0], b[1]
+
+    def predict_forward(self, img_i, img_j, init_ij: Optional[torch.Tensor] = None):
+        """(f_ij, w_ij) from one DIS call (half of :meth:`predict_pair`): the confidence
+        has no forward-backward term, so use it where the flow is started from a good
+        estimate (``init_ij``, BA pixels) and only adds a constraint."""
+        A, B = self._as_prepared(img_i), self._as_prepared(img_j)
+        f_ij = self._dense(A.gray, B.gray, self._upsample_init(init_ij, A.gray.shape))
+        return self._pool(A, f_ij, self._confidence(A, B, f_ij, None))
 
     def predict(self, img_i, img_j) -> Tuple[torch.Tensor, torch.Tensor]:
         f_ij, w_ij, _, _ = self.predict_pair(img_i, img_j)

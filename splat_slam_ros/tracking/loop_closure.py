@@ -40,7 +40,7 @@ from splat_slam_ros.tracking.factor_graph import FactorGraph, proximity_pairs
 from splat_slam_ros.tracking.flow_frontend import make_flow_predictor
 from splat_slam_ros.tracking.global_ba import normalized_global_ba, spatial_pairs
 from splat_slam_ros.tracking.keyframe_set import KeyframeSet, KeyframeState
-from splat_slam_ros.tracking.motion_filter import MotionFilter
+from splat_slam_ros.tracking.motion_filter import MotionFilter, flow_scale
 from splat_slam_ros.types import LOOP_SEQ_START, Intrinsics, KeyframeData, UpdateEvent
 
 log = logging.getLogger(__name__)
@@ -76,6 +76,7 @@ class LoopCloser:
         h, w = kd.disparity.shape
         bi = kd.intrinsics.scaled(1.0 / s)
         self.intr = intr_tensor(bi, torch.float32, self.device)
+        self.px_scale = flow_scale(self.intr)      # thresholds are in reference BA px
         self.h, self.w = h, w
         self.graph = FactorGraph(h, w, self.device)
         self.grid = pixel_grid(h, w, device=self.device)
@@ -216,7 +217,7 @@ class LoopCloser:
         cand_ids = sorted(set(active) | set(old))
         P, D = self.kfs.stack(cand_ids)
         excl = set(self.loop_pairs) | set(self.checked) | set(self.graph.pairs())
-        cands = proximity_pairs(cand_ids, P, D, self.intr, active, tc.loop_flow_thresh,
+        cands = proximity_pairs(cand_ids, P, D, self.intr, active, tc.loop_flow_thresh * self.px_scale,
                                 max_pairs=10 * max(tc.loop_max_edges, 1), exclude=excl,
                                 min_gap=tc.loop_time_gap + 1, nms=0, stride=4)
         # keep (active, old) orientation, non-maximum suppression in id space
@@ -305,7 +306,7 @@ class LoopCloser:
         P, D = self.kfs.stack(ids)
         sources = [k for k in self.new_since_gba if k in self.kfs and self.kfs[k].prep is not None]
         pairs = spatial_pairs(ids, P, D, self.intr, sources, tc.global_ba_radius,
-                              tc.global_ba_thresh, tc.global_ba_max_edges,
+                              tc.global_ba_thresh * self.px_scale, tc.global_ba_max_edges,
                               exclude=set(self.graph.pairs()) | self.checked)
         for a, b, _ in pairs:
             new, old = (a, b) if a > b else (b, a)

@@ -4,16 +4,52 @@ A frame becomes a keyframe candidate when the mean flow from the last keyframe
 exceeds ``tracking.motion_filter_thresh``; after the local BA a candidate whose
 flow *induced by the optimised poses and disparities* stays below the keyframe
 threshold tau (``tracking.keyframe_thresh``) is dropped again. Both thresholds
-are in BA-grid pixels (1/8 of the tracking image by default), as in the
-reference. Frames whose flow confidence collapses are reported as lost.
+are given in *reference* BA-grid pixels - those of the reference's setting (a
+640x480 TUM camera, fx = 525, at 1/8: a BA focal length of 65.625 px) - and
+scaled by the actual BA focal length (:func:`flow_scale`), so the same value
+selects the same viewing-angle change at 320x240, 640x480 or 1200x680.
+:func:`parallax` measures whether the first keyframes see enough translation to
+initialise. Frames whose flow confidence collapses are reported as lost.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
+import numpy as np
 import torch
 
 from splat_slam_ros.tracking.flow_frontend import mean_flow
+
+
+REF_BA_FOCAL = 525.0 / 8.0        # BA-grid focal length the flow thresholds are given for
+
+
+def flow_scale(intr) -> float:
+    """Factor from reference BA pixels to this camera's BA pixels: (fx_ba + fy_ba) / 2 / 65.625."""
+    return 0.5 * (float(intr[0]) + float(intr[1])) / REF_BA_FOCAL
+
+
+def parallax(flow: torch.Tensor, weight: torch.Tensor, cell_weight: float = 0.2) -> float:
+    """Upper-quartile flow residual (BA px) after the best (RANSAC) homography: the part of
+    the motion that a pure rotation (or one dominant plane) cannot explain. 0 when too few
+    confident cells."""
+    h, w = flow.shape[:2]
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    f = flow.detach().float().cpu().numpy()
+    dst = np.stack([u + f[..., 0], v + f[..., 1]], -1)
+    m = (weight.detach().float().cpu().numpy().mean(-1) > cell_weight) & \
+        (dst[..., 0] >= 0) & (dst[..., 0] <= w - 1) & (dst[..., 1] >= 0) & (dst[..., 1] <= h - 1)
+    if int(m.sum()) < 16:
+        return 0.0
+    src = np.stack([u[m], v[m]], -1)
+    dst = dst[m]
+    H, _ = cv2.findHomography(src, dst, cv2.RANSAC, 0.5)
+    if H is None:
+        return 0.0
+    p = np.concatenate([src, np.ones((len(src), 1), np.float32)], 1) @ H.T
+    p = p[:, :2] / np.where(np.abs(p[:, 2:]) < 1e-9, 1e-9, p[:, 2:])
+    return float(np.percentile(np.linalg.norm(p - dst, axis=1), 75))
 
 
 @dataclass

@@ -33,13 +33,17 @@ from splat_slam_ros.tracking.keyframe_set import KeyframeSet, KeyframeState
 from splat_slam_ros.tracking.flow_frontend import (ImagePreprocessor, compose_flows, image_is_degenerate,
                             make_flow_predictor, predict_both)
 from splat_slam_ros.geometry import intr_tensor, pixel_grid, pose_from_tq, pose_to_tq, se3_exp, se3_inverse, se3_log
-from splat_slam_ros.tracking.motion_filter import MotionFilter
+from splat_slam_ros.tracking.motion_filter import MotionFilter, flow_scale, parallax
 from splat_slam_ros.depth.dspo import make_depth_prior
 from splat_slam_ros.runtime import limit_threads, resolve_device
 from splat_slam_ros.tracking.trajectory_filler import FrameRecord, fill_trajectory
 from splat_slam_ros.types import TRACKER_SEQ_START, Frame, Intrinsics, KeyframeData, UpdateEvent
 
 log = logging.getLogger(__name__)
+
+
+# a late initialisation (end of input) accepts this fraction of tracking.init_parallax
+LATE_INIT_PARALLAX = 0.25
 
 
 class TrackingError(ValueError):
@@ -122,7 +126,9 @@ class Tracker:
         self.intr = intr_tensor(self.ba_intrinsics, torch.float32, self.device)
         self.h, self.w = self.ba_intrinsics.height, self.ba_intrinsics.width
         self.flow = flow_predictor if flow_predictor is not None else make_flow_predictor(tc)
-        self.motion = MotionFilter(tc.motion_filter_thresh, min_valid_frac=tc.lost_min_valid)
+        # flow thresholds are in reference BA px (motion_filter.flow_scale): size-independent
+        self.px_scale = flow_scale(self.intr)
+        self.motion = self._motion_filter()
         self.graph = FactorGraph(self.h, self.w, self.device)
         self.grid = pixel_grid(self.h, self.w, device=self.device)
         self.huber = tc.robust_huber_px / tc.ba_downsample if tc.robust_huber_px > 0 else None
@@ -139,11 +145,21 @@ class Tracker:
         self.lost_count = 0
         self.n_lost = 0
         self._last_flow = None          # (ref kf, flow ref -> previous frame): DIS init
+        self._warm_best = None          # warm-up: the frame that moved most since the last kf
+        # non-keyframes tracked against the newest keyframe: (record, prepared image); they
+        # are aligned against the next keyframe too once it exists (_next_keyframe_flows)
+        self._pending: List[Tuple[FrameRecord, object]] = []
+        self._last_input = None         # (frame, image, prep) of the newest non-keyframe
+        self.final_keyframes: List[KeyframeData] = []   # published by a late initialisation
         self.timings: Dict[str, float] = defaultdict(float)
         self.depth_prior = depth_prior if depth_prior is not None else self._default_prior(
             intrinsics)
 
     # ------------------------------------------------------------ helpers
+    def _motion_filter(self) -> MotionFilter:
+        return MotionFilter(self.tc.motion_filter_thresh * self.px_scale,
+                            min_valid_frac=self.tc.lost_min_valid)
+
     def _default_prior(self, intrinsics):
         if not (self.cfg.depth.mono_model and self.tc.dspo):
             return None
@@ -171,13 +187,17 @@ class Tracker:
                           torch.tensor([1], device=self.device))
         return uv[0] - self.grid
 
-    def _record(self, frame: Frame, **kw) -> FrameRecord:
+    def _record(self, frame: Frame, replace: bool = False, **kw) -> FrameRecord:
         r = FrameRecord(frame.index, float(frame.timestamp), **kw)
+        if replace and self.records and self.records[-1].index == frame.index:
+            self.records[-1] = r                 # the last frame promoted at finalize
+            return r
         self.records.append(r)
         # bound memory on long live runs: older frames keep only their relative pose
         old = len(self.records) - 1 - self.tc.max_stored_flows
         if old >= 0:
             self.records[old].flow = self.records[old].weight = None
+            self.records[old].flow2 = self.records[old].weight2 = None
         return r
 
     def _store_flow(self, f, w):
@@ -269,27 +289,66 @@ class Tracker:
         self._last_flow = (ref, f)
         info = {"mean_flow": fc.mean_flow, "valid": fc.valid_frac}
         if not self.motion.is_candidate(fc):
-            self._record(frame, ref_kf=ref, flow=self._store_flow(f, w)[0],
-                         weight=self._store_flow(f, w)[1])
+            sf, sw = self._store_flow(f, w)
+            self._add_pending(self._record(frame, ref_kf=ref, flow=sf, weight=sw), frame, img,
+                              prep)
+            if self._warm_best is None or fc.mean_flow > self._warm_best[0]:
+                self._warm_best = (fc.mean_flow, frame, img, prep, (f, w, fb, wb))
             return TrackStep(frame.index, float(frame.timestamp), False, None,
                              eye.cpu().numpy(), initialized=False, info=info)
-        kid = self._add_keyframe(frame, img, prep, eye, ones)
-        self.kfs[kid].conf = wb.mean(-1)
-        self.graph.add(ref, kid, f, w)
-        self.graph.add(kid, ref, fb, wb)
-        self._record(frame, kf_id=kid)
-        if len(self.window) < max(self.tc.warmup, 2):
+        self._warm_keyframe(frame, img, prep, ref, (f, w, fb, wb))
+        if not self._ready_to_initialize(info):
             return TrackStep(frame.index, float(frame.timestamp), False, None,
                              eye.cpu().numpy(), initialized=False, info=info)
         return self._initialize(frame, info)
+
+    def _warm_keyframe(self, frame, img, prep, ref, flows) -> int:
+        """A warm-up keyframe (pose/disparity found by the initialisation BA)."""
+        f, w, fb, wb = flows
+        kid = self._add_keyframe(frame, img, prep, torch.eye(4, dtype=torch.float64),
+                                 torch.ones(self.h, self.w))
+        self.kfs[kid].conf = wb.mean(-1)
+        self.graph.add(ref, kid, f, w)
+        self.graph.add(kid, ref, fb, wb)
+        # a late keyframe (finalize: _warm_best) was recorded as a non-keyframe already
+        old = [n for n, r in enumerate(self.records) if r.index == frame.index]
+        if old:
+            self.records[old[-1]] = FrameRecord(frame.index, float(frame.timestamp), kf_id=kid)
+        else:
+            self._record(frame, kf_id=kid)
+        self._warm_best = None
+        self._next_keyframe_flows(kid)
+        return kid
+
+    def _ready_to_initialize(self, info: Dict[str, float]) -> bool:
+        """Initialise once ``init_min_keyframes`` keyframes span ``init_parallax`` (first ->
+        newest flow not explained by a homography), at ``warmup`` keyframes at the latest."""
+        n = len(self.window)
+        if n >= max(self.tc.warmup, 2):
+            return True
+        if n < max(self.tc.init_min_keyframes, 2):
+            return False
+        par = self._window_parallax()
+        info["init_parallax"] = par
+        return par >= self.tc.init_parallax
+
+    def _window_parallax(self) -> float:
+        """Parallax (reference BA px) first -> newest warm-up keyframe (flows composed)."""
+        ids = self.window
+        f = self.graph.flow(ids[0], ids[1])
+        for a, b in zip(ids[1:-1], ids[2:]):
+            f = compose_flows(f, self.graph.flow(a, b))
+        w = self.graph.edges[(ids[0], ids[1])][1].float()
+        return parallax(f, w, self.motion.cell_weight) / self.px_scale
 
     def _reset(self) -> None:
         self.kfs.clear()
         self.graph = FactorGraph(self.h, self.w, self.device)
         self.window = []
         self.lost_count = 0
-        self.motion = MotionFilter(self.tc.motion_filter_thresh,
-                                   min_valid_frac=self.tc.lost_min_valid)
+        self.motion = self._motion_filter()
+        self._warm_best = None
+        self._pending = []
 
     def _initialize(self, frame, info) -> TrackStep:
         ids = list(self.window)
@@ -388,9 +447,10 @@ class Tracker:
             return self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, info)
         self._set_pose(T)
         sf, sw = self._store_flow(f, w)
-        self._record(frame, ref_kf=ref, rel_pose=(se3_inverse(T_ref) @ T).cpu().numpy(),
-                     ref_scale=float(self.kfs[ref].disp.mean()), flow=sf, weight=sw,
-                     online_pose=T.cpu().numpy())
+        rec = self._record(frame, ref_kf=ref, rel_pose=(se3_inverse(T_ref) @ T).cpu().numpy(),
+                           ref_scale=float(self.kfs[ref].disp.mean()), flow=sf, weight=sw,
+                           online_pose=T.cpu().numpy())
+        self._add_pending(rec, frame, img, prep)
         return TrackStep(frame.index, float(frame.timestamp), False, None,
                          T.cpu().numpy().copy(), info=info)
 
@@ -442,7 +502,8 @@ class Tracker:
             return
         ids = list(self.window)
         poses, disps = self.kfs.stack(ids)
-        cands = proximity_pairs(ids, poses, disps, self.intr, [kid], tc.frontend_thresh,
+        cands = proximity_pairs(ids, poses, disps, self.intr, [kid],
+                                tc.frontend_thresh * self.px_scale,
                                 tc.frontend_new_edges, exclude=self.graph.pairs(),
                                 min_gap=1, nms=tc.frontend_nms)
         pos = {k: n for n, k in enumerate(ids)}
@@ -501,7 +562,8 @@ class Tracker:
         self.graph.age_edges(pairs)
         return infos[-1]
 
-    def _new_keyframe(self, frame, img, prep, ref, T, f, w, fb, wb, info) -> TrackStep:
+    def _new_keyframe(self, frame, img, prep, ref, T, f, w, fb, wb, info,
+                      force: bool = False) -> TrackStep:
         tc = self.tc
         before = self._snapshot(self.window)
         kid = self._add_keyframe(frame, img, prep, T, self._init_disparity(
@@ -522,24 +584,57 @@ class Tracker:
         i1 = torch.tensor([1, 0], device=self.device)
         dist = float(induced_flow_distance(P, D, self.intr, i0, i1).mean())
         info = {**info, "kf_dist": dist, "ba_rms": binfo.rms if binfo else float("nan")}
-        if dist < tc.keyframe_thresh and len(self.window) > 3:
+        if dist < tc.keyframe_thresh * self.px_scale and len(self.window) > 3 and not force:
             self._drop_keyframe(kid)
             self._set_pose(T_new)
             sf, sw = self._store_flow(f, w)
             T_ref = self.kfs[ref].pose
-            self._record(frame, ref_kf=ref, rel_pose=(se3_inverse(T_ref) @ T_new).cpu().numpy(),
-                         ref_scale=float(self.kfs[ref].disp.mean()), flow=sf, weight=sw,
-                         online_pose=T_new.cpu().numpy())
+            rec = self._record(frame, ref_kf=ref,
+                               rel_pose=(se3_inverse(T_ref) @ T_new).cpu().numpy(),
+                               ref_scale=float(self.kfs[ref].disp.mean()), flow=sf, weight=sw,
+                               online_pose=T_new.cpu().numpy())
+            self._add_pending(rec, frame, img, prep)
             return TrackStep(frame.index, float(frame.timestamp), False, None,
                              T_new.cpu().numpy().copy(), events=events, info=info)
         self._set_pose(T_new)
-        self._record(frame, kf_id=kid)
+        self._record(frame, replace=force, kf_id=kid)
+        self._next_keyframe_flows(kid)
         kd = self._keyframe_data(kid)
         self.published.add(kid)
         self.kfs.drop_image(kid)
         return TrackStep(frame.index, float(frame.timestamp), True, kid,
                          T_new.cpu().numpy().copy(), events=events, keyframe=kd,
                          keyframes=[kd], info=info)
+
+    def _add_pending(self, rec: FrameRecord, frame, img, prep) -> None:
+        if rec.ref_kf == self.window[-1]:
+            self._pending.append((rec, prep))
+        self._last_input = (frame, img, prep)
+
+    def _next_keyframe_flows(self, kid: int) -> None:
+        """Flows from the new keyframe into the non-keyframes tracked since the previous
+        one (DIS started from the flow the current estimate induces), so that each is
+        aligned against both neighbouring keyframes (trajectory_filler)."""
+        t0 = time.perf_counter()
+        ks = self.kfs[kid]
+        for rec, prep in self._pending:
+            if rec.ref_kf not in self.kfs or rec.index == ks.frame_index:
+                continue
+            init = None                 # warm-up: no pose estimate yet
+            if rec.rel_pose is not None:
+                T = self.kfs[rec.ref_kf].pose @ torch.as_tensor(
+                    rec.rel_pose, dtype=torch.float64, device=self.device)
+                init = self._induced(ks.pose, ks.disp, T)
+            if init is not None and hasattr(self.flow, "predict_forward"):   # one DIS call
+                f, w = (x.to(self.device) for x in self.flow.predict_forward(ks.prep, prep, init))
+            else:
+                f, w, _, _ = self._flows(ks.prep, prep, init)
+            if self.motion.check(f, w).valid_frac < self.tc.lost_min_valid:
+                continue
+            rec.ref2_kf = kid
+            rec.flow2, rec.weight2 = self._store_flow(f, w)
+        self._pending = []
+        self.timings["next_kf_flows"] += time.perf_counter() - t0
 
     def _drop_keyframe(self, kid: int) -> None:
         self.graph.remove_node(kid)
@@ -580,15 +675,65 @@ class Tracker:
             # the current frame hangs off the newest keyframe
             self.last_pose = corr @ self.last_pose
 
+    def _late_initialize(self) -> None:
+        """End of input before initialisation: initialise from every warm-up keyframe plus
+        the frame that moved most since the last one; the keyframes go to
+        :attr:`final_keyframes` (published by the tracker role with its final message)."""
+        best = self._warm_best
+        if best is not None and self.window and (len(self.window) == 1 or
+                                                 best[0] >= 0.5 * self.motion.thresh):
+            _, frame, img, prep, flows = best
+            self._warm_keyframe(frame, img, prep, self.window[-1], flows)
+        par = self._window_parallax() if len(self.window) >= 2 else 0.0
+        if par < LATE_INIT_PARALLAX * self.tc.init_parallax:
+            log.warning("end of input: too little parallax to initialise (%.2f reference BA px "
+                        "over %d keyframes)", par, len(self.window))
+            return
+        last = max(self.kfs[k].frame_index for k in self.window)
+        rec = next(r for r in self.records if r.index == last)
+        step = self._initialize(Frame(rec.index, rec.timestamp, np.zeros((1, 1, 3), np.uint8),
+                                      self.intrinsics), {})
+        self.final_keyframes = list(step.keyframes)
+        log.info("initialised at the end of input from %d keyframes (parallax %.2f reference "
+                 "BA px)", len(step.keyframes), par)
+
     def finalize(self) -> List[UpdateEvent]:
-        """End of input: one more local BA round on the window (loop closure /
-        global BA finalisation is the loop closer's ``finalize``)."""
+        """End of input: initialisation if it has not happened yet (with everything
+        collected), then one more local BA round on the window (loop closure / global BA
+        finalisation is the loop closer's ``finalize``)."""
+        if not self.initialized:
+            with limit_threads(self.tc.threads):
+                self._late_initialize()
         if not self.initialized or len(self.window) < 2:
             return []
         with limit_threads(self.tc.threads):
+            events = self._last_frame_keyframe()
             before = self._snapshot(self.window)
             self._local_ba(self.tc.ba_iters)
-            return self._events("local_ba", before)
+            return events + self._events("local_ba", before)
+
+    def _last_frame_keyframe(self) -> List[UpdateEvent]:
+        """End of input: the last frame becomes a keyframe when it moved since the last
+        one (half the motion threshold), so the frames after the last keyframe are
+        aligned against a keyframe on both sides too."""
+        if not self._pending or self._last_input is None:
+            return []
+        frame, img, prep = self._last_input
+        rec = self.records[-1]
+        if rec.index != frame.index or rec.kf_id is not None or rec.ref_kf != self.window[-1]:
+            return []
+        ref = rec.ref_kf
+        T = self.kfs[ref].pose @ torch.as_tensor(rec.rel_pose, dtype=torch.float64,
+                                                 device=self.device)
+        init = self._induced(self.kfs[ref].pose, self.kfs[ref].disp, T)
+        f, w, fb, wb = self._flows(self.kfs[ref].prep, prep, init)
+        fc = self.motion.check(f, w)
+        if not fc.ok or fc.mean_flow < 0.5 * self.motion.thresh:
+            return []
+        self._pending = [(r, p) for r, p in self._pending if r.index != frame.index]
+        step = self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, {}, force=True)
+        self.final_keyframes.extend(step.keyframes)
+        return list(step.events)
 
     # ------------------------------------------------------------ outputs
     def trajectory_keyframes(self) -> Tuple[np.ndarray, np.ndarray]:

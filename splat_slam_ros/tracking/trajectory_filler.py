@@ -17,7 +17,7 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 import torch
 
-from splat_slam_ros.tracking.dense_ba import pose_only_refine
+from splat_slam_ros.tracking.dense_ba import pose_only_refine, pose_only_refine_multi
 from splat_slam_ros.geometry import pixel_grid, se3_exp, se3_inverse, se3_log
 
 
@@ -33,6 +33,9 @@ class FrameRecord:
     weight: Optional[torch.Tensor] = None    # (h, w, 2) float16
     lost: bool = False
     online_pose: Optional[np.ndarray] = None
+    ref2_kf: Optional[int] = None            # the next keyframe (set once it exists)
+    flow2: Optional[torch.Tensor] = None     # (h, w, 2) float16, ref2 -> frame, BA pixels
+    weight2: Optional[torch.Tensor] = None
 
 
 def se3_interpolate(T0: torch.Tensor, T1: torch.Tensor, a: float) -> torch.Tensor:
@@ -91,9 +94,17 @@ def fill_trajectory(records: List[FrameRecord], kf_poses: Dict[int, torch.Tensor
                 T = interpolate_from_keyframes(r.timestamp, kf_ts, stack)
             if grid is None or grid.shape[:2] != disp.shape:
                 grid = pixel_grid(*disp.shape)
-            T, info = pose_only_refine(Tref, disp, T, intr, grid + r.flow.float(),
-                                       r.weight.float(), iters=iters + (0 if r.rel_pose is not None
-                                                                        else 3), huber=huber)
+            n_it = iters + (0 if r.rel_pose is not None else 3)
+            if r.flow2 is not None and r.ref2_kf in kf_poses and r.ref2_kf in kf_disps:
+                # both neighbouring keyframes (Eq. 1 target block, two edges)
+                T2 = kf_poses[r.ref2_kf].to(torch.float64).cpu()
+                T, info = pose_only_refine_multi(
+                    torch.stack([Tref, T2]), torch.stack([disp, kf_disps[r.ref2_kf].float().cpu()]),
+                    T, intr, torch.stack([grid + r.flow.float(), grid + r.flow2.float()]),
+                    torch.stack([r.weight.float(), r.weight2.float()]), iters=n_it, huber=huber)
+            else:
+                T, info = pose_only_refine(Tref, disp, T, intr, grid + r.flow.float(),
+                                           r.weight.float(), iters=n_it, huber=huber)
         if T is None:
             T = interpolate_from_keyframes(r.timestamp, kf_ts, stack)
         ts_out.append(r.timestamp)
