@@ -41,10 +41,16 @@ def test_tracker_resumes_from_its_checkpoint_like_an_uninterrupted_run(tmp_path)
     ev = UpdateEvent(seq=LOOP_SEQ_START, reason="global_ba", kf_ids=[k0],
                      poses=a.tracker.kfs[k0].pose.cpu().numpy()[None].copy(), disparities=None)
     a.on_update(ev)
+    a_records = list(a.tracker.records)
     del a                                              # "kill -9": nothing else is written
 
+    two_sided = {r.index: r.ref2_kf for r in a_records if r.ref2_kf is not None}
     b = TrackerRole(cfg, INTR, False, store=KeyframeStore(store_dir))
     assert b.resumed and b.loop_seq == LOOP_SEQ_START
+    # non-keyframes aligned against both keyframes keep their second flow (the filler's)
+    restored = {r.index: r for r in b.tracker.records}
+    assert two_sided and all(restored[i].ref2_kf == k and restored[i].flow2 is not None
+                             for i, k in two_sided.items() if i in restored)
     stamp = b.resume_stamp
     assert stamp is not None and stamp <= frames[30].timestamp
     assert b.tracker.next_kf == max(kfs) + 1 and set(b.tracker.published) == set(kfs)

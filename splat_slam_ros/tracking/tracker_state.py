@@ -55,11 +55,17 @@ def _records_arrays(recs: List[FrameRecord], h: int, w: int) -> Dict[str, np.nda
     flow = np.zeros((n, h, w, 2), np.float16)
     weight = np.zeros((n, h, w, 2), np.float16)
     has_flow = np.zeros(n, bool)
+    flow2, weight2 = np.zeros_like(flow), np.zeros_like(weight)   # next keyframe -> frame
+    has_flow2 = np.zeros(n, bool)
     for i, r in enumerate(recs):
         if r.flow is not None and r.weight is not None:
             flow[i] = r.flow.cpu().numpy()
             weight[i] = r.weight.cpu().numpy()
             has_flow[i] = True
+        if r.ref2_kf is not None and r.flow2 is not None and r.weight2 is not None:
+            flow2[i] = r.flow2.cpu().numpy()
+            weight2[i] = r.weight2.cpu().numpy()
+            has_flow2[i] = True
     opt = lambda x: -1 if x is None else int(x)           # noqa: E731
     pose = lambda p: _NAN44 if p is None else np.asarray(p, np.float64)   # noqa: E731
     return {"index": np.array([r.index for r in recs], np.int64),
@@ -71,7 +77,9 @@ def _records_arrays(recs: List[FrameRecord], h: int, w: int) -> Dict[str, np.nda
                             else np.zeros((0, 4, 4))),
             "ref_scale": np.array([r.ref_scale for r in recs], np.float64),
             "lost": np.array([r.lost for r in recs], bool),
-            "has_flow": has_flow, "flow": flow, "weight": weight}
+            "has_flow": has_flow, "flow": flow, "weight": weight,
+            "ref2_kf": np.array([opt(r.ref2_kf) for r in recs], np.int64),
+            "has_flow2": has_flow2, "flow2": flow2, "weight2": weight2}
 
 
 def _records_from(a: Dict[str, np.ndarray]) -> List[FrameRecord]:
@@ -83,11 +91,17 @@ def _records_from(a: Dict[str, np.ndarray]) -> List[FrameRecord]:
         if a["has_flow"][i]:
             flow = torch.from_numpy(a["flow"][i].copy())
             weight = torch.from_numpy(a["weight"][i].copy())
+        ref2 = flow2 = weight2 = None
+        if "has_flow2" in a and a["has_flow2"][i]:
+            ref2 = opt(a["ref2_kf"][i])
+            flow2 = torch.from_numpy(a["flow2"][i].copy())
+            weight2 = torch.from_numpy(a["weight2"][i].copy())
         out.append(FrameRecord(int(a["index"][i]), float(a["timestamp"][i]),
                                kf_id=opt(a["kf_id"][i]), ref_kf=opt(a["ref_kf"][i]),
                                rel_pose=pose(a["rel_pose"][i]), ref_scale=float(a["ref_scale"][i]),
                                flow=flow, weight=weight, lost=bool(a["lost"][i]),
-                               online_pose=pose(a["online_pose"][i])))
+                               online_pose=pose(a["online_pose"][i]),
+                               ref2_kf=ref2, flow2=flow2, weight2=weight2))
     return out
 
 
@@ -213,7 +227,7 @@ class TrackerCheckpoint:
             if st.has(f"trec{c}"):
                 recs += _records_from(st.get(f"trec{c}"))
         for r in recs[:max(len(recs) - 1 - trk.tc.max_stored_flows, 0)]:
-            r.flow = r.weight = None                      # the tracker's memory bound
+            r.flow = r.weight = r.flow2 = r.weight2 = None   # the tracker's memory bound
         trk.records = recs
         trk.window = [int(k) for k in m["trk_window"]]
         trk.published = {int(k) for k in m["trk_published"]}
