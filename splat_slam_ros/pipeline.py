@@ -86,7 +86,7 @@ def evaluate_trajectories(dataset, out: Path, metrics: dict) -> Optional[float]:
 
 def evaluate_map_depth(dataset, out: Path, cfg: SlamConfig, metrics: dict) -> None:
     """``depth_l1_cm``: the map's rendered depth at the estimated keyframe poses against the
-    dataset's depth (its full resolution and camera), after the Sim(3) scale of the keyframe
+    dataset's depth (nearest-resized to the processing size, the dataset's camera), after the Sim(3) scale of the keyframe
     trajectory's ATE alignment (a monocular map has no metric scale); pixels valid in both.
     Used for in-process runs and graph runs alike (it reads ``out``'s map.ply and
     trajectory_keyframes.txt). Nothing is added when the dataset has no depth or ground truth."""
@@ -103,18 +103,24 @@ def evaluate_map_depth(dataset, out: Path, cfg: SlamConfig, metrics: dict) -> No
     except ValueError as e:                             # too few keyframes to align
         metrics["depth_l1_error"] = str(e)
         return
+    import cv2
     K = dataset.intrinsics
-    mp = Mapper.load_ply(ply, cfg, K)
+    w, h = cfg.camera.processing_size(K.width, K.height)     # rendered at processing size
+    if w <= 0 or h <= 0:
+        w, h = K.width, K.height
+    Ks = K.scaled(w / K.width, h / K.height)
+    mp = Mapper.load_ply(ply, cfg, Ks)
     want = {round(float(t), 4): T for t, T in zip(ts, P)}
     errs = []
     for f in dataset:
         T = want.get(round(float(f.timestamp), 4))
         if T is None or f.gt_depth is None:
             continue
-        H, W = f.gt_depth.shape
-        _, d = mp.render(T, W, H, intrinsics=(K.fx, K.fy, K.cx, K.cy))
+        gd = cv2.resize(np.asarray(f.gt_depth, np.float32), (int(w), int(h)),
+                        interpolation=cv2.INTER_NEAREST)
+        _, d = mp.render(T)
         try:
-            errs.append(ev.depth_l1_cm(d * scale, f.gt_depth))
+            errs.append(ev.depth_l1_cm(d * scale, gd))
         except ev.MetricError:                          # nothing rendered in this view
             continue
     if errs:
