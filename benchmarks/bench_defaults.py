@@ -18,7 +18,7 @@ process accounting of this script: frames/s = input frames / wall time of the wh
 (Python start-up and output writing included), ATE RMSE (cm, Sim(3), full trajectory and
 keyframes), keyframe PSNR / SSIM, depth L1 (cm, map depth at the keyframes vs the dataset's
 depth, Sim(3) scale), peak RSS summed over processes (in-process: the process; graph: the
-sum of the nodes' peaks + the launcher's), CPU seconds, per-stage time and the load average
+sum of the nodes' peaks (their metrics) + the launcher's own), CPU seconds, per-stage time and the load average
 before and after. Runs go one after another (never two at once); timings on a shared machine
 are noisy, so read them with the load average.
 """
@@ -73,16 +73,39 @@ def ensure_bag(seq: Path) -> Path:
     return bag
 
 
+def _vm_hwm_mb(pid: int) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return 0.0
+
+
 def timed(cmd, log: Path, env) -> dict:
-    """Run ``cmd``; wall time of the whole command, its CPU seconds and peak RSS (wait4)."""
+    """Run ``cmd``; wall time of the whole command, CPU seconds (it and its children, wait4)
+    and the peak RSS of the command's own process (VmHWM, polled: wait4's ru_maxrss would be
+    the largest of its children for the launcher)."""
+    import threading
     load0 = os.getloadavg()
     t0 = time.perf_counter()
+    hwm = [0.0]
     with open(log, "w") as fh:
         p = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env)
+        done = threading.Event()
+
+        def poll():
+            while not done.wait(0.5):
+                hwm[0] = max(hwm[0], _vm_hwm_mb(p.pid))
+        th = threading.Thread(target=poll, daemon=True)
+        th.start()
         _, status, ru = os.wait4(p.pid, 0)
+        done.set()
+        th.join()
     wall = time.perf_counter() - t0
     return {"rc": os.waitstatus_to_exitcode(status), "wall_command_s": round(wall, 2),
-            "cpu_s": round(ru.ru_utime + ru.ru_stime, 1), "own_peak_rss_mb": ru.ru_maxrss / 1024,
+            "cpu_s": round(ru.ru_utime + ru.ru_stime, 1), "own_peak_rss_mb": round(hwm[0], 1),
             "load_before": [round(x, 2) for x in load0],
             "load_after": [round(x, 2) for x in os.getloadavg()]}
 
