@@ -11,7 +11,8 @@ Prints keyframe PSNR / SSIM / depth L1, seconds per mapped keyframe and peak RSS
 benchmarks/results/mapping.json. CPU timings are noisy when other processes share the
 cores: the load average at start and end is recorded beside them.
 
-    python benchmarks/bench_mapping.py                      # both, paper settings
+    python benchmarks/bench_mapping.py                      # both, paper settings (--preset paper)
+    python benchmarks/bench_mapping.py --preset ""          # both, the CPU defaults
     python benchmarks/bench_mapping.py --only icl --scale 0.5 --set mapping.iters_first=300
 """
 from __future__ import annotations
@@ -91,6 +92,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--only", choices=("icl", "synth"), help="run one dataset")
+    ap.add_argument("--preset", default="paper", help="config preset (config/NAME.yaml; default "
+                    "paper: the paper's schedule, the numbers in the README; '' = defaults)")
     ap.add_argument("--scale", type=float, default=1.0, help="resize factor (speed)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override, e.g. mapping.iters_first=300")
@@ -112,7 +115,7 @@ def main(argv=None) -> int:
     for kv in args.set:
         k, _, v = kv.partition("=")
         overrides[k] = json.loads(v) if v[:1] in "0123456789-[{tf" else v
-    cfg = load_config(None, overrides)
+    cfg = load_config(None, overrides, preset=args.preset or None)
     results = []
     if args.only in (None, "icl"):
         path = DATA / "icl_nuim_living_room_5"

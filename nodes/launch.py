@@ -169,7 +169,14 @@ class Launcher:
         a = self.args
         try:
             self.overrides = parse_overrides(a.set)
-            self.cfg = load_config(a.config, self.overrides)
+            self.cfg = load_config(a.config, self.overrides, preset=a.preset)
+            self.config_file = a.config
+            if a.preset:                 # the nodes read one file: preset + --config merged
+                import tempfile
+                from splat_slam_ros.config import dump_config
+                fd, name = tempfile.mkstemp(prefix=f"splat_{a.preset}_", suffix=".yaml")
+                os.close(fd)
+                self.config_file = str(dump_config(load_config(a.config, preset=a.preset), name))
         except ConfigError as e:
             raise LaunchError(str(e)) from None
         from .launch_net import NetworkArgError, apply_network
@@ -216,8 +223,8 @@ class Launcher:
 
         def param(k, v):
             p.extend(["-p", f"{k}:={_ros_value(v)}"])
-        if a.config:
-            param("config_file", str(Path(a.config).resolve()))
+        if self.config_file:
+            param("config_file", str(Path(self.config_file).resolve()))
         for k, v in self.overrides.items():
             param(k, v)
         if self.bag is not None:
@@ -420,9 +427,10 @@ class Launcher:
         if self.bag is not None and self.out_dir is not None:
             try:
                 from splat_slam_ros.io.bagio import BagDataset
-                from splat_slam_ros.pipeline import evaluate_trajectories
+                from splat_slam_ros.pipeline import evaluate_map_depth, evaluate_trajectories
                 ds = BagDataset(self.args.bag)
                 evaluate_trajectories(ds, self.out_dir, m)
+                evaluate_map_depth(ds, self.out_dir, self.cfg, m)     # depth L1 vs the bag's
             except Exception as e:                   # no ground truth / evaluation missing
                 m["evaluation_error"] = f"{type(e).__name__}: {e}"
         _write_json(self.out_dir / "metrics.json", m)
@@ -464,6 +472,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--bag", help="rosbag2 (MCAP) to play; without it: live topics")
     ap.add_argument("--out", help="output directory (outputs, crash-safe node state)")
     ap.add_argument("--config", help="SLAM config YAML (config/*.yaml)")
+    ap.add_argument("--preset", metavar="NAME", help="start from the shipped config/NAME.yaml "
+                    "(e.g. paper); --config and --set apply on top")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a config value / ROS parameter, e.g. --set "
                          "ros.image_topic=/cam/image_raw")

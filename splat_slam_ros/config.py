@@ -21,16 +21,28 @@ class ConfigError(ValueError):
 
 @dataclass
 class CameraConfig:
-    # Tracking image size after resize/crop (0 = keep the input size).
+    # Processing (tracking + mapping) image size after crop/resize. 0 x 0 = auto: the input
+    # size, shrunk (aspect kept, sides multiples of 16) to at most max_pixels pixels.
     width: int = 0
     height: int = 0
+    max_pixels: int = 76800      # auto rule's limit: 320x240 for 2 cores (0 = keep input size)
     crop: int = 0                # pixels cropped from every border before resize
     undistort: bool = True       # undistort when the camera has distortion coefficients
+
+    def processing_size(self, width: int, height: int) -> tuple:
+        """(width, height) to resize a cropped ``width`` x ``height`` input to; (0, 0) keeps
+        it. An explicit camera.width/height wins; else the auto rule above applies."""
+        if self.width > 0 or self.height > 0 or self.max_pixels <= 0:
+            return int(self.width), int(self.height)
+        if width * height <= self.max_pixels:
+            return 0, 0
+        s = (self.max_pixels / float(width * height)) ** 0.5
+        return max(16, int(width * s) // 16 * 16), max(16, int(height * s) // 16 * 16)
 
 
 @dataclass
 class TrackingConfig:
-    device: str = "cpu"                  # "cpu", "cuda" or "auto"
+    device: str = "auto"                 # "auto" (CUDA when torch sees it), "cpu", "cuda"
     threads: int = 1                     # torch/OpenCV threads while tracking (0 = unchanged)
     ba_downsample: int = 8               # BA resolution = tracking image / this (paper: 1/8)
     # flow front end (classical stand-in for the paper's learned flow, see flow_frontend.py)
@@ -107,7 +119,7 @@ class DepthConfig:
     mv_min_views: int = 2                # n_c
     mv_max_depth_ratio: float = 3.0      # reject depth > ratio x median
     fill_small_holes: int = 0            # max hole size (px) filled when no mono model
-    device: str = "cpu"                  # "cpu", "cuda" or "auto" (torch part of proxy depth)
+    device: str = "auto"                 # "cpu", "cuda" or "auto" (torch part of proxy depth)
     mv_neighbors: int = 8                # other keyframes used by Eq. 5 (nearest by kf id)
     upsample_disc: float = 0.1           # upsampling: a 2x2 BA cell spanning more than this
                                          # (relative disparity) is interpolated only if
@@ -120,9 +132,17 @@ class DepthConfig:
 
 @dataclass
 class MappingConfig:
-    device: str = "cpu"
-    iters_per_keyframe: int = 60
-    iters_first: int = 1050
+    # Defaults: a schedule sized for a 2-core CPU (README "Defaults"); the paper's GPU schedule
+    # (60 / 1050 / 2000 iterations, whole window per step) is config/paper.yaml (--preset paper).
+    device: str = "auto"                 # "auto" (CUDA when torch sees it), "cpu" or "cuda"
+    iters_per_keyframe: int = 30         # at most, per keyframe (paper: 60)
+    iters_first: int = 300               # at most, for the first keyframe (paper: 1050)
+    budget_s_per_keyframe: float = 4.0   # wall seconds one keyframe's steps may take (0 = none)
+    budget_s_first: float = 15.0         # ... the first keyframe's
+    min_iters_per_keyframe: int = 3      # steps run even past the budget
+    keep_up: float = 0.0                 # > 0: also cap a keyframe's steps at this fraction of
+                                         # the stream time since the last mapped keyframe
+                                         # (realtime: steps are dropped, never keyframes)
     window_size: int = 8
     rgb_weight: float = 0.8              # lambda in Eq. 8
     isotropy_weight: float = 10.0        # lambda_reg in Eq. 8
@@ -132,10 +152,12 @@ class MappingConfig:
     kf_covisibility: float = 0.90        # k_fcov
     kf_translation: float = 0.08         # k_fm
     kf_cutoff: float = 0.3               # k_fc
-    prune_every: int = 150
-    densify_every: int = 150
+    prune_every: int = 50                # (paper: 150)
+    densify_every: int = 50              # (paper: 150)
     prune_opacity: float = 0.7
-    final_refine_iters: int = 2000       # beta
+    final_refine_iters: int = 2000       # beta, at most
+    final_refine_per_keyframe: int = 20  # refinement = min(beta, this x keyframes) (0 = beta)
+    final_refine_s: float = 60.0         # wall-second cap of the final refinement (0 = none)
     lr_means: float = 0.0016              # 10x 3DGS: +0.6 dB, -0.4 cm depth L1 on ICL (bench_mapping)
     lr_colors: float = 0.0025
     lr_opacity: float = 0.05
@@ -144,12 +166,12 @@ class MappingConfig:
     lr_exposure: float = 0.01
     render_every: int = 1                # publish / save a render every N keyframes
     # views per iteration: the window (Eq. 8 sums over it; 0 = all) + random older keyframes
-    window_views_per_iter: int = 0
-    random_views_per_iter: int = 2       # MonoGS practice against forgetting (not in Eq. 8)
+    window_views_per_iter: int = 3       # (paper: 0, the whole window)
+    random_views_per_iter: int = 1       # MonoGS practice against forgetting (paper/MonoGS: 2)
     # pruning / densification (supplementary "Pruning and Densification", MonoGS / 3DGS)
     prune_recent_kfs: int = 3            # visibility pruning looks at Gaussians of the last N KFs
     prune_covis_min: int = 3             # ... and removes those seen by fewer other window KFs
-    prune_min_age: int = 50              # opacity pruning spares Gaussians younger (iterations)
+    prune_min_age: int = 25              # opacity pruning spares Gaussians younger (paper: 50)
     prune_max_screen_px: float = 0.0     # remove if 2D radius exceeds this (0 = off)
     prune_max_scale_frac: float = 0.1    # remove if largest scale > frac x scene extent
     densify_grad_thresh: float = 0.0002  # mean view-space (NDC) positional gradient
@@ -172,7 +194,8 @@ class MappingConfig:
         """Few iterations everywhere: for tests and quick CPU looks (not for quality)."""
         base = dict(iters_per_keyframe=15, iters_first=150, final_refine_iters=30,
                     random_views_per_iter=1, window_views_per_iter=3, prune_every=50,
-                    densify_every=50, prune_min_age=25)
+                    densify_every=50, prune_min_age=25, budget_s_per_keyframe=0.0,
+                    budget_s_first=0.0, final_refine_per_keyframe=0, final_refine_s=0.0)
         base.update(overrides)
         return cls(**base)
 
@@ -259,28 +282,56 @@ def _assign(obj, name: str, value: Any, dotted: str) -> None:
     setattr(obj, name, value)
 
 
+def _apply_yaml(cfg: SlamConfig, p: Path) -> None:
+    if not p.is_file():
+        raise ConfigError(f"config file not found: {p}")
+    try:
+        data = yaml.safe_load(p.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"config file {p} is not valid YAML: {e}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {p} must hold a mapping at the top level")
+    for k, v in data.items():
+        if k == "dataset":
+            cfg.dataset = str(v)
+            continue
+        _assign(cfg, k, v, k)
+
+
+def preset_path(name: str) -> Path:
+    """``--preset NAME`` -> the shipped ``config/NAME.yaml`` (ConfigError naming the presets)."""
+    name = str(name).strip()
+    p = config_dir() / f"{name}.yaml"
+    if not name or "/" in name or not p.is_file():
+        names = sorted(f.stem for f in config_dir().glob("*.yaml"))
+        raise ConfigError(f"unknown preset {name!r}; shipped presets: {', '.join(names)}")
+    return p
+
+
 def load_config(path: Optional[str | Path] = None,
-                overrides: Optional[Dict[str, Any]] = None) -> SlamConfig:
-    """Defaults, then the YAML file (if any), then dotted overrides."""
+                overrides: Optional[Dict[str, Any]] = None,
+                preset: Optional[str] = None) -> SlamConfig:
+    """Defaults, then the preset (config/NAME.yaml), then the YAML file (if any), then dotted
+    overrides."""
     cfg = SlamConfig()
+    if preset:
+        _apply_yaml(cfg, preset_path(preset))
     if path is not None:
-        p = Path(path)
-        if not p.is_file():
-            raise ConfigError(f"config file not found: {p}")
-        try:
-            data = yaml.safe_load(p.read_text()) or {}
-        except yaml.YAMLError as e:
-            raise ConfigError(f"config file {p} is not valid YAML: {e}") from None
-        if not isinstance(data, dict):
-            raise ConfigError(f"config file {p} must hold a mapping at the top level")
-        for k, v in data.items():
-            if k == "dataset":
-                cfg.dataset = str(v)
-                continue
-            _assign(cfg, k, v, k)
+        _apply_yaml(cfg, Path(path))
     for k, v in (overrides or {}).items():
         cfg.set(k, v)
     return cfg
+
+
+def dump_config(cfg: SlamConfig, path: str | Path) -> Path:
+    """Write ``cfg`` as a YAML file that :func:`load_config` reads back to an equal config."""
+    def plain(v):
+        if isinstance(v, dict):
+            return {k: plain(x) for k, x in v.items()}
+        return list(v) if isinstance(v, tuple) else v
+    p = Path(path)
+    p.write_text(yaml.safe_dump(plain(cfg.to_dict()), sort_keys=False))
+    return p
 
 
 def config_dir() -> Path:

@@ -84,6 +84,51 @@ def evaluate_trajectories(dataset, out: Path, metrics: dict) -> Optional[float]:
     return scale
 
 
+def evaluate_map_depth(dataset, out: Path, cfg: SlamConfig, metrics: dict) -> None:
+    """``depth_l1_cm``: the map's rendered depth at the estimated keyframe poses against the
+    dataset's depth (nearest-resized to the processing size, the dataset's camera), after the Sim(3) scale of the keyframe
+    trajectory's ATE alignment (a monocular map has no metric scale); pixels valid in both.
+    Used for in-process runs and graph runs alike (it reads ``out``'s map.ply and
+    trajectory_keyframes.txt). Nothing is added when the dataset has no depth or ground truth."""
+    from splat_slam_ros import evaluation as ev
+    from splat_slam_ros.mapping.mapper import Mapper
+    gt = dataset.gt_trajectory() if hasattr(dataset, "gt_trajectory") else None
+    kf_file, ply = out / "trajectory_keyframes.txt", out / "map.ply"
+    if gt is None or not getattr(dataset, "has_gt_depth", False) or not ply.is_file() \
+            or not kf_file.is_file():
+        return
+    ts, P = read_trajectory(kf_file)
+    try:
+        scale = float(ate(gt[0], gt[1], ts, P, align="sim3")["scale"])
+    except ValueError as e:                             # too few keyframes to align
+        metrics["depth_l1_error"] = str(e)
+        return
+    import cv2
+    K = dataset.intrinsics
+    w, h = cfg.camera.processing_size(K.width, K.height)     # rendered at processing size
+    if w <= 0 or h <= 0:
+        w, h = K.width, K.height
+    Ks = K.scaled(w / K.width, h / K.height)
+    mp = Mapper.load_ply(ply, cfg, Ks)
+    want = {round(float(t), 4): T for t, T in zip(ts, P)}
+    errs = []
+    for f in dataset:
+        T = want.get(round(float(f.timestamp), 4))
+        if T is None or f.gt_depth is None:
+            continue
+        gd = cv2.resize(np.asarray(f.gt_depth, np.float32), (int(w), int(h)),
+                        interpolation=cv2.INTER_NEAREST)
+        _, d = mp.render(T)
+        try:
+            errs.append(ev.depth_l1_cm(d * scale, gd))
+        except ev.MetricError:                          # nothing rendered in this view
+            continue
+    if errs:
+        metrics["depth_l1_cm"] = round(float(np.mean(errs)), 4)
+        metrics["depth_l1_views"] = len(errs)
+        metrics["depth_l1_sim3_scale"] = round(scale, 6)
+
+
 def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool = True,
         max_frames: Optional[int] = None) -> RunResult:
     """Run the in-process pipeline over a dataset and write the standard outputs to ``out``.
@@ -114,6 +159,10 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
         metrics["error"] = not_initialized_reason(cfg, result.frames)
     elif mode != "gt_mapping":
         evaluate_trajectories(dataset, out, metrics)
+        if mode == "full":
+            t0 = time.perf_counter()
+            evaluate_map_depth(dataset, out, cfg, metrics)
+            metrics["depth_eval_s"] = round(time.perf_counter() - t0, 3)
     metrics["warnings"] = warnings.close()
     _write_json(out / "metrics.json", metrics)
     write_report(out, cfg)                               # report.html, report.png, config.yaml

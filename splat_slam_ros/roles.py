@@ -662,7 +662,7 @@ class MapperRole:
         info: dict = {"keyframes": sum(self.offered.values())}
         if self.mapper is not None:
             t0 = time.perf_counter()
-            info["refine"] = self.mapper.final_refine(self.cfg.mapping.final_refine_iters)
+            info["refine"] = self.mapper.final_refine()
             self.timings["refine"] += time.perf_counter() - t0
             self.snapshot()
         return Outbox(final=info)

@@ -23,6 +23,7 @@ keyframe: too little camera motion for the thresholds; the message says which to
 
 examples:
   splat-slam-run data/fr1_xyz --out runs/fr1 --config config/tum.yaml
+  splat-slam-run data/replica --out runs/paper --preset paper     # the paper's GPU schedule
   splat-slam-run bags/synth --out runs/synth --tracking-only
   splat-slam-run data/icl --out runs/icl --gt-poses --gt-depth --format posefolder \\
       --intrinsics icl.yaml
@@ -37,6 +38,8 @@ def build_parser() -> argparse.ArgumentParser:
                                  "video) or a bag written by splat-slam-convert")
     p.add_argument("--out", required=True, help="output directory (created)")
     p.add_argument("--config", help="YAML config (see config/*.yaml); defaults otherwise")
+    p.add_argument("--preset", metavar="NAME", help="start from the shipped config/NAME.yaml "
+                   "(e.g. paper: the paper's GPU mapping schedule); --config and --set apply on top")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override one config value, e.g. --set tracking.keyframe_thresh=3")
     p.add_argument("--tracking-only", action="store_true", help="run the tracker only")
@@ -72,7 +75,7 @@ def main(argv=None) -> int:
         if args.max_frames is not None and args.max_frames <= 0:
             print("error: --max-frames must be positive", file=sys.stderr)
             return 2
-        cfg = load_config(args.config, parse_overrides(args.set))
+        cfg = load_config(args.config, parse_overrides(args.set), preset=args.preset)
         ds = open_dataset(args.input, fmt=args.format, intrinsics=args.intrinsics)
         mode = "tracking" if args.tracking_only else "gt_mapping" if args.gt_poses else "full"
         if mode == "gt_mapping" and not (ds.has_gt_pose and ds.has_gt_depth):

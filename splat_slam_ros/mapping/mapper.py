@@ -85,6 +85,8 @@ class Mapper:
         self.counts = {"cloned": 0, "split": 0, "pruned_opacity": 0, "pruned_size": 0,
                        "pruned_visibility": 0}
         self.last_ms = 0.0
+        self.skipped_iters = 0         # steps dropped to stay within the time budgets
+        self._last_mapped_ts: Optional[float] = None
         self.last_loss = float("nan")
         self._scene_depth = 0.0
         self.backend = "auto"
@@ -239,7 +241,10 @@ class Mapper:
         removed = self.window.add(kf_id, vis, {k: k2.pose for k, k2 in self.keyframes.items()})
 
         iters = self.mcfg.iters_first if empty else self.mcfg.iters_per_keyframe
-        self._optimize(iters, densify=True, progress=self.progress and iters >= 200)
+        self._optimize(iters, densify=True, progress=self.progress and iters >= 200,
+                       budget_s=self.keyframe_budget(empty, kf.timestamp),
+                       min_iters=self.mcfg.min_iters_per_keyframe)
+        self._last_mapped_ts = kf.timestamp
         n_vis_pruned = self._visibility_prune() if self.window.full else 0
         self.last_ms = 1000 * (time.perf_counter() - t0)
         stats.update({"new_gaussians": n_new, "left_window": removed,
@@ -247,6 +252,29 @@ class Mapper:
         stats.update(self.stats())
         self.history.append(history_entry(stats, timestamp))
         return stats
+
+    def keyframe_budget(self, first: bool, timestamp: float) -> float:
+        """Wall seconds one keyframe's optimisation may take (0 = no limit): the configured
+        budget, capped in keep-up mode at ``keep_up`` x the stream time since the last mapped
+        keyframe, so that the mapper keeps pace with the keyframes (it drops steps, never
+        keyframes)."""
+        m = self.mcfg
+        budget = m.budget_s_first if first else m.budget_s_per_keyframe
+        last = self._last_mapped_ts
+        if m.keep_up > 0 and not first and last is not None and timestamp > last:
+            cap = m.keep_up * (timestamp - last)
+            budget = min(budget, cap) if budget > 0 else cap
+        return float(budget)
+
+    def final_refine_budget(self) -> Tuple[int, float]:
+        """(iterations, wall-second cap) of the final refinement: ``final_refine_iters``, or
+        ``final_refine_per_keyframe`` x keyframes when that is fewer (a short clip does not pay
+        the paper's 2000), capped by ``final_refine_s``."""
+        m = self.mcfg
+        iters = int(m.final_refine_iters)
+        if m.final_refine_per_keyframe > 0:
+            iters = min(iters, m.final_refine_per_keyframe * len(self.keyframes))
+        return iters, float(m.final_refine_s)
 
     def _add_keyframe_record(self, kf: MappedKeyframe) -> None:
         """Store a mapped keyframe; its exposure (Eq. 8 affine a, b) joins the exposure
@@ -291,16 +319,24 @@ class Mapper:
         return (s - s.mean(1, keepdim=True)).abs().sum(1).mean()
 
     def _optimize(self, iters: int, densify: bool = True, single_random: bool = False,
-                  progress: bool = False) -> None:
+                  progress: bool = False, budget_s: float = 0.0, min_iters: int = 0) -> int:
+        """Up to ``iters`` Adam steps; with ``budget_s`` > 0 it stops (after ``min_iters``)
+        before the next step would end past the budget. Returns the steps run."""
         if iters <= 0 or len(self.map) == 0:
-            return
+            return 0
         m = self.mcfg
         bar = None
         if progress:
             from tqdm import tqdm
             bar = tqdm(total=iters, desc="refine" if single_random else "optimise", unit="it",
                        dynamic_ncols=True, leave=False)
-        for _ in range(iters):
+        t0 = time.perf_counter()
+        done = 0
+        for done in range(iters + 1):
+            spent = time.perf_counter() - t0
+            if done == iters or (budget_s > 0 and done >= max(min_iters, 1)
+                                 and spent * (done + 1) / done > budget_s):
+                break
             views = self._pick_views(single_random)
             self.map.zero_grad()
             if self._exp_opt is not None:
@@ -349,6 +385,8 @@ class Mapper:
                 bar.set_postfix(loss=f"{self.last_loss:.4f}")
         if bar is not None:
             bar.close()
+        self.skipped_iters += iters - done
+        return done
 
     # ================================================== pruning / densification
     def scene_extent(self) -> float:
@@ -503,10 +541,14 @@ class Mapper:
         """Supplementary "Final Refinement": beta iterations on random single keyframes,
         same loss, no pruning or densification."""
         t0 = time.perf_counter()
-        iters = self.mcfg.final_refine_iters if iters is None else int(iters)
+        budget = 0.0
+        if iters is None:
+            iters, budget = self.final_refine_budget()
+        done = 0
         if self.keyframes:
-            self._optimize(iters, densify=False, single_random=True, progress=progress)
-        return {"refine_iters": iters, "refine_s": round(time.perf_counter() - t0, 3)}
+            done = self._optimize(int(iters), densify=False, single_random=True,
+                                  progress=progress, budget_s=budget)
+        return {"refine_iters": done, "refine_s": round(time.perf_counter() - t0, 3)}
 
     # ================================================================ output
     def stats(self) -> dict:
@@ -515,6 +557,7 @@ class Mapper:
                 "map_mb": round(self.map.nbytes() / 2 ** 20, 4),
                 "last_ms": round(self.last_ms, 2), "deformations": self.n_deformations,
                 "deformed_gaussians": self.n_deformed_gaussians, "iterations": self.iteration,
+                "skipped_iterations": self.skipped_iters,
                 **self.counts}
 
     def keyframe_trajectory(self) -> Tuple[np.ndarray, np.ndarray]:

@@ -119,8 +119,9 @@ class Tracker:
         tc = self.tc = cfg.tracking
         self.device = resolve_device(tc.device, "tracking.device")
         cam = cfg.camera
-        self.pre = ImagePreprocessor(intrinsics, tc.ba_downsample, cam.width, cam.height,
-                                     cam.crop, cam.undistort)
+        w, h = cam.processing_size(intrinsics.width - 2 * cam.crop,    # 0x0: auto size
+                                   intrinsics.height - 2 * cam.crop)
+        self.pre = ImagePreprocessor(intrinsics, tc.ba_downsample, w, h, cam.crop, cam.undistort)
         self.intrinsics = self.pre.intrinsics
         self.ba_intrinsics = self.pre.ba_intrinsics
         self.intr = intr_tensor(self.ba_intrinsics, torch.float32, self.device)

@@ -1,0 +1,199 @@
+"""CPU defaults: OpenMP wait policy (in-process / node parity), the time-budgeted mapping
+schedule, the final refinement scaled by the keyframes, presets and the auto resolution."""
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from splat_slam_ros.config import (ConfigError, MappingConfig, SlamConfig, dump_config,
+                                   load_config)
+from splat_slam_ros.mapping.mapper import Mapper
+from splat_slam_ros.ros_env import ros_environment
+from splat_slam_ros.types import Intrinsics
+
+REPO = Path(__file__).resolve().parents[1]
+W, H, F = 48, 36, 42.0
+K = Intrinsics(F, F, (W - 1) / 2, (H - 1) / 2, W, H)
+
+
+def _env_without_policy(**extra):
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO)] + [p for p in sys.path if p])
+    env.update(extra)
+    return env
+
+
+# ------------------------------------------------------------------- parity
+def test_in_process_entry_points_get_the_nodes_passive_openmp_policy():
+    """The profiled cause of the in-process pipeline's 2.6x mapping CPU: libgomp spinning
+    (GOMP_SPINCOUNT 300000) where the nodes run with OMP_WAIT_POLICY=PASSIVE (spin count 0).
+    libgomp prints the values it took at load time with OMP_DISPLAY_ENV=VERBOSE."""
+    code = "import splat_slam_ros.pipeline, splat_slam_ros.cli.run, torch; torch.ones(4).sum()"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       env=_env_without_policy(OMP_DISPLAY_ENV="VERBOSE"), timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "GOMP_SPINCOUNT = '0'" in r.stderr, r.stderr[-2000:]
+    # the same policy as the node processes get from their environment
+    assert ros_environment({})["OMP_WAIT_POLICY"] == "PASSIVE"
+    # an explicit user choice is kept
+    r = subprocess.run([sys.executable, "-c", "import splat_slam_ros, os; "
+                        "print(os.environ['OMP_WAIT_POLICY'])"], capture_output=True, text=True,
+                       env=_env_without_policy(OMP_WAIT_POLICY="ACTIVE"), timeout=120)
+    assert r.stdout.strip() == "ACTIVE", r.stderr[-2000:]
+
+
+# ----------------------------------------------------------------- schedule
+def _views(n):
+    """n keyframes of a colourful slanted plane, 5 cm apart, with exact depth."""
+    yy, xx = np.mgrid[0:H, 0:W]
+    out = []
+    for i in range(n):
+        img = np.stack([(xx * 5 + 40 * i) % 256, (yy * 7) % 256, ((xx + yy) * 3) % 256],
+                       -1).astype(np.uint8)
+        depth = (2.0 + 0.02 * xx).astype(np.float32)
+        pose = np.eye(4)
+        pose[0, 3] = 0.05 * i
+        out.append((img, pose, depth))
+    return out
+
+
+def _mapper(**kw):
+    cfg = SlamConfig()
+    cfg.mapping = MappingConfig.fast(downsample_first=2, downsample=4, **kw)
+    return Mapper(cfg, K, device="cpu")
+
+
+def test_keyframe_budget_is_respected_and_drops_steps_not_keyframes():
+    mp = _mapper(iters_first=100000, iters_per_keyframe=100000, budget_s_first=0.6,
+                 budget_s_per_keyframe=0.4, min_iters_per_keyframe=3)
+    views = _views(3)
+    for k, (img, pose, depth) in enumerate(views):
+        t0 = time.perf_counter()
+        st = mp.add_keyframe(k, img, pose, depth, force=True)
+        took = time.perf_counter() - t0
+        assert st["mapped"]
+        budget = 0.6 if k == 0 else 0.4
+        assert took < budget + 0.5, (k, took)        # + render/init and one slow step
+    assert len(mp.keyframes) == 3
+    assert mp.iteration >= 3 * 3                      # min_iters at least, every keyframe
+    assert mp.stats()["skipped_iterations"] > 0
+
+
+def test_without_budget_the_iteration_counts_are_exact():
+    mp = _mapper(iters_first=7, iters_per_keyframe=4)
+    for k, (img, pose, depth) in enumerate(_views(3)):
+        mp.add_keyframe(k, img, pose, depth, force=True)
+    assert mp.iteration == 7 + 2 * 4 and mp.stats()["skipped_iterations"] == 0
+
+
+def test_keep_up_caps_the_budget_by_the_stream_time_between_keyframes():
+    mp = _mapper(iters_first=3, iters_per_keyframe=3, budget_s_per_keyframe=3.0, keep_up=0.5)
+    img, pose, depth = _views(1)[0]
+    mp.add_keyframe(0, img, pose, depth, timestamp=10.0)
+    assert mp.keyframe_budget(False, 10.4) == pytest.approx(0.2)     # 0.5 x 0.4 s
+    assert mp.keyframe_budget(False, 20.0) == pytest.approx(3.0)     # the budget itself
+    mp.mcfg.budget_s_per_keyframe = 0.0
+    assert mp.keyframe_budget(False, 11.0) == pytest.approx(0.5)
+
+
+def test_final_refinement_scales_with_the_number_of_keyframes():
+    mp = _mapper(iters_first=3, iters_per_keyframe=2, final_refine_iters=2000,
+                 final_refine_per_keyframe=4)
+    for k, (img, pose, depth) in enumerate(_views(3)):
+        mp.add_keyframe(k, img, pose, depth, force=True)
+    assert mp.final_refine_budget() == (12, 0.0)
+    assert mp.final_refine()["refine_iters"] == 12
+    mp.mcfg.final_refine_per_keyframe = 0            # the paper's fixed beta
+    mp.mcfg.final_refine_iters = 9
+    assert mp.final_refine()["refine_iters"] == 9
+
+
+def test_final_refinement_time_cap():
+    mp = _mapper(iters_first=3, final_refine_iters=10 ** 6, final_refine_s=0.5)
+    img, pose, depth = _views(1)[0]
+    mp.add_keyframe(0, img, pose, depth)
+    t0 = time.perf_counter()
+    r = mp.final_refine()
+    assert time.perf_counter() - t0 < 1.0 and 0 < r["refine_iters"] < 10 ** 6
+
+
+def test_default_schedule_is_budgeted_and_scaled():
+    m = SlamConfig().mapping
+    assert m.budget_s_per_keyframe > 0 and m.budget_s_first > 0
+    assert m.final_refine_per_keyframe > 0 and m.final_refine_s > 0
+    assert m.device == "auto" and SlamConfig().depth.device == "auto"
+    assert SlamConfig().tracking.device == "auto"
+
+
+# ------------------------------------------------------------------- presets
+def test_preset_paper_restores_the_paper_schedule():
+    c = load_config(preset="paper")
+    m = c.mapping
+    assert (m.iters_per_keyframe, m.iters_first, m.final_refine_iters) == (60, 1050, 2000)
+    assert m.budget_s_per_keyframe == 0 and m.final_refine_per_keyframe == 0
+    assert m.window_views_per_iter == 0 and c.camera.max_pixels == 0
+    # --config and --set apply on top of the preset
+    c = load_config(REPO / "config" / "tum.yaml", {"mapping.iters_first": 5}, preset="paper")
+    assert c.mapping.iters_first == 5 and c.camera.width == 512 and c.mapping.iters_per_keyframe == 60
+    with pytest.raises(ConfigError, match="unknown preset 'nope'.*paper"):
+        load_config(preset="nope")
+
+
+def test_dump_config_round_trip(tmp_path):
+    c = load_config(preset="paper", overrides={"tracking.final_ba_iters": [3, 4]})
+    assert load_config(dump_config(c, tmp_path / "c.yaml")) == c
+
+
+def test_cli_preset(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "splat_slam_ros.cli.run", str(tmp_path), "--out",
+                        str(tmp_path / "o"), "--preset", "nope"], capture_output=True, text=True,
+                       env=_env_without_policy(), timeout=120)
+    assert r.returncode == 2 and r.stderr.startswith("error: unknown preset 'nope'"), r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_launcher_preset_gives_the_nodes_one_merged_file(tmp_path, monkeypatch):
+    from splat_slam_nodes import launch
+    monkeypatch.setenv("SPLAT_SLAM_DDS_RANGE", "localhost")
+    args = ["--out", str(tmp_path), "--preset", "paper", "--config",
+            str(REPO / "config" / "tum.yaml"), "--set", "mapping.iters_first=5"]
+    L = launch.Launcher(launch.build_parser().parse_args(args))
+    L.plan()
+    assert L.cfg.mapping.iters_first == 5 and L.cfg.mapping.iters_per_keyframe == 60
+    node_cfg = load_config(L.config_file)             # what every node reads, then its -p values
+    assert node_cfg.mapping.iters_per_keyframe == 60 and node_cfg.camera.width == 512
+    argv = L._node_args("mapper")
+    assert f"config_file:={Path(L.config_file).resolve()}" in argv
+    assert "mapping.iters_first:=5" in argv
+    Path(L.config_file).unlink()
+    bad = launch.Launcher(launch.build_parser().parse_args(["--preset", "nope"]))
+    with pytest.raises(launch.LaunchError, match="unknown preset"):
+        bad.plan()
+
+
+# --------------------------------------------------------------- resolution
+@pytest.mark.parametrize("size, expect", [((640, 480), (320, 240)), ((1200, 680), (368, 208)),
+                                          ((752, 480), (336, 208)), ((320, 240), (0, 0)),
+                                          ((160, 120), (0, 0))])
+def test_auto_processing_size(size, expect):
+    assert SlamConfig().camera.processing_size(*size) == expect
+
+
+def test_explicit_size_and_no_limit_win():
+    c = load_config(overrides={"camera.width": 512, "camera.height": 384})
+    assert c.camera.processing_size(640, 480) == (512, 384)
+    c = load_config(overrides={"camera.max_pixels": 0})
+    assert c.camera.processing_size(1200, 680) == (0, 0)
+    yaml.safe_load((REPO / "config" / "paper.yaml").read_text())
+
+
+def test_tracker_uses_the_auto_size():
+    from splat_slam_ros.tracking.tracker import Tracker
+    t = Tracker(SlamConfig(), Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480))
+    assert (t.intrinsics.width, t.intrinsics.height) == (320, 240)
+    assert t.intrinsics.fx == pytest.approx(262.5, rel=0.01)
