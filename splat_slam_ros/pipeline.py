@@ -42,12 +42,14 @@ def not_initialized_reason(cfg: SlamConfig, frames: int) -> str:
     tc = cfg.tracking
     # the hint halves what is set now (suggesting the values already in use would not help)
     hint = f"--set tracking.motion_filter_thresh={tc.motion_filter_thresh / 2:g}"
-    if tc.warmup > 2:
-        hint += f" --set tracking.warmup={max(2, tc.warmup // 2)}"
+    if tc.init_parallax > 0:
+        hint += f" --set tracking.init_parallax={tc.init_parallax / 2:g}"
     return (f"the tracker never initialised over {frames} frames: the camera moved too little "
-            f"between frames for a keyframe (mean flow below tracking.motion_filter_thresh="
-            f"{tc.motion_filter_thresh:g} BA px, tracking.warmup={tc.warmup} keyframes needed). "
-            f"Lower them (e.g. {hint}) or give a sequence with more motion")
+            f"for {tc.init_min_keyframes} keyframes with parallax (keyframe candidates need a "
+            f"mean flow above tracking.motion_filter_thresh={tc.motion_filter_thresh:g} "
+            f"reference BA px, initialisation a parallax of tracking.init_parallax="
+            f"{tc.init_parallax:g}). Lower them (e.g. {hint}) or give a sequence with more "
+            f"motion")
 
 
 def _write_json(path: Path, data: dict) -> None:

@@ -219,9 +219,9 @@ def test_not_initialised_hint_lowers_the_values_in_use():
     from splat_slam_ros.config import SlamConfig
     from splat_slam_ros.pipeline import not_initialized_reason
     cfg = SlamConfig()
-    cfg.tracking.motion_filter_thresh, cfg.tracking.warmup = 2.0, 4
+    cfg.tracking.motion_filter_thresh, cfg.tracking.init_parallax = 2.0, 1.5
     msg = not_initialized_reason(cfg, 60)
-    assert "over 60 frames" in msg and "thresh=2 BA px" in msg
-    assert "--set tracking.motion_filter_thresh=1 --set tracking.warmup=2)" in msg
-    cfg.tracking.warmup = 2                              # no lower warm-up to suggest
-    assert "tracking.warmup=" not in not_initialized_reason(cfg, 60).split("e.g.")[1]
+    assert "over 60 frames" in msg and "thresh=2 reference BA px" in msg
+    assert "--set tracking.motion_filter_thresh=1 --set tracking.init_parallax=0.75)" in msg
+    cfg.tracking.init_parallax = 0                       # parallax check off: nothing to lower
+    assert "tracking.init_parallax=" not in not_initialized_reason(cfg, 60).split("e.g.")[1]
