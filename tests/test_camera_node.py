@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from test_graph_support import TINY_TRACKING_CFG, PY, REPO, isolated_env, need_ros, read_jsonl, \
+from test_graph_support import TINY_TRACKING_CFG, launch_ok, PY, REPO, isolated_env, need_ros, read_jsonl, \
     start, start_probe, stop
 
 pytestmark = pytest.mark.ros
@@ -131,16 +131,10 @@ def test_launch_with_camera_tracks_the_video(video, tmp_path):
     (tmp_path / "cfg.yaml").write_text(CFG)
     env = isolated_env()
     out = tmp_path / "out"
-    launch = start([PY, "-m", "splat_slam_nodes.launch", "--camera", str(avi), "--camera-info",
-                    str(cam_yaml), "--camera-rate", "4", "--out", str(out), "--config",
-                    str(tmp_path / "cfg.yaml"), "--tracking-only", "--rerun",
-                    str(tmp_path / "run.rrd")], env, tmp_path / "launch.log")
-    try:
-        rc = launch.wait(timeout=600)
-    finally:
-        stop(launch)
-    log = (tmp_path / "launch.log").read_text(errors="replace")
-    assert rc == 0, log[-4000:]
+    log = launch_ok([PY, "-m", "splat_slam_nodes.launch", "--camera", str(avi), "--camera-info",
+                     str(cam_yaml), "--camera-rate", "4", "--out", str(out), "--config",
+                     str(tmp_path / "cfg.yaml"), "--tracking-only", "--rerun",
+                     str(tmp_path / "run.rrd")], env, tmp_path / "launch.log", timeout=600)
     assert "[camera]" in log and "published 24 frames" in log
     m = json.loads((out / "metrics.json").read_text())
     assert m["frames_tracked"] == N, m                     # every frame reached the tracker

@@ -12,8 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from test_graph_support import (TINY_LOOP_TRACKING_CFG, PY, REPO, isolated_env, need_ros,
-                                read_jsonl, run_launch, start, start_probe, stop, wait_for)
+from test_graph_support import (TINY_LOOP_TRACKING_CFG, PY, REPO, isolated_env, launch_ok,
+                                need_ros, read_jsonl, run_launch, start, start_probe, stop,
+                                wait_for)
 
 pytestmark = pytest.mark.ros
 
@@ -266,13 +267,7 @@ def test_resume_after_the_whole_graph_was_killed(revisit_bag, tmp_path):
     edges_before = {n for n in json.loads((lc / "manifest.json").read_text())["records"]
                     if n.startswith("loop")}
     assert before and edges_before
-    launch = start(_launch_args(bag, cfg, out) + ["--resume"], env, tmp_path / "b.log")
-    try:
-        rc = launch.wait(timeout=900)
-    finally:
-        stop(launch)
-    log = (tmp_path / "b.log").read_text(errors="replace")
-    assert rc == 0, log[-4000:]
+    log = launch_ok(_launch_args(bag, cfg, out) + ["--resume"], env, tmp_path / "b.log")
     assert f"{len(before)} loop edges" in log and "next keyframe id" in log
     m = json.loads((out / "metrics.json").read_text())
     assert m["frames"] == 60

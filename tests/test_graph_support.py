@@ -8,7 +8,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 import numpy as np
 import pytest
@@ -88,17 +88,28 @@ mapping: {iters_first: 20, iters_per_keyframe: 3, final_refine_iters: 5,
 """
 
 
-def run_launch(args: List[str], env, log: Path, probe: subprocess.Popen,
+def run_launch(args: List[str], env, log: Path, probe: Optional[subprocess.Popen] = None,
                timeout: float = 900) -> int:
-    """Run a launcher command to its end, then stop ``probe`` (a listener started just before)."""
-    time.sleep(1.0)
+    """Run a launcher command to its end, then stop ``probe`` (a listener started just
+    before, if any)."""
+    if probe is not None:
+        time.sleep(1.0)
     launch = start(args, env, log)
     try:
         return launch.wait(timeout=timeout)
     finally:
         stop(launch)
-        time.sleep(0.5)
-        stop(probe)
+        if probe is not None:
+            time.sleep(0.5)
+            stop(probe)
+
+
+def launch_ok(args: List[str], env, log: Path, timeout: float = 900) -> str:
+    """Run a launcher command to its end; assert it exited 0; its log text."""
+    rc = run_launch(args, env, log, timeout=timeout)
+    text = log.read_text(errors="replace")
+    assert rc == 0, text[-4000:]
+    return text
 
 
 def write_tiny_bag(path: Path, n: int = 12, w: int = 64, h: int = 48, with_depth: bool = True,
