@@ -67,11 +67,15 @@ def test_thresholds_scale_with_the_ba_focal_length():
     from splat_slam_ros.tracking.tracker import Tracker
     from splat_slam_ros.io.synth import default_intrinsics
     scales = {}
+    cfg = SlamConfig()
+    cfg.camera.max_pixels = 0                 # track at the input size (no automatic shrink)
     for w, h in ((320, 240), (640, 480), (1200, 680)):
-        tr = Tracker(SlamConfig(), default_intrinsics(w, h))
+        tr = Tracker(cfg, default_intrinsics(w, h))
         scales[w] = tr.px_scale
-        assert tr.motion.thresh == pytest.approx(SlamConfig().tracking.motion_filter_thresh *
+        assert tr.motion.thresh == pytest.approx(cfg.tracking.motion_filter_thresh *
                                                  tr.px_scale)
+    auto = Tracker(SlamConfig(), default_intrinsics(640, 480))   # default: shrunk to 320x240
+    assert auto.px_scale == pytest.approx(0.5)
     assert scales[640] == pytest.approx(1.0)                 # the reference setting (fx 525)
     assert scales[320] == pytest.approx(0.5) and scales[1200] == pytest.approx(1200 / 640)
     assert flow_scale((REF_BA_FOCAL, REF_BA_FOCAL, 0, 0)) == pytest.approx(1.0)
