@@ -190,9 +190,11 @@ class Tracker:
 
     def _record(self, frame: Frame, replace: bool = False, **kw) -> FrameRecord:
         r = FrameRecord(frame.index, float(frame.timestamp), **kw)
-        if replace and self.records and self.records[-1].index == frame.index:
-            self.records[-1] = r                 # the last frame promoted at finalize
-            return r
+        if replace:     # a frame recorded as a non-keyframe, promoted later (finalize)
+            old = [n for n, x in enumerate(self.records) if x.index == frame.index]
+            if old:
+                self.records[old[-1]] = r
+                return r
         self.records.append(r)
         # bound memory on long live runs: older frames keep only their relative pose
         old = len(self.records) - 1 - self.tc.max_stored_flows
@@ -312,11 +314,7 @@ class Tracker:
         self.graph.add(ref, kid, f, w)
         self.graph.add(kid, ref, fb, wb)
         # a late keyframe (finalize: _warm_best) was recorded as a non-keyframe already
-        old = [n for n, r in enumerate(self.records) if r.index == frame.index]
-        if old:
-            self.records[old[-1]] = FrameRecord(frame.index, float(frame.timestamp), kf_id=kid)
-        else:
-            self._record(frame, kf_id=kid)
+        self._record(frame, replace=True, kf_id=kid)
         self._warm_best = None
         self._next_keyframe_flows(kid)
         return kid
