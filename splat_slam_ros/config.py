@@ -101,6 +101,7 @@ class TrackingConfig:
     global_ba_radius: int = 2            # temporal edges: k <-> k-1, k -> k-2 .. k-radius
     global_ba_thresh: float = 12.0       # spatial edges: induced mean flow below (BA px)
     global_ba_max_edges: int = 2         # spatial edge pairs per new keyframe at most
+    merge_flow: float = 4.0              # merge a settled revisit keyframe into an older one this close (ref BA px, 0 = off)
     edge_gate_px: float = 16.0           # temporal edges: drop cells this far from the estimate (tracking px)
     final_ba_iters: tuple = (7, 12)
     keyframe_buffer: int = 512

@@ -186,3 +186,62 @@ def test_tracker_applies_loop_events_and_moves_later_keyframes_rigidly():
         T[0, 3] = 0.1 * k
         assert np.allclose(tr.kfs[k].pose.numpy(), corr @ T, atol=1e-9)
     assert np.allclose(tr.last_pose.numpy(), tr.kfs[3].pose.numpy())
+
+
+def test_revisits_merge_into_older_keyframes_and_follow_them():
+    """Two passes around the same loop: the second pass's keyframes, once settled, merge
+    into the first pass's (the BA graph stays at about one pass), every keyframe keeps a
+    pose in the trajectory, and merged ones follow their anchor through later updates."""
+    from splat_slam_ros.tracking.keyframe_merge import connected_without
+    from splat_slam_ros.tracking.loop_closure import LoopCloser
+    data = loop_keyframes()
+    gt = np.stack([d[1] for d in data])
+    est = np.concatenate([gt, drifted(gt, rot_deg=0.05, trans=0.001)])
+    lc = LoopCloser(loop_cfg(global_ba_every=8), INTR)
+    events = []
+    for k in range(2 * N_KF):
+        img, _, disp = data[k % N_KF]
+        lc.add_keyframe(KeyframeData(kf_id=k, frame_index=10 * k, timestamp=k / 3.0,
+                                     pose=est[k], image=img, intrinsics=INTR, disparity=disp,
+                                     confidence=np.ones_like(disp)))
+        events += lc.step()
+    assert len(lc.merged) >= N_KF // 2, sorted(lc.merged)
+    assert len(lc.kfs) + len(lc.merged) == 2 * N_KF
+    assert all(m.anchor < k and m.anchor in lc.kfs for k, m in lc.merged.items())
+    assert connected_without(lc.graph.pairs(), lc.kfs.ids, -1)
+    assert not any(k in p for k in lc.merged for p in lc.graph.pairs())
+    follower_events = [e for e in events if e.disparities is None]
+    assert follower_events and all(set(e.kf_ids) <= set(lc.merged) for e in follower_events)
+    events = lc.finalize()
+    ts, P = lc.trajectory_keyframes()
+    assert len(ts) == 2 * N_KF and np.allclose(ts, np.arange(2 * N_KF) / 3.0)
+    gt2 = np.concatenate([gt, gt])
+    assert ate(P, gt2) < 1.0, ate(P, gt2)
+    # merged keyframes sit where their anchor and the frozen relative pose put them
+    for k, m in lc.merged.items():
+        assert np.allclose(P[k], (lc.kfs[m.anchor].pose @ m.rel).numpy(), atol=1e-9)
+    # ... and the last update that lists a merged keyframe carries exactly that pose
+    last = {}
+    for e in events:
+        for n, k in enumerate(e.kf_ids):
+            last[k] = e.poses[n]
+    moved = [k for k in lc.merged if k in last]
+    for k in moved:
+        assert np.allclose(last[k], P[k], atol=1e-9)
+
+
+def test_connected_without_and_merge_rules():
+    from splat_slam_ros.tracking.keyframe_merge import connected_without, merge_candidates
+    chain = [(0, 1), (1, 2), (2, 3), (3, 1)]
+    assert connected_without(chain, [0, 1, 2, 3], 3)
+    assert not connected_without(chain, [0, 1, 2, 3], 1)       # 0 would be cut off
+    poses = torch.eye(4, dtype=torch.float64).repeat(5, 1, 1)
+    poses[4, 0, 3] = 0.5                                        # 4 is far from the others
+    disps = torch.ones(5, 6, 8)
+    intr = torch.tensor([8.0, 8.0, 4.0, 3.0])
+    kinds = {(3, 0): "global", (4, 1): "loop", (2, 1): "odometry", (1, 0): "odometry"}
+    # settled = all but the newest keyframe (settle=1): 3 -> 0 qualifies (same pose,
+    # measured spatial edge); 4 is not settled; 2 -> 1 is only a temporal edge
+    assert [(k, o) for k, o, _ in merge_candidates(range(5), poses, disps, intr, kinds, 1, 1.0)] \
+        == [(3, 0)]
+    assert merge_candidates(range(5), poses, disps, intr, kinds, 1, 0.0) == []

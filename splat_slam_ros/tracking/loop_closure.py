@@ -19,7 +19,9 @@ keyframes and their loop nodes (with their temporal neighbours); the older
 side is held fixed as the gauge, all disparities move. A loop whose edges still
 do not fit afterwards is rejected. Online global BA runs every ``global_ba_every`` keyframes;
 ``finalize`` runs the final global BA passes (stopping early once an iteration
-gains less than 0.1 %).
+gains less than 0.1 %). After each online global BA, settled keyframes that revisit an older
+keyframe's view leave the graph and follow it rigidly (:mod:`keyframe_merge`), so a long
+run in one place keeps a bounded graph.
 """
 from __future__ import annotations
 
@@ -39,6 +41,8 @@ from splat_slam_ros.tracking.dense_ba import bundle_adjust, reproject
 from splat_slam_ros.tracking.factor_graph import FactorGraph, proximity_pairs
 from splat_slam_ros.tracking.flow_frontend import make_flow_predictor
 from splat_slam_ros.tracking.global_ba import normalized_global_ba, spatial_pairs
+from splat_slam_ros.tracking.keyframe_merge import (MergedKeyframe, connected_without,
+                                                     merge_candidates, relative_pose)
 from splat_slam_ros.tracking.keyframe_set import KeyframeSet, KeyframeState
 from splat_slam_ros.tracking.motion_filter import MotionFilter, flow_scale
 from splat_slam_ros.types import LOOP_SEQ_START, Intrinsics, KeyframeData, UpdateEvent
@@ -63,6 +67,7 @@ class LoopCloser:
         self.loop_pairs: set = set()           # accepted loop edges (i, j)
         self.checked: set = set()              # candidate pairs already measured (rejected)
         self.new_since_gba: List[int] = []
+        self.merged: Dict[int, MergedKeyframe] = {}   # redundant keyframes following a kept one
         self._seq = itertools.count(seq_start)      # update numbers (types.LOOP_SEQ_START)
         self.motion = MotionFilter(tc.motion_filter_thresh, min_valid_frac=tc.lost_min_valid)
         self.huber = tc.robust_huber_px / tc.ba_downsample if tc.robust_huber_px > 0 else None
@@ -174,8 +179,50 @@ class LoopCloser:
 
     def _event(self, reason: str, before: Dict[int, Tuple[torch.Tensor, torch.Tensor]]
                ) -> List[UpdateEvent]:
+        """Updates for the keyframes that changed since ``before``, then (poses only) for
+        the merged keyframes that follow a changed one or were merged since ``before``."""
         ids = self.kfs.changed(before, self.tc.event_pose_thresh, self.tc.event_disp_thresh)
-        return [self.kfs.update_event(next(self._seq), reason, ids)] if ids else []
+        out = [self.kfs.update_event(next(self._seq), reason, ids)] if ids else []
+        moved = set(ids)
+        follow = [k for k, m in sorted(self.merged.items()) if m.anchor in moved or k in before]
+        if follow:
+            out.append(UpdateEvent(seq=next(self._seq), reason=reason, kf_ids=follow,
+                                   poses=np.stack([self.merged_pose(k).cpu().numpy()
+                                                   for k in follow])))
+        return out
+
+    def merged_pose(self, k: int) -> torch.Tensor:
+        m = self.merged[k]
+        return self.kfs[m.anchor].pose @ m.rel
+
+    def _merge_redundant(self) -> List[int]:
+        """Merge settled keyframes that revisit an older kept one (:mod:`keyframe_merge`)."""
+        tc = self.tc
+        ids = self.kfs.ids
+        settle = max(tc.loop_window, tc.global_ba_radius + 1)
+        P, D = self.kfs.stack(ids)
+        cands = merge_candidates(ids, P, D, self.intr, self.graph.kind, settle,
+                                 tc.merge_flow * self.px_scale)
+        done = []
+        for k, o, _ in cands:
+            if k not in self.kfs or o not in self.kfs or \
+                    not connected_without(self.graph.pairs(), self.kfs.ids, k):
+                continue
+            st = self.kfs[k]
+            rel = relative_pose(self.kfs[o].pose, st.pose)
+            for m in self.merged.values():              # followers of k now follow o
+                if m.anchor == k:
+                    m.anchor, m.rel = o, rel @ m.rel
+            self.merged[k] = MergedKeyframe(o, rel, st.timestamp, st.frame_index)
+            self.graph.remove_node(k)
+            self.kfs.remove(k)
+            self.loop_pairs = {p for p in self.loop_pairs if k not in p}
+            self.checked = {p for p in self.checked if k not in p}
+            done.append(k)
+        if done:
+            log.info("merged %d redundant keyframe(s) %s; %d kept, %d merged", len(done), done,
+                     len(self.kfs), len(self.merged))
+        return done
 
     def _optimize(self, ids: Sequence[int], iters: int, fixed: int, normalize: bool):
         ii, jj, tgt, wgt, pairs = self.graph.gather(ids)
@@ -332,6 +379,8 @@ class LoopCloser:
         self.kfs.write_back(ids, P, D)
         log.info("global BA (%s): %d keyframes, %d edges, rms %.3f -> %.3f BA px", reason,
                  len(ids), len(pairs), infos[0].rms, infos[-1].rms)
+        if reason == "global_ba" and self.tc.merge_flow > 0:
+            self._merge_redundant()
         return self._event(reason, before)
 
     # ------------------------------------------------------------ public API
@@ -368,4 +417,12 @@ class LoopCloser:
         return pre + ev
 
     def trajectory_keyframes(self) -> Tuple[np.ndarray, np.ndarray]:
-        return self.kfs.trajectory(self.kfs.ids)
+        """(timestamps, camera-to-world poses) of every keyframe, kept and merged, by id."""
+        ts, P = self.kfs.trajectory(self.kfs.ids)
+        if not self.merged:
+            return ts, P
+        rows = {k: (t, T) for k, t, T in zip(self.kfs.ids, ts, P)}
+        rows.update({k: (m.timestamp, self.merged_pose(k).cpu().numpy())
+                     for k, m in self.merged.items()})
+        order = sorted(rows)
+        return (np.array([rows[k][0] for k in order]), np.stack([rows[k][1] for k in order]))
