@@ -55,6 +55,7 @@ NODE_MODULES = {
     "rerun": "splat_slam_nodes.rerun_logger",
 }
 RESUMABLE = ("tracker", "depth", "loop_closure", "mapper", "player")
+REALTIME_KEEP_UP = 0.8      # mapping.keep_up on realtime input unless the config sets one
 
 
 class LaunchError(Exception):
@@ -160,6 +161,7 @@ class Launcher:
         self.t0 = time.monotonic()
         self.t_play = None
         self.t_eos = None
+        self.keep_up_note = ""
 
     # ------------------------------------------------------------ setup
     def plan(self) -> None:
@@ -199,6 +201,7 @@ class Launcher:
                 self.bag = BagReader(a.bag)
             except PlayerError as e:
                 raise LaunchError(str(e)) from None
+        self._realtime_keep_up()
         tc = self.cfg.tracking
         self.with_loop = bool(tc.loop_closure or tc.global_ba) and not a.no_loop_closure
         self.with_mapping = not a.tracking_only
@@ -215,6 +218,17 @@ class Launcher:
                 check_camera_args(a.camera, a.camera_info)
             except CameraError as e:
                 raise LaunchError(str(e)) from None
+
+    def _realtime_keep_up(self) -> None:
+        """Realtime input (``--mode realtime``, live topics, ``--camera``): the mapper keeps
+        pace with the stream (``mapping.keep_up`` REALTIME_KEEP_UP) unless the configuration
+        or ``--set`` chose a value; it skips optimisation steps, never keyframes."""
+        realtime = self.args.mode == "realtime" or self.bag is None
+        if realtime and self.cfg.mapping.keep_up <= 0 and "mapping.keep_up" not in self.overrides:
+            self.overrides["mapping.keep_up"] = REALTIME_KEEP_UP
+            self.cfg.mapping.keep_up = REALTIME_KEEP_UP
+            self.keep_up_note = (f"realtime input: mapping.keep_up {REALTIME_KEEP_UP} (the mapper "
+                                 "keeps pace; --set mapping.keep_up=0 turns it off)")
 
     def _node_args(self, name: str) -> List[str]:
         a = self.args
@@ -287,6 +301,8 @@ class Launcher:
             self.children[n].start()
         self.say(f"started {', '.join(names)} (ROS_DOMAIN_ID={self.env.get('ROS_DOMAIN_ID', '0')}, "
                  f"network {self.dds_range})")
+        if self.keep_up_note:
+            self.say(self.keep_up_note)
 
     def say(self, text: str) -> None:
         self.out.write(f"[launch] {text}\n")

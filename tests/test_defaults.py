@@ -176,6 +176,26 @@ def test_launcher_preset_gives_the_nodes_one_merged_file(tmp_path, monkeypatch):
         bad.plan()
 
 
+def test_launcher_keeps_the_mapper_at_pace_on_realtime_input(tmp_path, monkeypatch):
+    """Live topics (and --mode realtime): mapping.keep_up defaults on (steps skipped, never
+    keyframes); an explicit --set wins."""
+    from splat_slam_nodes import launch
+    monkeypatch.setenv("SPLAT_SLAM_DDS_RANGE", "localhost")
+
+    def planned(*extra):
+        L = launch.Launcher(launch.build_parser().parse_args(["--out", str(tmp_path), *extra]))
+        L.plan()
+        return L
+    live = planned()
+    assert live.cfg.mapping.keep_up == launch.REALTIME_KEEP_UP > 0
+    assert f"mapping.keep_up:={launch.REALTIME_KEEP_UP}" in live._node_args("mapper")
+    assert "keeps pace" in live.keep_up_note
+    off = planned("--set", "mapping.keep_up=0")
+    assert off.cfg.mapping.keep_up == 0 and not off.keep_up_note
+    assert "mapping.keep_up:=0.0" in off._node_args("mapper") or \
+        "mapping.keep_up:=0" in off._node_args("mapper")
+
+
 # --------------------------------------------------------------- resolution
 @pytest.mark.parametrize("size, expect", [((640, 480), (320, 240)), ((1200, 680), (368, 208)),
                                           ((752, 480), (336, 208)), ((320, 240), (0, 0)),
