@@ -33,7 +33,8 @@ class LoopClosureNode(SplatNode):
                           f"{len(out.updates)} update(s) "
                           f"({', '.join(sorted({e.reason for e in out.updates}))})")
         if out.final is not None:
-            self.log.info(f"finalized: {out.final['keyframes']} keyframes, "
+            self.log.info(f"finalized: {out.final['keyframes']} keyframes "
+                          f"({out.final['merged']} merged into older views), "
                           f"{len(out.updates)} final update(s)")
 
 

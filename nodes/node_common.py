@@ -23,6 +23,7 @@ import traceback
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional
 
+from splat_slam_ros.heap import release_free_memory
 from splat_slam_ros.ros_env import RosEnvError, apply_ros_environment
 
 # --------------------------------------------------------------------------- names
@@ -52,6 +53,7 @@ SERVICES = {
     "render": f"{NS}/map/render",                    # splat_slam_msgs/RenderPose
 }
 NODE_NAMES = ("tracker", "depth", "loop_closure", "mapper")
+TRIM_EVERY_S = 1.0        # free heap pages go back to the OS at most this often (after work)
 
 
 
@@ -149,6 +151,7 @@ class SplatNode:
         self._events_pub = self.node.create_publisher(String, TOPICS["events"], events_qos())
         self._event_handlers: List[Callable[[dict], None]] = []
         self._events_sub = None
+        self._trimmed = 0.0
         self.worker = Worker(self)
         self.pubs: Dict[str, Any] = {}
 
@@ -251,6 +254,10 @@ class SplatNode:
             self.emit(out)
             if after is not None:
                 after(out)
+            now = time.monotonic()
+            if now - self._trimmed > TRIM_EVERY_S:     # keep RSS at what is in use (soak)
+                release_free_memory()
+                self._trimmed = now
 
         def sub(kind, topic, qos, fn, convert, take=lambda m: True):
             self.subscribe(kind, TOPICS[topic], qos,

@@ -352,8 +352,9 @@ class LoopRole:
         if self.store is not None:
             self.store.commit(self._loop_edges_staged(), None)
             self.store.commit({}, self.meta())
-        return Outbox(updates=list(events), final={"last_seq": self.last_seq,
-                                                   "keyframes": len(self.kf_ids)})
+        return Outbox(updates=list(events), final={
+            "last_seq": self.last_seq, "keyframes": len(self.kf_ids),
+            "merged": len(self.loop.merged) if self.loop is not None else 0})
 
 
 # ============================================================================ proxy depth
