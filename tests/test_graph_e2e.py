@@ -353,7 +353,8 @@ def test_graph_without_a_keyframe_fails_clearly(tiny_bag, tmp_path):
     bag, cfg = tiny_bag
     out = tmp_path / "out"
     r = subprocess.run([PY, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out", str(out),
-                        "--config", str(cfg), "--max-frames", "3"], env=isolated_env(),
+                        "--config", str(cfg), "--max-frames", "3", "--tracking-only"],
+                       env=isolated_env(),
                        capture_output=True, text=True, timeout=600)
     assert r.returncode == 3, (r.returncode, r.stdout[-3000:], r.stderr[-3000:])
     assert "never initialised" in r.stderr and "tracking.motion_filter_thresh" in r.stderr

@@ -197,7 +197,7 @@ def test_revisits_merge_into_older_keyframes_and_follow_them():
     data = loop_keyframes()
     gt = np.stack([d[1] for d in data])
     est = np.concatenate([gt, drifted(gt, rot_deg=0.05, trans=0.001)])
-    lc = LoopCloser(loop_cfg(global_ba_every=8), INTR)
+    lc = LoopCloser(loop_cfg(global_ba_every=8, loop_closure=False), INTR)   # spatial edges
     events = []
     for k in range(2 * N_KF):
         img, _, disp = data[k % N_KF]
