@@ -150,7 +150,20 @@ def run_child(args) -> None:
         overrides[k] = json.loads(v)
     cfg = load_config(args.config or None, overrides)
     ds = open_dataset(args.child)
-    res = track_sequence(iter(ds), cfg, ds.intrinsics, progress=False, total=len(ds))
+    ds.load_depth = False                   # tracking reads the colour images only
+    dec = {"decode": 0.0}
+
+    def frames():                           # decoding time (PNG -> RGB), for the profile
+        it = iter(ds)
+        while True:
+            t = time.perf_counter()
+            f = next(it, None)
+            dec["decode"] += time.perf_counter() - t
+            if f is None:
+                return
+            yield f
+    res = track_sequence(frames(), cfg, ds.intrinsics, progress=False, total=len(ds))
+    res.timings["decode"] = dec["decode"]
     gt_ts, gt = ds.gt_trajectory()
     full = ate(gt_ts, gt, res.timestamps, res.poses)
     kf = ate(gt_ts, gt, res.kf_timestamps, res.kf_poses)
