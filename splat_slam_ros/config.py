@@ -40,7 +40,7 @@ class CameraConfig:
         return max(16, int(width * s) // 16 * 16), max(16, int(height * s) // 16 * 16)
 
 
-MAX_PIXELS_TRACKING = 172800     # tracking.max_pixels default: 640x480 input -> 480x352
+MAX_PIXELS_TRACKING = 110592     # tracking.max_pixels default: 640x480 input -> 384x288
 
 
 @dataclass
@@ -132,7 +132,8 @@ class TrackingConfig:
         if self.max_pixels == 0 or width * height <= self.max_pixels:
             return 0, 0
         s = (self.max_pixels / float(width * height)) ** 0.5
-        tw, th = max(16, int(width * s) // 16 * 16), max(16, int(height * s) // 16 * 16)
+        tw = max(16, int(width * s + 1e-6) // 16 * 16)
+        th = max(16, int(height * s + 1e-6) // 16 * 16)
         return (tw, th) if tw * th >= aw * ah else (int(mw), int(mh))
 
 
