@@ -195,6 +195,19 @@ def test_pose_only_refine_multi_two_keyframes_and_ba_residual():
     assert info1.cost == pytest.approx(cost, rel=1e-4)
 
 
+def test_se3_exp_one_is_se3_exp():
+    """The pose-only fit's one-twist exponential equals the batched one (small and large
+    rotations, the small-angle branch included)."""
+    from splat_slam_ros.geometry import se3_exp_one
+    g = torch.Generator().manual_seed(2)
+    xs = [torch.zeros(6, dtype=torch.float64), torch.tensor([0.1, -0.2, 0.3, 1e-7, 0, 2e-7],
+                                                         dtype=torch.float64)]
+    xs += [torch.randn(6, generator=g, dtype=torch.float64) * s for s in (0.01, 0.5, 2.0)]
+    for x in xs:
+        assert torch.allclose(se3_exp_one(x), se3_exp(x), atol=1e-12)
+    assert se3_exp_one(xs[2].float()).dtype == torch.float32
+
+
 def test_induced_distance_zero_for_identity_and_grows_with_motion():
     poses, disps = scene(3)
     P = poses.clone()
