@@ -40,9 +40,6 @@ class CameraConfig:
         return max(16, int(width * s) // 16 * 16), max(16, int(height * s) // 16 * 16)
 
 
-MAX_PIXELS_TRACKING = 110592     # tracking.max_pixels default: 640x480 input -> 384x288
-
-
 @dataclass
 class TrackingConfig:
     device: str = "auto"                 # "auto" (CUDA when torch sees it), "cpu", "cuda"
@@ -51,7 +48,9 @@ class TrackingConfig:
     # (aspect kept, sides multiples of 16) to at most max_pixels pixels, but never smaller
     # than the mapping image; 0 = the input size, -1 = the mapping size. Keyframes are handed
     # on at the mapping size (image + intrinsics) with the disparity at this size's BA grid.
-    max_pixels: int = MAX_PIXELS_TRACKING
+    # 110592 (640x480 -> 384x288) tracks fr2/desk at 0.27 instead of 0.44 cm, but the map
+    # built from those keyframes came out worse (README "Tracking"), hence -1 by default.
+    max_pixels: int = -1
     ba_downsample: int = 8               # BA resolution = tracking image / this (paper: 1/8)
     # flow front end (classical stand-in for the paper's learned flow, see flow_frontend.py)
     flow_method: str = "dis_medium"      # OpenCV DIS preset: dis_ultrafast | dis_fast | dis_medium

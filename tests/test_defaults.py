@@ -195,7 +195,6 @@ def test_explicit_size_and_no_limit_win():
 def test_tracker_uses_the_auto_size():
     from splat_slam_ros.tracking.tracker import Tracker
     t = Tracker(SlamConfig(), Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480))
-    # keyframes are handed on at the auto (mapping) size; tracking runs at tracking.max_pixels
-    assert (t.map_intrinsics.width, t.map_intrinsics.height) == (320, 240)
-    assert t.map_intrinsics.fx == pytest.approx(262.5, rel=0.01)
-    assert (t.intrinsics.width, t.intrinsics.height) == (384, 288)
+    assert (t.intrinsics.width, t.intrinsics.height) == (320, 240)
+    assert t.intrinsics.fx == pytest.approx(262.5, rel=0.01)
+    assert t.map_intrinsics is t.intrinsics    # keyframes handed on at the same size

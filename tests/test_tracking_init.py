@@ -74,25 +74,26 @@ def test_thresholds_scale_with_the_ba_focal_length():
         scales[w] = tr.px_scale
         assert tr.motion.thresh == pytest.approx(cfg.tracking.motion_filter_thresh *
                                                  tr.px_scale)
-    auto = Tracker(SlamConfig(), default_intrinsics(640, 480))   # default: tracked at 384x288
-    assert auto.px_scale == pytest.approx(0.6)
+    auto = Tracker(SlamConfig(), default_intrinsics(640, 480))   # default: the mapping size
+    assert auto.px_scale == pytest.approx(0.5)                   # 320x240
     cfg = SlamConfig()
-    cfg.tracking.max_pixels = -1                                 # the mapping size: 320x240
-    assert Tracker(cfg, default_intrinsics(640, 480)).px_scale == pytest.approx(0.5)
+    cfg.tracking.max_pixels = 110592                             # own size: 384x288
+    assert Tracker(cfg, default_intrinsics(640, 480)).px_scale == pytest.approx(0.6)
     assert scales[640] == pytest.approx(1.0)                 # the reference setting (fx 525)
     assert scales[320] == pytest.approx(0.5) and scales[1200] == pytest.approx(1200 / 640)
     assert flow_scale((REF_BA_FOCAL, REF_BA_FOCAL, 0, 0)) == pytest.approx(1.0)
 
 
 @pytest.mark.parametrize("cam,trk,size,expect", [
-    ({}, {}, (640, 480), (384, 288)),                    # default: tracking above mapping
+    ({}, {}, (640, 480), (320, 240)),                    # default (-1): the mapping size
     ({}, {}, (320, 240), (0, 0)),                        # small input: kept
+    ({}, {"max_pixels": 110592}, (640, 480), (384, 288)),  # own size, above the mapping's
+    ({}, {"max_pixels": 110592}, (1200, 680), (432, 240)),
     ({}, {"max_pixels": 0}, (640, 480), (0, 0)),         # 0: the input size
-    ({}, {"max_pixels": -1}, (640, 480), (320, 240)),    # -1: the mapping size
     ({}, {"max_pixels": 50000}, (640, 480), (320, 240)),  # never below the mapping size
-    ({"max_pixels": 0}, {}, (640, 480), (0, 0)),         # mapping at full size: tracking too
-    ({"width": 512, "height": 384}, {}, (640, 480), (512, 384)),
-    ({}, {}, (1200, 680), (432, 240)),
+    ({"max_pixels": 0}, {"max_pixels": 110592}, (640, 480), (0, 0)),   # mapping at full size
+    ({"width": 512, "height": 384}, {"max_pixels": 110592}, (640, 480), (512, 384)),
+    ({}, {}, (1200, 680), (368, 208)),
 ])
 def test_tracking_size_rule(cam, trk, size, expect):
     cfg = SlamConfig()
@@ -113,6 +114,7 @@ def test_keyframes_handed_on_at_the_mapping_size():
     from splat_slam_ros.tracking.loop_closure import LoopCloser
     frames, gt_ts, gt = fr2desk_clip("640x480", 30, 5)
     cfg = SlamConfig()
+    cfg.tracking.max_pixels = 110592
     steps, _, tr = _track(frames, cfg)
     kds = [kd for s in steps for kd in s.keyframes] + list(tr.final_keyframes)
     assert len(kds) >= 3
