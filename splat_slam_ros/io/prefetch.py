@@ -16,7 +16,8 @@ def prefetch(items: Iterable[T], depth: int = 2) -> Iterator[T]:
     """Yield ``items`` in order, producing up to ``depth`` of them ahead in a thread.
 
     An exception raised while producing an item is raised here, at that item's place.
-    Closing the generator early (``break``) stops the thread after the item it is on."""
+    Closing the generator early (``break``) stops the thread after the item it is on and
+    waits (up to 5 s) for that."""
     if depth <= 0:
         yield from items
         return
@@ -55,3 +56,6 @@ def prefetch(items: Iterable[T], depth: int = 2) -> Iterator[T]:
                 return
     finally:
         stop.set()
+        # let the thread finish the item it is reading, so that the source (a bag reader,
+        # say) is not used by two threads when the caller iterates it again
+        t.join(timeout=5.0)
