@@ -23,7 +23,12 @@ average before/after each case is recorded (other work on the same cores slows t
 wall-clock numbers); peak RSS is the child's ``ru_maxrss``.
 
     .venv/bin/python benchmarks/bench_tracking.py [--cases fr2desk_real,fr1xyz_real,...]
-        [--data-dir DIR] [--config FILE] [--out benchmarks/results/tracking.json]
+        [--data-dir DIR] [--config FILE] [--set KEY=VALUE ...] [--profile]
+        [--out benchmarks/results/tracking.json]
+
+``--set camera.max_pixels=0`` tracks at the full input size; ``--profile`` adds the CPU seconds
+per step (DIS, confidences, image prep, pose-only fits, BA, loop closer, filler; main thread,
+under cProfile, so about 30 % slower) and the read-ahead thread's decoding time.
 
 A sequence folder missing under ``--data-dir`` is rendered first (about 1.3 s per frame).
 Writes ``benchmarks/results/tracking.json`` and prints a table.
@@ -31,9 +36,11 @@ Writes ``benchmarks/results/tracking.json`` and prints a table.
 from __future__ import annotations
 
 import argparse
+import cProfile
 import json
 import os
 import platform
+import pstats
 import resource
 import subprocess
 import sys
@@ -150,7 +157,25 @@ def run_child(args) -> None:
         overrides[k] = json.loads(v)
     cfg = load_config(args.config or None, overrides)
     ds = open_dataset(args.child)
-    res = track_sequence(iter(ds), cfg, ds.intrinsics, progress=False, total=len(ds))
+    ds.load_depth = False                   # tracking reads the colour images only
+    dec = {"decode": 0.0}
+
+    def frames():                           # decoding time (PNG -> RGB), for the profile
+        it = iter(ds)
+        while True:
+            t = time.perf_counter()
+            f = next(it, None)
+            dec["decode"] += time.perf_counter() - t
+            if f is None:
+                return
+            yield f
+    prof = cProfile.Profile(time.thread_time) if args.profile else None   # main thread CPU
+    if prof is not None:
+        prof.enable()
+    res = track_sequence(frames(), cfg, ds.intrinsics, progress=False, total=len(ds))
+    if prof is not None:
+        prof.disable()
+    res.timings["decode"] = dec["decode"]
     gt_ts, gt = ds.gt_trajectory()
     full = ate(gt_ts, gt, res.timestamps, res.poses)
     kf = ate(gt_ts, gt, res.kf_timestamps, res.kf_poses)
@@ -161,12 +186,51 @@ def run_child(args) -> None:
                peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
                timings={k: round(float(v), 3) for k, v in res.timings.items()},
                loop_events=sum(e.reason == "loop_closure" for e in res.events))
+    if prof is not None:
+        out["profile_cpu_s"] = step_profile(pstats.Stats(prof), t_import)
     Path(args.json).write_text(json.dumps(out, indent=1))
 
 
-def run_case(name, seq: Path, overrides: dict, config: str, tmp: Path) -> dict:
+# per-step groups of the profile: label, function names, file (part), what is summed:
+# "self" time, "cum"ulative time, or cumulative time of the calls made from "from:FILE"
+STEPS = [("DIS (cv2 calc)", ("<method 'calc' of 'cv2.DenseOpticalFlow' objects>",), "~", "self"),
+         ("flow confidence + pooling", ("_confidence", "_pool", "_invert"), "flow_frontend",
+          "cum"),
+         ("image prep (resize, grey, texture)", ("__call__", "prepare"), "flow_frontend", "cum"),
+         ("pose-only GN (tracking + filler)", ("pose_only_refine_multi",), "dense_ba", "cum"),
+         ("tracker BA (local + init)", ("bundle_adjust",), "dense_ba", "from:tracker.py"),
+         ("loop closer + global BA", ("on_keyframe", "on_update", "finalize"), "roles.py",
+          "from:coordinator.py"),
+         ("trajectory filler", ("fill_trajectory",), "trajectory_filler", "cum"),
+         ("tracker per frame, all", ("_track_frame",), "tracker.py", "cum")]
+
+
+def step_profile(st, t_import: float) -> dict:
+    """CPU seconds (main thread) per step of a profiled run (``pstats.Stats``); decoding runs
+    in the read-ahead thread (its wall time is ``timings.decode``). The loop-closer row also
+    holds the tracker role's calls made by the coordinator's router (small)."""
+    out = {"imports (wall)": round(t_import, 2)}
+    for label, names, where, mode in STEPS:
+        tot = 0.0
+        for (fname, _line, func), (_cc, _nc, tt, ct, callers) in st.stats.items():
+            if func not in names or where not in fname:
+                continue
+            if mode == "self":
+                tot += tt
+            elif mode == "cum":
+                tot += ct
+            else:
+                tot += sum(v[3] for c, v in callers.items() if mode[5:] in c[0])
+        out[label] = round(tot, 2)
+    return out
+
+
+def run_case(name, seq: Path, overrides: dict, config: str, tmp: Path,
+             profile: bool = False) -> dict:
     js = tmp / f"{name}.json"
     cmd = [sys.executable, __file__, "--child", str(seq), "--config", config, "--json", str(js)]
+    if profile:
+        cmd.append("--profile")
     for k, v in overrides.items():
         cmd += ["--set", f"{k}={json.dumps(v)}"]
     load0 = os.getloadavg()[0]
@@ -219,7 +283,10 @@ def main() -> None:
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "tracking.json"))
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("--json", help=argparse.SUPPRESS)
-    ap.add_argument("--set", action="append", help=argparse.SUPPRESS)
+    ap.add_argument("--set", action="append", metavar="KEY=JSON",
+                    help="config override for every case, e.g. camera.max_pixels=0")
+    ap.add_argument("--profile", action="store_true",
+                    help="profile each case (main-thread CPU per step; slower, ~+30 %%)")
     args = ap.parse_args()
     if args.child:
         run_child(args)
@@ -232,6 +299,22 @@ def main() -> None:
     if args.config and not Path(args.config).is_file():
         print(f"error: config file not found: {args.config}", file=sys.stderr)
         sys.exit(2)
+    extra = {}
+    for kv in args.set or []:
+        k, eq, v = kv.partition("=")
+        try:
+            extra[k] = json.loads(v)
+        except json.JSONDecodeError:
+            extra[k] = v
+        if not eq or not k:
+            print(f"error: --set expects KEY=VALUE, got {kv!r}", file=sys.stderr)
+            sys.exit(2)
+    from splat_slam_ros.config import ConfigError, load_config
+    try:
+        load_config(args.config or None, extra)         # a bad key: one line, before any run
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
     data_dir = Path(args.data_dir)
     data_dir.mkdir(parents=True, exist_ok=True)
     results, old = {}, {"cases": {}}
@@ -239,13 +322,18 @@ def main() -> None:
         spec = CASES[c]
         seq = ensure_sequence(data_dir, spec)
         print(f"== {c}: {seq}", flush=True)
-        r = run_case(c, seq, spec["overrides"], args.config, data_dir)
+        r = run_case(c, seq, {**spec["overrides"], **extra}, args.config, data_dir,
+                     args.profile)
         r["target_ate_cm"] = spec["target"]
         results[c] = r
         print(f"   ATE full {r['ate_full_cm']:.3f} cm (keyframes {r['ate_kf_cm']:.3f}), "
               f"{r['posed']}/{r['frames']} posed, {r['keyframes']} kf, {r['lost']} lost, "
               f"{r['fps']:.2f} frames/s wall ({r['fps_cpu']:.2f} per CPU-second), "
               f"peak RSS {r['peak_rss_mb']:.0f} MB, load {r['load_before']:.1f}", flush=True)
+        if "profile_cpu_s" in r:
+            print("   profile (CPU s, main thread): " + ", ".join(
+                f"{k} {v:.2f}" for k, v in r["profile_cpu_s"].items()) +
+                f"; decoding (read-ahead thread, wall) {r['timings'].get('decode', 0):.2f}")
         old = _save(Path(args.out), {c: r})            # after every case
     _table({c: old["cases"][c] for c in old["cases"] if c in results})
     print(f"\nwrote {args.out}")

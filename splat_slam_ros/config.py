@@ -44,6 +44,13 @@ class CameraConfig:
 class TrackingConfig:
     device: str = "auto"                 # "auto" (CUDA when torch sees it), "cpu", "cuda"
     threads: int = 1                     # torch/OpenCV threads while tracking (0 = unchanged)
+    # Tracking image size, apart from the mapping size (camera.*): the cropped input shrunk
+    # (aspect kept, sides multiples of 16) to at most max_pixels pixels, but never smaller
+    # than the mapping image; 0 = the input size, -1 = the mapping size. Keyframes are handed
+    # on at the mapping size (image + intrinsics) with the disparity at this size's BA grid.
+    # 110592 (640x480 -> 384x288) tracks fr2/desk at 0.27 instead of 0.44 cm, but the map
+    # built from those keyframes came out worse (README "Tracking"), hence -1 by default.
+    max_pixels: int = -1
     ba_downsample: int = 8               # BA resolution = tracking image / this (paper: 1/8)
     # flow front end (classical stand-in for the paper's learned flow, see flow_frontend.py)
     flow_method: str = "dis_medium"      # OpenCV DIS preset: dis_ultrafast | dis_fast | dis_medium
@@ -110,6 +117,24 @@ class TrackingConfig:
     dspo_alpha1: float = 0.01
     dspo_alpha2: float = 0.1
     dspo_mono_thresh: float = 0.1
+
+    def processing_size(self, camera: CameraConfig, width: int, height: int) -> tuple:
+        """(width, height) of the tracking image for a cropped ``width`` x ``height`` input;
+        (0, 0) keeps it (``max_pixels`` above; compare ``CameraConfig.processing_size``)."""
+        mw, mh = camera.processing_size(width, height)
+        if self.max_pixels < 0:
+            return int(mw), int(mh)
+        if mw > 0 or mh > 0:         # the mapping size (ImagePreprocessor keeps the aspect)
+            aw = mw if mw > 0 else round(width * mh / height)
+            ah = mh if mh > 0 else round(height * mw / width)
+        else:
+            aw, ah = width, height
+        if self.max_pixels == 0 or width * height <= self.max_pixels:
+            return 0, 0
+        s = (self.max_pixels / float(width * height)) ** 0.5
+        tw = max(16, int(width * s + 1e-6) // 16 * 16)
+        th = max(16, int(height * s + 1e-6) // 16 * 16)
+        return (tw, th) if tw * th >= aw * ah else (int(mw), int(mh))
 
 
 @dataclass

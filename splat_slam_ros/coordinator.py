@@ -19,6 +19,7 @@ from collections import defaultdict, deque
 from typing import Dict, Iterable, List, Optional
 
 from splat_slam_ros.config import SlamConfig
+from splat_slam_ros.io.prefetch import prefetch
 from splat_slam_ros.roles import DepthRole, LoopRole, MapperRole, Outbox, TrackerRole
 from splat_slam_ros.tracking.flow_frontend import make_flow_predictor
 from splat_slam_ros.tracking.tracker import TrackingResult, TrackStep
@@ -118,7 +119,7 @@ class Coordinator:
                 total = min(total, max_frames)
             bar = tqdm(total=total, unit="frame", dynamic_ncols=True)
         t_start, n = time.perf_counter(), 0
-        for frame in frames:
+        for frame in prefetch(frames, 2):        # the next frames decode while this one runs
             if max_frames is not None and n >= max_frames:
                 break
             self.on_frame(frame)

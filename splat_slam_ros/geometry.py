@@ -8,6 +8,8 @@ applied on the left: ``T <- exp(xi) @ T``. All functions accept batched inputs
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 
@@ -112,6 +114,25 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     T[..., :3, 3] = (V @ v[..., None])[..., 0]
     T[..., 3, 3] = 1
     return T
+
+
+def se3_exp_one(xi: torch.Tensor) -> torch.Tensor:
+    """(6,) (t, w) -> 4x4: the same map as :func:`se3_exp` (Rodrigues + V matrix) for ONE
+    twist, evaluated on its six numbers in Python: ~50 us instead of ~40 tensor ops, for
+    Gauss-Newton loops that take one step at a time."""
+    t0, t1, t2, w0, w1, w2 = (float(v) for v in xi.tolist())
+    th2 = w0 * w0 + w1 * w1 + w2 * w2
+    if th2 < 1e-10:
+        a, b, c = 1.0 - th2 / 6, 0.5 - th2 / 24, 1.0 / 6 - th2 / 120
+    else:
+        th = math.sqrt(th2)
+        a, b, c = math.sin(th) / th, (1 - math.cos(th)) / th2, (th - math.sin(th)) / (th2 * th)
+    W = ((0.0, -w2, w1), (w2, 0.0, -w0), (-w1, w0, 0.0))
+    W2 = [[sum(W[i][k] * W[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+    R = [[float(i == j) + a * W[i][j] + b * W2[i][j] for j in range(3)] for i in range(3)]
+    V = [[float(i == j) + b * W[i][j] + c * W2[i][j] for j in range(3)] for i in range(3)]
+    rows = [R[i] + [V[i][0] * t0 + V[i][1] * t1 + V[i][2] * t2] for i in range(3)]
+    return torch.tensor(rows + [[0.0, 0.0, 0.0, 1.0]], dtype=xi.dtype, device=xi.device)
 
 
 def se3_log(T: torch.Tensor) -> torch.Tensor:

@@ -35,7 +35,6 @@ from splat_slam_ros.depth.proxy_depth import ProxyDepthEstimator, ProxyDepthResu
 from splat_slam_ros.io.keyframe_store import (KeyframeStore, keyframe_depth, mapper_state,
                                               restore_mapper)
 from splat_slam_ros.io.trajectory_io import write_tum
-from splat_slam_ros.mapping.mapper import Mapper
 from splat_slam_ros.tracking.loop_closure import LoopCloser
 from splat_slam_ros.tracking.tracker import Tracker, TrackStep
 from splat_slam_ros.tracking.tracker_state import (TrackerCheckpoint, intrinsics_from_list,
@@ -479,7 +478,7 @@ class MapperRole:
     def __init__(self, cfg: SlamConfig, store: Optional[KeyframeStore] = None,
                  snapshot_every: int = 1):
         self.cfg = cfg
-        self.mapper: Optional[Mapper] = None
+        self.mapper: Optional["Mapper"] = None   # noqa: F821 (mapping.mapper, imported in _map)
         self.intr: Optional[Intrinsics] = None
         self.pending_kf: Dict[int, KeyframeData] = {}
         self.pending_depth: Dict[int, ProxyDepth] = {}
@@ -630,6 +629,8 @@ class MapperRole:
     def _map(self, kf: KeyframeData, pd: ProxyDepth) -> Outbox:
         t0 = time.perf_counter()
         if self.mapper is None:
+            # imported here: the mapper (and scipy) is ~30 MB a tracking-only run never needs
+            from splat_slam_ros.mapping.mapper import Mapper
             self.intr = kf.intrinsics
             self.mapper = Mapper(self.cfg, kf.intrinsics)
         twin = self._revisit(pd)

@@ -117,8 +117,9 @@ class Frame:
 class KeyframeData:
     """A keyframe as the tracker hands it on (what ``splat_slam_msgs/Keyframe`` carries).
 
-    ``image``/``intrinsics`` are at the tracking resolution; ``disparity`` and
-    ``confidence`` at the BA resolution (tracking / ``tracking.ba_downsample``).
+    ``image``/``intrinsics`` are at the mapping size (``camera.*``); ``disparity`` and
+    ``confidence`` at the tracker's BA grid (tracking image / ``tracking.ba_downsample``,
+    the tracking image may be larger: ``tracking.max_pixels``).
     """
     kf_id: int
     frame_index: int

@@ -217,3 +217,4 @@ def test_tracker_uses_the_auto_size():
     t = Tracker(SlamConfig(), Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480))
     assert (t.intrinsics.width, t.intrinsics.height) == (320, 240)
     assert t.intrinsics.fx == pytest.approx(262.5, rel=0.01)
+    assert t.map_intrinsics is t.intrinsics    # keyframes handed on at the same size

@@ -9,7 +9,7 @@ import torch
 
 from splat_slam_ros.tracking.dense_ba import (_edge_terms, ba_cost, ba_step, bundle_adjust,
                                      disparity_normal_equations, induced_flow_distance,
-                                     pose_only_refine, reproject)
+                                     pose_only_refine, pose_only_refine_multi, reproject)
 from splat_slam_ros.geometry import pixel_grid, project_homogeneous, se3_exp, se3_inverse
 
 H, W = 24, 32
@@ -167,6 +167,45 @@ def test_pose_only_refine_recovers_frame_pose():
     T, info = pose_only_refine(poses[0], disps[0], T0, INTR, tgt[0], wgt, iters=8)
     assert torch.allclose(T, poses[1], atol=1e-4)
     assert info.rms < 1e-3
+
+
+def test_pose_only_refine_multi_two_keyframes_and_ba_residual():
+    """The frame between two keyframes is found from both flows (one side's weights partly
+    zero, noisy targets); the reported residual is the BA's (Eq. 1 with Huber) at the pose
+    the iteration started from."""
+    poses, disps = scene(3, seed=3)
+    ii, jj = torch.tensor([0, 2]), torch.tensor([1, 1])
+    tgt, _ = reproject(poses, disps, INTR, ii, jj)
+    g = torch.Generator().manual_seed(1)
+    tgt = tgt + 0.05 * torch.randn(tgt.shape, generator=g)
+    wgt = torch.rand(2, H, W, 2, generator=g)
+    wgt[0, : H // 2] = 0.0
+    T0 = se3_exp(torch.tensor([0.03, 0.02, -0.02, -0.015, 0.02, 0.01],
+                              dtype=torch.float64)) @ poses[1]
+    T, info = pose_only_refine_multi(poses[[0, 2]], disps[[0, 2]], T0, INTR, tgt, wgt, iters=10,
+                                     huber=0.5)
+    assert torch.allclose(T, poses[1], atol=2e-3)
+    assert info.rms < 0.1
+    # one iteration reports the cost at T0: the same as _edge_terms / ba_cost
+    P = torch.cat([poses[[0, 2]], T0[None]])
+    _, info1 = pose_only_refine_multi(poses[[0, 2]], disps[[0, 2]], T0, INTR, tgt, wgt, iters=1,
+                                      huber=0.5)
+    cost = ba_cost(P, disps[[0, 2]], INTR, torch.tensor([0, 1]), torch.tensor([2, 2]), tgt, wgt,
+                   huber=0.5)
+    assert info1.cost == pytest.approx(cost, rel=1e-4)
+
+
+def test_se3_exp_one_is_se3_exp():
+    """The pose-only fit's one-twist exponential equals the batched one (small and large
+    rotations, the small-angle branch included)."""
+    from splat_slam_ros.geometry import se3_exp_one
+    g = torch.Generator().manual_seed(2)
+    xs = [torch.zeros(6, dtype=torch.float64), torch.tensor([0.1, -0.2, 0.3, 1e-7, 0, 2e-7],
+                                                         dtype=torch.float64)]
+    xs += [torch.randn(6, generator=g, dtype=torch.float64) * s for s in (0.01, 0.5, 2.0)]
+    for x in xs:
+        assert torch.allclose(se3_exp_one(x), se3_exp(x), atol=1e-12)
+    assert se3_exp_one(xs[2].float()).dtype == torch.float32
 
 
 def test_induced_distance_zero_for_identity_and_grows_with_motion():

@@ -3,6 +3,7 @@ mid-sequence (as kill -9 would) and rebuilt on its store continues the same run.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from splat_slam_ros.io.keyframe_store import KeyframeStore
 from splat_slam_ros.roles import TrackerRole
@@ -18,9 +19,16 @@ def _feed(role, frames, seqs, kf_ids):
         kf_ids += [k.kf_id for k in out.keyframes]
 
 
-def test_tracker_resumes_from_its_checkpoint_like_an_uninterrupted_run(tmp_path):
+@pytest.mark.parametrize("map_size", [None, (80, 60)])
+def test_tracker_resumes_from_its_checkpoint_like_an_uninterrupted_run(tmp_path, map_size):
+    """``map_size``: keyframes handed on (and checkpointed) at a smaller mapping size than
+    the tracking size; the restored window prepares its flow inputs from those images."""
     frames, gt = sequence()
     cfg = small_cfg(frontend_window=5)                 # keyframes leave the window
+    if map_size is not None:
+        cfg.camera.width, cfg.camera.height = map_size
+        cfg.tracking.max_pixels = 0                    # tracking at the input size, 160x120
+    W, H = map_size or (INTR.width, INTR.height)
     ref = TrackerRole(cfg, INTR, loop_closure=False)
     ref_seqs, ref_kfs = [], []
     _feed(ref, frames, ref_seqs, ref_kfs)
@@ -57,7 +65,8 @@ def test_tracker_resumes_from_its_checkpoint_like_an_uninterrupted_run(tmp_path)
     assert TrackerRole.stored_intrinsics(KeyframeStore(store_dir)).fx == INTR.fx
     again = b.resume_outbox()                          # sent again, consumers skip by id / seq
     assert again.keyframes and {k.kf_id for k in again.keyframes} <= set(kfs)
-    assert all(k.image.shape[:2] == (INTR.height, INTR.width) for k in again.keyframes)
+    assert all(k.image.shape[:2] == (H, W) for k in again.keyframes)
+    assert all(k.disparity.shape == (30, 40) for k in again.keyframes)
     rest = [f for f in frames if f.timestamp > stamp + 1e-9]
     _feed(b, rest, seqs, kfs)
     b.finalize()

@@ -74,11 +74,72 @@ def test_thresholds_scale_with_the_ba_focal_length():
         scales[w] = tr.px_scale
         assert tr.motion.thresh == pytest.approx(cfg.tracking.motion_filter_thresh *
                                                  tr.px_scale)
-    auto = Tracker(SlamConfig(), default_intrinsics(640, 480))   # default: shrunk to 320x240
-    assert auto.px_scale == pytest.approx(0.5)
+    auto = Tracker(SlamConfig(), default_intrinsics(640, 480))   # default: the mapping size
+    assert auto.px_scale == pytest.approx(0.5)                   # 320x240
+    cfg = SlamConfig()
+    cfg.tracking.max_pixels = 110592                             # own size: 384x288
+    assert Tracker(cfg, default_intrinsics(640, 480)).px_scale == pytest.approx(0.6)
     assert scales[640] == pytest.approx(1.0)                 # the reference setting (fx 525)
     assert scales[320] == pytest.approx(0.5) and scales[1200] == pytest.approx(1200 / 640)
     assert flow_scale((REF_BA_FOCAL, REF_BA_FOCAL, 0, 0)) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("cam,trk,size,expect", [
+    ({}, {}, (640, 480), (320, 240)),                    # default (-1): the mapping size
+    ({}, {}, (320, 240), (0, 0)),                        # small input: kept
+    ({}, {"max_pixels": 110592}, (640, 480), (384, 288)),  # own size, above the mapping's
+    ({}, {"max_pixels": 110592}, (1200, 680), (432, 240)),
+    ({}, {"max_pixels": 0}, (640, 480), (0, 0)),         # 0: the input size
+    ({}, {"max_pixels": 50000}, (640, 480), (320, 240)),  # never below the mapping size
+    ({"max_pixels": 0}, {"max_pixels": 110592}, (640, 480), (0, 0)),   # mapping at full size
+    ({"width": 512, "height": 384}, {"max_pixels": 110592}, (640, 480), (512, 384)),
+    ({}, {}, (1200, 680), (368, 208)),
+])
+def test_tracking_size_rule(cam, trk, size, expect):
+    cfg = SlamConfig()
+    for k, v in cam.items():
+        setattr(cfg.camera, k, v)
+    for k, v in trk.items():
+        setattr(cfg.tracking, k, v)
+    assert cfg.tracking.processing_size(cfg.camera, *size) == expect
+
+
+def test_keyframes_handed_on_at_the_mapping_size():
+    """Tracking at 384x288, mapping at 320x240: the keyframe image + intrinsics are the
+    mapping image's (the same pixels the camera stage would give at that size), the
+    disparity is on the tracker's 48x36 BA grid, and a loop closer / proxy depth stage
+    fed with it gets the geometry of that grid back."""
+    from splat_slam_ros.depth.proxy_depth import ba_intrinsics
+    from splat_slam_ros.tracking.flow_frontend import ImagePreprocessor, flow_input
+    from splat_slam_ros.tracking.loop_closure import LoopCloser
+    frames, gt_ts, gt = fr2desk_clip("640x480", 30, 5)
+    cfg = SlamConfig()
+    cfg.tracking.max_pixels = 110592
+    steps, _, tr = _track(frames, cfg)
+    kds = [kd for s in steps for kd in s.keyframes] + list(tr.final_keyframes)
+    assert len(kds) >= 3
+    K = frames[0].intrinsics
+    mp = ImagePreprocessor(K, 8, 320, 240)
+    for kd in kds:
+        assert kd.image.shape == (240, 320, 3) and kd.disparity.shape == (36, 48)
+        assert (kd.intrinsics.width, kd.intrinsics.height) == (320, 240)
+        assert kd.intrinsics.fx == pytest.approx(mp.intrinsics.fx)
+        assert np.array_equal(kd.image, mp(frames[kd.frame_index].image))
+        # BA-grid intrinsics from the handed-on camera = the tracker's own
+        bi = ba_intrinsics(kd.intrinsics, 36, 48)
+        assert np.allclose([bi.fx, bi.fy, bi.cx, bi.cy], tr.intr.tolist(), atol=1e-4)
+        assert flow_input(kd.image, kd.disparity.shape, 8).shape == (288, 384, 3)
+    lc = LoopCloser(cfg)
+    for kd in kds:
+        lc.add_keyframe(kd)
+    assert torch.allclose(lc.intr, tr.intr, atol=1e-4) and (lc.h, lc.w) == (36, 48)
+    # the loop closer's odometry edges reproduce the tracker's geometry: the flow it measures
+    # between the first two keyframes is close to the one their poses and disparity induce
+    (i, j) = next(p for p in lc.graph.edges if lc.graph.kind[p] == "odometry")
+    f, w = (x.float() for x in lc.graph.edges[(i, j)])
+    ind = tr._induced(tr.kfs[i].pose, tr.kfs[i].disp, tr.kfs[j].pose) + tr.grid
+    m = w.mean(-1) > 0.3
+    assert float((f - ind).norm(dim=-1)[m].median()) < 0.5
 
 
 def test_parallax_is_zero_for_a_rotation_and_grows_with_translation():

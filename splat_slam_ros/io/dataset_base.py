@@ -278,6 +278,7 @@ class Dataset:
         self.intrinsics = intrinsics
         self.keep_mono = keep_mono
         self.depth_scale: Optional[float] = None
+        self.load_depth = True     # False: frames without gt_depth (tracking only)
         self.notes: List[str] = list(notes or [])
 
     # subclasses implement these
@@ -417,7 +418,7 @@ class FileDataset(Dataset):
             img = read_image(e.image, keep)
             self._check_size(img, e.image)
             depth = None
-            if e.depth is not None:
+            if e.depth is not None and self.load_depth:
                 depth = read_depth(e.depth, self.depth_scale, (K.width, K.height),
                                    self._resize_depth)
             yield Frame(index=i, timestamp=float(e.timestamp), image=img,

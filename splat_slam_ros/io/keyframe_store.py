@@ -29,7 +29,6 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from splat_slam_ros.mapping.mapper import Mapper
 from splat_slam_ros.types import Intrinsics, KeyframeData
 
 MANIFEST = "manifest.json"
@@ -316,9 +315,10 @@ def keyframe_depth(mapper, kf_id: int) -> Dict[str, np.ndarray]:
 
 
 def restore_mapper(arrays: Dict[str, np.ndarray], meta: Dict[str, Any], cfg, intrinsics,
-                   image_of, depth_of) -> Mapper:
+                   image_of, depth_of) -> "Mapper":  # noqa: F821
     """Rebuild a Mapper from :func:`mapper_state` output; ``image_of(kf_id)`` returns the
     keyframe's H x W x 3 uint8 image, ``depth_of(kf_id)`` what :func:`keyframe_depth` gave."""
+    from splat_slam_ros.mapping.mapper import Mapper   # not on the tracking-only path (~30 MB)
     mp = Mapper(cfg, intrinsics)
     mp.load_state_dict(arrays, meta, image_of, depth_of)
     return mp

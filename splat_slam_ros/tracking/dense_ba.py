@@ -25,7 +25,8 @@ from typing import Optional, Tuple, Union
 
 import torch
 
-from splat_slam_ros.geometry import intr_tensor, pixel_grid, project_homogeneous, se3_exp, se3_inverse
+from splat_slam_ros.geometry import (intr_tensor, pixel_grid, project_homogeneous, se3_exp,
+                                     se3_exp_one, se3_inverse)
 
 MIN_DISP = 1e-3
 
@@ -343,31 +344,62 @@ def pose_only_refine_multi(T_refs: torch.Tensor, disp_refs: torch.Tensor, T_cur:
                            ) -> Tuple[torch.Tensor, BAInfo]:
     """Motion-only alignment of a frame against K fixed keyframes (poses (K, 4, 4),
     disparities (K, h, w)) through the flows keyframe k -> frame (targets/weights
-    (K, h, w, 2)): the target-pose block of Eq. 1 summed over the K edges."""
-    K = T_refs.shape[0]
-    poses = torch.cat([T_refs.to(torch.float64), T_cur.to(torch.float64)[None]])
-    disps = disp_refs
-    ii = torch.arange(K, dtype=torch.long, device=disps.device)
-    jj = torch.full((K,), K, dtype=torch.long, device=disps.device)
+    (K, h, w, 2)): the target-pose block of Eq. 1 summed over the K edges.
+
+    The keyframes' points are lifted to the world once (homogeneous, scale d); each
+    Gauss-Newton iteration then only projects them into the frame, with the frame's pose
+    perturbed on the right (``T <- T exp(dx)``, camera-frame Jacobian) and cells of zero
+    weight left out. Residual, weights and Huber are those of the BA (:func:`_edge_terms`)."""
+    dev, dt = disp_refs.device, disp_refs.dtype
+    K, h, w = disp_refs.shape
+    fx, fy, cx, cy = intr_tensor(intr, dt, dev)
+    q = _rays(h, w, intr_tensor(intr, dt, dev))                              # (3, P)
+    keep = weights.reshape(-1, 2).sum(-1) > 0
+    d = disp_refs.reshape(-1)[keep]
+    R = T_refs[:, :3, :3].to(dt)
+    t = T_refs[:, :3, 3].to(dt)
+    dk = disp_refs.reshape(K, -1)
+    # world points (homogeneous: R q + t d, d) of the weighted cells, once per call
+    pw = (torch.einsum("kab,bp->kpa", R, q) + t[:, None, :] * dk[..., None]).reshape(-1, 3)[keep]
+    tgt = targets.reshape(-1, 2)[keep].to(dt)
+    w0 = weights.reshape(-1, 2)[keep].to(dt)
+    T = T_cur.to(torch.float64).clone()
+    dmin = 1e-3 * d.clamp_min(1e-6)
     info = None
     for _ in range(iters):
-        rs, wgt, Jp, _ = _edge_terms(poses, disps, intr, ii, jj, targets, weights, huber)
-        cost = float((rs * rs).sum())
+        X = (pw - T[:3, 3].to(dt) * d[:, None]) @ T[:3, :3].to(dt)          # R^T (p - t d)
+        z = X[:, 2]
+        valid = z > dmin
+        iz = 1.0 / z.clamp_min(1e-6)
+        xz, yz = X[:, 0] * iz, X[:, 1] * iz
+        r = tgt - torch.stack([fx * xz + cx, fy * yz + cy], -1)
+        wgt = w0 * valid[:, None]
+        if huber is not None and huber > 0:
+            rn = r.norm(dim=-1, keepdim=True)
+            wgt = wgt * torch.where(rn > huber, huber / rn.clamp_min(1e-12), torch.ones_like(rn))
+        r = torch.where(valid[:, None], r, torch.zeros_like(r))
+        wr = wgt * r
+        cost = float((wr * r).sum())
         wsum = float(wgt.sum())
         info = BAInfo(cost, (cost / max(wsum, 1e-12)) ** 0.5, int((wgt.sum(-1) > 0).sum()))
-        J = -Jp.reshape(-1, 6)                                       # target-pose Jacobian
-        H = (J.T @ J).to(torch.float64)
-        g = J.T @ rs.reshape(-1)
-        H = H + torch.diag(lm * torch.diagonal(H) + ep)
         if wsum <= 0:
             break
+        # d(pixel)/d(dx), dx = (t, w) on the right: X' = X - (w x X + t d)
+        di = d * iz
+        zero = torch.zeros_like(di)
+        Ju = fx * torch.stack([-di, zero, xz * di, xz * yz, -(1 + xz * xz), yz], -1)
+        Jv = fy * torch.stack([zero, -di, yz * di, 1 + yz * yz, -xz * yz, -xz], -1)
+        H = (Ju * wgt[:, :1]).T @ Ju + (Jv * wgt[:, 1:]).T @ Jv
+        g = Ju.T @ wr[:, 0] + Jv.T @ wr[:, 1]
+        H = H.to(torch.float64)
+        H = H + torch.diag(lm * torch.diagonal(H) + ep)
         try:
             dx = torch.linalg.solve(H, g.to(torch.float64))
         except RuntimeError:
             break
         if not torch.isfinite(dx).all():
             break
-        poses[K] = se3_exp(dx) @ poses[K]
+        T = T @ se3_exp_one(dx)
         if float(dx.norm()) < 1e-6:
             break
-    return poses[K], info
+    return T, info

@@ -157,6 +157,18 @@ class ImagePreprocessor:
         return np.ascontiguousarray(img)
 
 
+def flow_input(image: np.ndarray, disp_shape, ba_downsample: int) -> np.ndarray:
+    """A keyframe image as the flow front end's input: resized to the disparity grid x
+    ``ba_downsample`` when it was handed on at another size (``tracking.max_pixels``: the
+    mapping size), so that the flows land on the grid of the keyframe's disparity."""
+    h, w = int(disp_shape[0]) * ba_downsample, int(disp_shape[1]) * ba_downsample
+    img = np.asarray(image)
+    if img.shape[:2] == (h, w):
+        return img
+    interp = cv2.INTER_AREA if img.shape[0] > h else cv2.INTER_LINEAR
+    return cv2.resize(img, (w, h), interpolation=interp)
+
+
 def to_gray(img: np.ndarray) -> np.ndarray:
     if img.ndim == 2:
         return img

@@ -39,7 +39,7 @@ from splat_slam_ros.geometry import intr_tensor, pixel_grid
 from splat_slam_ros.runtime import limit_threads, resolve_device
 from splat_slam_ros.tracking.dense_ba import bundle_adjust, reproject
 from splat_slam_ros.tracking.factor_graph import FactorGraph, proximity_pairs
-from splat_slam_ros.tracking.flow_frontend import make_flow_predictor
+from splat_slam_ros.tracking.flow_frontend import flow_input, make_flow_predictor
 from splat_slam_ros.tracking.global_ba import normalized_global_ba, spatial_pairs
 from splat_slam_ros.tracking.keyframe_merge import (MergedKeyframe, connected_without,
                                                      merge_candidates, relative_pose)
@@ -77,9 +77,8 @@ class LoopCloser:
 
     # ------------------------------------------------------------ inputs
     def _setup(self, kd: KeyframeData) -> None:
-        s = self.tc.ba_downsample
-        h, w = kd.disparity.shape
-        bi = kd.intrinsics.scaled(1.0 / s)
+        h, w = kd.disparity.shape                  # the tracker's BA grid (any image size)
+        bi = kd.intrinsics.scaled(w / kd.intrinsics.width, h / kd.intrinsics.height)
         self.intr = intr_tensor(bi, torch.float32, self.device)
         self.px_scale = flow_scale(self.intr)      # thresholds are in reference BA px
         self.h, self.w = h, w
@@ -97,7 +96,8 @@ class LoopCloser:
             self.kfs.add(k, KeyframeState(
                 torch.as_tensor(np.asarray(kf.pose), dtype=torch.float64, device=self.device),
                 torch.as_tensor(np.asarray(kf.disparity), dtype=torch.float32, device=self.device),
-                int(kf.frame_index), float(kf.timestamp), prep=self.flow.prepare(kf.image)))
+                int(kf.frame_index), float(kf.timestamp), prep=self.flow.prepare(
+                    flow_input(kf.image, kf.disparity.shape, self.tc.ba_downsample))))
             self.new_since_gba.append(k)
             for n, p in enumerate(reversed(prev)):
                 # the previous keyframe in both directions, further ones k -> p only

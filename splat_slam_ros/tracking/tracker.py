@@ -79,8 +79,8 @@ class BAState:
 
     The hook returns new disparities (N, h, w) for ``kf_ids`` or None. Edges
     are ``ii -> jj`` (indices into ``kf_ids``) with ``target``/``weight`` as
-    in :func:`dense_ba.ba_step`; ``images`` maps kf ids to tracking-resolution
-    RGB images (for a mono depth network).
+    in :func:`dense_ba.ba_step`; ``images`` maps kf ids to the RGB images handed on
+    with the keyframes (mapping size, for a mono depth network).
     """
     kf_ids: List[int]
     poses: torch.Tensor
@@ -119,10 +119,18 @@ class Tracker:
         tc = self.tc = cfg.tracking
         self.device = resolve_device(tc.device, "tracking.device")
         cam = cfg.camera
-        w, h = cam.processing_size(intrinsics.width - 2 * cam.crop,    # 0x0: auto size
-                                   intrinsics.height - 2 * cam.crop)
+        W0, H0 = intrinsics.width - 2 * cam.crop, intrinsics.height - 2 * cam.crop
+        w, h = tc.processing_size(cam, W0, H0)               # tracking size (0x0: input)
         self.pre = ImagePreprocessor(intrinsics, tc.ba_downsample, w, h, cam.crop, cam.undistort)
         self.intrinsics = self.pre.intrinsics
+        # keyframes are handed on at the mapping size (camera.*), which may be smaller
+        mw, mh = cam.processing_size(W0, H0)
+        self.map_pre = ImagePreprocessor(intrinsics, tc.ba_downsample, mw, mh, cam.crop,
+                                         cam.undistort)
+        if self.map_pre.trim == self.pre.trim:
+            self.map_pre = None
+        self.map_intrinsics = self.intrinsics if self.map_pre is None else \
+            self.map_pre.intrinsics
         self.ba_intrinsics = self.pre.ba_intrinsics
         self.intr = intr_tensor(self.ba_intrinsics, torch.float32, self.device)
         self.h, self.w = self.ba_intrinsics.height, self.ba_intrinsics.width
@@ -164,7 +172,7 @@ class Tracker:
     def _default_prior(self, intrinsics):
         if not (self.cfg.depth.mono_model and self.tc.dspo):
             return None
-        return make_depth_prior(self.cfg, self.intrinsics)   # Eq. 2 (DSPO); errors propagate
+        return make_depth_prior(self.cfg, self.map_intrinsics)   # Eq. 2 (DSPO); errors propagate
 
     def next_seq(self) -> int:
         return next(self._seq)
@@ -213,7 +221,7 @@ class Tracker:
             mono = self.depth_prior.take_mono_depth(kid)     # DSPO ran the mono model already
         return KeyframeData(kf_id=kid, frame_index=ks.frame_index, timestamp=ks.timestamp,
                             pose=ks.pose.cpu().numpy().copy(),
-                            image=ks.image, intrinsics=self.intrinsics,
+                            image=ks.image, intrinsics=self.map_intrinsics,
                             disparity=ks.disp.cpu().numpy().astype(np.float32),
                             confidence=ks.conf.cpu().numpy().astype(np.float32),
                             mono_depth=mono)
@@ -261,6 +269,8 @@ class Tracker:
     # ------------------------------------------------------------ warm-up
     def _add_keyframe(self, frame, img, prep, pose, disp) -> int:
         kid = self._new_kf_id()
+        if self.map_pre is not None:         # the image handed on: at the mapping size
+            img = self.map_pre(frame.image)
         self.kfs.add(kid, KeyframeState(
             orthonormalize(pose.to(self.device, torch.float64)), disp.to(self.device, torch.float32),
             frame.index, float(frame.timestamp), prep=prep, image=img,

@@ -10,8 +10,9 @@ Each checkpoint writes only what changed since the previous one:
                    (last pose, constant-velocity model, last flow) - small, rewritten
   ``tkf<k>``       disparity + flow confidence of keyframe k, rewritten when its disparity
                    tensor was replaced (local BA, global BA write new tensors)
-  ``timg<k>``      tracking-resolution image of a window keyframe (its flow front-end input
-                   is prepared again on restore), deleted once the keyframe leaves the window
+  ``timg<k>``      the image handed on with a window keyframe (mapping size; prepared as the
+                   flow front-end input again on restore, resized to the BA grid x
+                   ba_downsample), deleted once the keyframe leaves the window
   ``tedge<i>_<j>`` one flow edge of the window's factor graph (target + weight, Eq. 1),
                    written once, deleted when pruned; ages and kinds live in the manifest
   ``trec<n>``      the frame records (trajectory filler) since the previous checkpoint
@@ -29,6 +30,7 @@ import numpy as np
 import torch
 
 from splat_slam_ros.io.keyframe_store import KeyframeStore
+from splat_slam_ros.tracking.flow_frontend import flow_input
 from splat_slam_ros.tracking.keyframe_set import KeyframeState
 from splat_slam_ros.tracking.trajectory_filler import FrameRecord
 from splat_slam_ros.types import Intrinsics, KeyframeData
@@ -207,7 +209,8 @@ class TrackerCheckpoint:
                                         f"disparities, the tracker runs at {(trk.h, trk.w)}")
             prep = None
             if st.has(f"timg{k}"):
-                prep = trk.flow.prepare(st.get(f"timg{k}")["image"])
+                prep = trk.flow.prepare(flow_input(st.get(f"timg{k}")["image"], (trk.h, trk.w),
+                                                   trk.tc.ba_downsample))
             ks = trk.kfs.add(k, KeyframeState(
                 torch.as_tensor(s["poses"][n], dtype=torch.float64, device=dev),
                 torch.as_tensor(r["disp"], dtype=torch.float32, device=dev),
