@@ -95,7 +95,7 @@ def test_loop_role_takes_each_tracker_update_once_and_finalises_after_the_last()
     role.on_update(replace(ev, seq=2))                                   # older: a replay
     assert role.trk_seq == 3 and not role.finalized
     out = role.on_update(replace(ev, seq=4))
-    assert role.finalized and out.final == {"last_seq": 0, "keyframes": 0}
+    assert role.finalized and out.final == {"last_seq": 0, "keyframes": 0, "merged": 0}
     assert role.on_update(replace(ev, seq=5)).final is None             # final only once
 
 
