@@ -130,7 +130,7 @@ class DepthConfig:
                                          # (paper §3.2) | disparity
     # dense multi-view depth at processing resolution (depth/dense_depth.py): DIS flow to up
     # to dense_views neighbouring keyframes, triangulated with the BA poses (0 = off)
-    dense_views: int = 6
+    dense_views: int = 0                 # off by default: see README (helps fr2/desk, hurts fr1/xyz)
     dense_eta: float = 0.02              # views agree within this x depth (Eq. 5 per pixel)
     dense_min_views: int = 3             # >= this many agree: replaces the BA-grid depth
     dense_fill_views: int = 2            # >= this many agree: fills BA-grid holes (0 = no fill)
