@@ -128,7 +128,7 @@ def select_views(pose: np.ndarray, candidates: Sequence[Tuple[int, np.ndarray]],
     return [k for _, k in scored[: max(0, int(n))]]
 
 
-_REUSE = 2e-4     # pose change (rad; fraction of the depth) below which a result is reused
+_REUSE = 1e-3     # pose change (rad; fraction of the depth) below which a result is reused
 
 
 class FlowCache:
