@@ -100,7 +100,7 @@ def fuse_views(depths: torch.Tensor, parallax: torch.Tensor, eta: float, min_vie
     d = torch.where(use, depths, torch.zeros_like(depths))
     best = torch.full_like(d[0], -1.0)
     sel = torch.zeros_like(use)
-    for a in range(d.shape[0]):             # candidate reference a; its agreeing views
+    for a in range(d.shape[0]):             # Eq. 5 per pixel: views agreeing with candidate a
         agree_a = use & ((d - d[a]).abs() <= eta * d[a])
         score = torch.where(use[a], (w * agree_a).sum(0), torch.full_like(best, -1.0))
         better = score > best
