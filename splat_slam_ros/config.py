@@ -154,6 +154,13 @@ class DepthConfig:
     fill_plane_tol: float = 0.02         # small holes filled only if their rim is planar to this
     mono_fit_space: str = "auto"         # scale/shift fit: auto (model's output kind) | depth
                                          # (paper §3.2) | disparity
+    # dense multi-view depth at processing resolution (depth/dense_depth.py): DIS flow to up
+    # to dense_views neighbouring keyframes, triangulated with the BA poses (0 = off)
+    dense_views: int = 0                 # off by default: see README (helps fr2/desk, hurts fr1/xyz)
+    dense_eta: float = 0.02              # views agree within this x depth (Eq. 5 per pixel)
+    dense_min_views: int = 3             # >= this many agree: replaces the BA-grid depth
+    dense_fill_views: int = 2            # >= this many agree: fills BA-grid holes (0 = no fill)
+    dense_min_parallax_deg: float = 1.0  # a view is used at a pixel with at least this parallax
 
 
 @dataclass

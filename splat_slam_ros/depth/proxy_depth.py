@@ -16,6 +16,10 @@ image). The mapper needs a depth map at the tracking resolution that it can trus
    the corner that best explains the pixel's colour (``depth.upsample_guided``, the depth
    edge then follows the image edge) or the nearest one, and the pixel is empty when that
    corner is. Across a depth discontinuity no intermediate ("flying") depth is produced.
+   Then (``depth.dense_views`` > 0, the default) the dense depth of :mod:`dense_depth`
+   (per-pixel triangulation from DIS flow to neighbouring keyframes with the BA poses, kept
+   where ``dense_min_views`` views agree) replaces it, and fills its holes where
+   ``dense_fill_views`` agree.
 3. Fill (:func:`compose_proxy_depth`):
    - with a mono model: invalid pixels take the mono depth mapped by a least-squares
      scale/shift fitted on the valid pixels (Eq. 3, in depth as §3.2 says, or in disparity
@@ -39,6 +43,7 @@ import numpy as np
 import torch
 
 from splat_slam_ros.config import SlamConfig
+from splat_slam_ros.depth.dense_depth import DenseProxy, to_grey
 from splat_slam_ros.geometry import intr_tensor, pixel_grid, se3_inverse
 from splat_slam_ros.runtime import resolve_device
 from splat_slam_ros.types import Intrinsics, KeyframeData, UpdateEvent
@@ -505,6 +510,7 @@ class _KfState:
     guide: Optional[torch.Tensor] = None   # (H, W) uint8 corner preference (upsampling)
     result: Optional[ProxyDepthResult] = None
     n_views: int = 0                 # views used when ``result`` was computed
+    grey: Optional[np.ndarray] = None   # (H, W) uint8 image for the dense depth
 
 
 class ProxyDepthEstimator:
@@ -545,7 +551,10 @@ class ProxyDepthEstimator:
             raise ProxyDepthError(f"depth.mono_fit_space must be auto, depth or disparity, "
                                   f"got {fs!r}")
         self.fit_space = self.mono_kind if fs == "auto" else fs
-        self.timings: Dict[str, float] = {"filter_ms": 0.0, "mono_ms": 0.0, "n": 0}
+        self.timings: Dict[str, float] = {"filter_ms": 0.0, "mono_ms": 0.0, "dense_ms": 0.0,
+                                          "n": 0}
+        # flows (kf, view) of the dense depth, reused when BA updates recompute a keyframe
+        self.dense = DenseProxy(self.dc, self.intr)
 
     # ------------------------------------------------------------ queries
     def get(self, kf_id: int) -> Optional[ProxyDepthResult]:
@@ -670,24 +679,29 @@ class ProxyDepthEstimator:
             mono = cv2.resize(mono, (W, H), interpolation=cv2.INTER_LINEAR)
         if mono is not None:       # kept for recomputations; relative depth: 1e-3 is plenty
             mono = np.where(np.isfinite(mono) & (mono > 0), mono, 0).astype(np.float16)
-        guide = None
+        guide = grey = None
         img = np.asarray(kf.image) if kf.image is not None else None
+        if img is not None and img.shape[:2] != (H, W) and img.ndim in (2, 3):
+            import cv2
+            img = cv2.resize(img, (W, H), interpolation=cv2.INTER_AREA)
         if self.dc.upsample_guided and img is not None and img.ndim == 3:
-            if img.shape[:2] != (H, W):
-                import cv2
-                img = cv2.resize(img, (W, H), interpolation=cv2.INTER_AREA)
             guide = corner_preference(img, disp.shape[0], disp.shape[1])
+        if self.dc.dense_views > 0 and img is not None and img.ndim in (2, 3):
+            grey = to_grey(img)
         old = self._kfs.pop(int(kf.kf_id), None)
         self._kfs[int(kf.kf_id)] = _KfState(int(kf.kf_id), np.asarray(kf.pose, np.float64).copy(),
                                             disp.copy(), mono, guide,
-                                            old.result if old is not None else None)
+                                            old.result if old is not None else None,
+                                            grey=grey)
+        self.dense.drop(int(kf.kf_id))               # a new image: its old flows are stale
         # keep insertion order == kf id order for neighbour lookups
         if len(self._kfs) > 1 and list(self._kfs)[-2] > int(kf.kf_id):
             self._kfs = OrderedDict(sorted(self._kfs.items()))
 
     def _evict(self) -> None:
         while len(self._kfs) > self.capacity:
-            self._kfs.popitem(last=False)
+            k, _ = self._kfs.popitem(last=False)
+            self.dense.drop(k)
 
     def _compute(self, ids: Sequence[int], seq: Optional[int]) -> Dict[int, ProxyDepthResult]:
         import time
@@ -723,8 +737,11 @@ class ProxyDepthEstimator:
             if mono is not None:   # Eq. 3 at BA resolution (multi-view depth not interpolated)
                 fit = fit_mono(sample_at_grid(mono, h, w), depth_ba[i], valid_ba[i],
                                self.fit_space)
+            mv_valid = vup & (mv_depth > 0)
+            mv_depth, mv_valid = self._densify(k, nb[k], mv_depth, mv_valid, depth_ba[i],
+                                               valid_ba[i])
             depth, source, th, ga = compose_proxy_depth(
-                mv_depth, vup & (mv_depth > 0), mono, self.fit_space,
+                mv_depth, mv_valid, mono, self.fit_space,
                 int(self.dc.fill_small_holes), self.dc.fill_plane_tol,
                 self.dc.mv_max_depth_ratio, scale_shift=fit)
             s = seq if seq is not None else (st.result.update_seq if st.result else 0)
@@ -732,6 +749,24 @@ class ProxyDepthEstimator:
             st.result = res
             st.n_views = len(nb[k])
             out[k] = res
+        return out
+
+
+    def _densify(self, k: int, nb: Sequence[int], mv_depth: torch.Tensor,
+                 mv_valid: torch.Tensor, depth_ba: torch.Tensor, valid_ba: torch.Tensor
+                 ) -> Tuple[torch.Tensor, torch.Tensor]:
+        """Dense multi-view depth over the BA-grid depth (:class:`DenseProxy`)."""
+        import time
+        st = self._kfs[k]
+        if self.dc.dense_views <= 0 or st.grey is None:
+            return mv_depth, mv_valid
+        t0 = time.perf_counter()
+        ok = valid_ba if bool(valid_ba.any()) else depth_ba > 0
+        med = float(depth_ba[ok].median()) if bool(ok.any()) else 0.0
+        cands = [(n, self._kfs[n].grey, self._kfs[n].pose) for n in nb
+                 if self._kfs[n].grey is not None]
+        out = self.dense.apply(k, st.grey, st.pose, cands, med, mv_depth, mv_valid)
+        self.timings["dense_ms"] += 1e3 * (time.perf_counter() - t0)
         return out
 
 
