@@ -29,7 +29,6 @@ from typing import Dict, Iterable, List, Sequence, Set, Tuple
 
 import torch
 
-from splat_slam_ros.geometry import se3_inverse
 from splat_slam_ros.tracking.dense_ba import induced_flow_distance
 
 TEMPORAL_KINDS = ("odometry",)
@@ -40,7 +39,6 @@ class MergedKeyframe:
     anchor: int                  # the kept keyframe it follows
     rel: torch.Tensor            # (4, 4) float64 T_anchor^-1 T_k (camera-to-world poses)
     timestamp: float
-    frame_index: int
 
 
 def connected_without(pairs: Iterable[Tuple[int, int]], nodes: Iterable[int], drop: int) -> bool:
@@ -88,8 +86,3 @@ def merge_candidates(ids: Sequence[int], poses: torch.Tensor, disps: torch.Tenso
         if d < thresh and (k not in best or d < best[k][1]):
             best[k] = (o, d)
     return [(k, o, d) for k, (o, d) in sorted(best.items())]
-
-
-def relative_pose(anchor_pose: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
-    """``T_anchor^-1 T`` (camera-to-world poses): what a merged keyframe keeps."""
-    return se3_inverse(anchor_pose) @ pose

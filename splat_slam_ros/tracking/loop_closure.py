@@ -35,14 +35,14 @@ import numpy as np
 import torch
 
 from splat_slam_ros.config import SlamConfig
-from splat_slam_ros.geometry import intr_tensor, pixel_grid
+from splat_slam_ros.geometry import intr_tensor, pixel_grid, se3_inverse
 from splat_slam_ros.runtime import limit_threads, resolve_device
 from splat_slam_ros.tracking.dense_ba import bundle_adjust, reproject
 from splat_slam_ros.tracking.factor_graph import FactorGraph, proximity_pairs
 from splat_slam_ros.tracking.flow_frontend import flow_input, make_flow_predictor
 from splat_slam_ros.tracking.global_ba import normalized_global_ba, spatial_pairs
 from splat_slam_ros.tracking.keyframe_merge import (MergedKeyframe, connected_without,
-                                                     merge_candidates, relative_pose)
+                                                     merge_candidates)
 from splat_slam_ros.tracking.keyframe_set import KeyframeSet, KeyframeState
 from splat_slam_ros.tracking.motion_filter import MotionFilter, flow_scale
 from splat_slam_ros.types import LOOP_SEQ_START, Intrinsics, KeyframeData, UpdateEvent
@@ -209,11 +209,11 @@ class LoopCloser:
                     not connected_without(self.graph.pairs(), self.kfs.ids, k):
                 continue
             st = self.kfs[k]
-            rel = relative_pose(self.kfs[o].pose, st.pose)
+            rel = se3_inverse(self.kfs[o].pose) @ st.pose      # frozen T_o^-1 T_k
             for m in self.merged.values():              # followers of k now follow o
                 if m.anchor == k:
                     m.anchor, m.rel = o, rel @ m.rel
-            self.merged[k] = MergedKeyframe(o, rel, st.timestamp, st.frame_index)
+            self.merged[k] = MergedKeyframe(o, rel, st.timestamp)
             self.graph.remove_node(k)
             self.kfs.remove(k)
             self.loop_pairs = {p for p in self.loop_pairs if k not in p}
