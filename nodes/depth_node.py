@@ -1,7 +1,8 @@
 """depth_node: keyframes + pose-graph updates -> DepthRole (proxy depth, §3.2) -> ProxyDepth.
 
 Subscribes  /splat/keyframes (Keyframe), /splat/pose_graph_updates (all reasons),
-            /splat/graph_events (``finalized`` of tracker and loop closure).
+            /splat/graph_events (``finalized`` of tracker and loop closure; ``resend_depth``
+            {kf_ids} of the mapper: their current proxy depth is published again).
 Publishes   /splat/proxy_depth (ProxyDepth): one per new keyframe (revision 0) and one per
             keyframe whose pose / depth changed after an update (is_update, the next
             revision). This one ordered stream is what the mapper deforms from.
@@ -16,6 +17,8 @@ import sys
 
 from .node_common import SplatNode, run_node
 
+RESEND_MAX = 64           # keyframes re-sent per resend_depth request (bounded bursts)
+
 
 class DepthNode(SplatNode):
     def __init__(self):
@@ -28,7 +31,20 @@ class DepthNode(SplatNode):
             self.emit(self.role.current())
             self.log.info(f"resumed from {self.state_dir}: {len(self.role.kf_stamp)} keyframes")
         self.route(self.role, keyframes=True, updates=True, after=self._after)
+        self.on_events(lambda d: d.get("event") == "resend_depth" and
+                       self.worker.submit(self._resend, d.get("kf_ids")))
         self.publish_event("ready")
+
+    def _resend(self, kf_ids) -> None:
+        """A consumer lacks these keyframes' latest revision: publish it again."""
+        if not isinstance(kf_ids, list) or not all(isinstance(k, int) for k in kf_ids):
+            self.warn_throttled("resend", f"dropping a resend_depth request with kf_ids "
+                                f"{str(kf_ids)[:80]} (expected a list of integers)")
+            return
+        out = self.role.current(kf_ids[:RESEND_MAX])
+        self.emit(out)
+        self.log.info(f"sent the proxy depth of {len(out.proxy_depths)} keyframe(s) again "
+                      f"(asked for {len(kf_ids)})")
 
     def _after(self, out) -> None:
         if out.final is not None:

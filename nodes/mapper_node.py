@@ -4,6 +4,10 @@ Subscribes  /splat/keyframes (images), /splat/proxy_depth (a keyframe is mapped 
             depth is there; newer revisions deform its Gaussians, §3.2 "Map Deformation"),
             /splat/pose_graph_updates (reported in MapperStatus.last_update_seq),
             /splat/map/render_request (PoseStamped), /splat/graph_events (depth ``finalized``).
+Asks        while it lacks a revision of the depth node's final digest and no input is waiting
+            (two checks RESYNC_S apart without progress), graph event ``resend_depth``
+            {kf_ids}: the depth node sends their current proxy depth again (a DDS history
+            can drop a message that a burst of newer revisions overtook).
 Publishes   /splat/map/rendered_rgb + rendered_depth (at the latest keyframe, every
             ``mapping.render_every`` keyframes, when someone listens), /splat/map/view_rgb +
             view_depth (at a requested pose), rendered_camera_info + view_camera_info (their
@@ -26,6 +30,8 @@ import torch
 
 from .map_services import MapServices
 from .node_common import TOPICS, SplatNode, run_node
+
+RESYNC_S = 2.0            # how often a mapper waiting on the final digest checks for lost depth
 
 
 class MapperNode(SplatNode):
@@ -60,7 +66,30 @@ class MapperNode(SplatNode):
         self.subscribe(PoseStamped, TOPICS["render_request"], Q.pose_qos(),
                        lambda m, raw: self.worker.submit(self._view, m), "render request")
         self.services = MapServices(self)                 # save / reset / render
+        self._lack_prev: tuple = ()
+        self._resync_queued = False
+        self.node.create_timer(RESYNC_S, self._resync_tick)
         self.publish_event("ready")
+
+    # ------------------------------------------------------------ lost depth
+    def _resync_tick(self) -> None:
+        if not self._resync_queued and self.role.digest is not None and not self.role.finalized:
+            self._resync_queued = True
+            self.worker.submit(self._resync)
+
+    def _resync(self) -> None:
+        """On the worker: ask again for the revisions still lacking after a quiet interval."""
+        self._resync_queued = False
+        lack = tuple(self.role.lacking())
+        if not lack or self.worker.pending() > 0:
+            self._lack_prev = ()
+            return
+        if lack == self._lack_prev:
+            self.warn_throttled("resync", f"final digest: {len(lack)} keyframe(s) lack their "
+                                f"latest proxy depth (first {lack[0]}): asking the depth node "
+                                f"to send it again", error=False)
+            self.publish_event("resend_depth", kf_ids=list(lack))
+        self._lack_prev = lack
 
     # ------------------------------------------------------------ outputs
     def _after(self, out) -> None:

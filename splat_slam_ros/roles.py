@@ -392,12 +392,14 @@ class DepthRole:
             self.est.take_refreshed()
             self.kf_stamp = {kf.kf_id: kf.timestamp for kf in kfs}
 
-    def current(self) -> Outbox:
-        """The latest proxy depth of every keyframe at its current revision (after a restart
-        this node's earlier messages left with its DDS history; consumers skip what they have)."""
+    def current(self, kf_ids: Optional[List[int]] = None) -> Outbox:
+        """The latest proxy depth of every keyframe (or of ``kf_ids``) at its current revision:
+        after a restart this node's earlier messages left with its DDS history, and a mapper
+        that lacks a revision of the final digest asks for it again (consumers skip what they
+        have). Unknown ids are ignored."""
         out = Outbox()
         if self.est is not None:
-            for k in sorted(self.kf_stamp):
+            for k in sorted(self.kf_stamp if kf_ids is None else set(kf_ids) & set(self.kf_stamp)):
                 res = self.est.get(k)
                 if res is not None and k in self.revision:
                     out.proxy_depths.append(self._wrap(res, True, self.revision[k]))
@@ -655,10 +657,16 @@ class MapperRole:
                     n_mapped=sum(self.offered.values()))
         return Outbox(acks=[_ack(kf)], mapped=[info])
 
-    def _check_final(self) -> Outbox:
+    def lacking(self) -> List[int]:
+        """Keyframes whose revision in the depth stage's final digest this stage has not taken
+        (empty before the digest and once final). A node asks the depth stage to send them
+        again: a DDS history can drop a message that a burst of newer ones overtook."""
         if self.digest is None or self.finalized:
-            return Outbox()
-        if any(self.taken.get(k, -1) < rev for k, rev in self.digest.items()):
+            return []
+        return [k for k, rev in sorted(self.digest.items()) if self.taken.get(k, -1) < rev]
+
+    def _check_final(self) -> Outbox:
+        if self.digest is None or self.finalized or self.lacking():
             return Outbox()
         self.finalized = True
         info: dict = {"keyframes": sum(self.offered.values())}

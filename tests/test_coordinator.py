@@ -112,10 +112,13 @@ def test_mapper_role_skips_old_revisions_and_waits_for_the_digest():
     out = role.on_proxy_depth(pd)
     assert [m["kf_id"] for m in out.mapped] == [0] and out.acks == [(0, 0, 0.0)]
     assert role.on_proxy_depth(pd).mapped == [] and role.timings["deformation"] == 0.0
+    assert role.lacking() == []                                           # no digest yet
     assert role.on_final("depth", {"digest": {"0": 1}}).final is None    # revision 1 missing
+    assert role.lacking() == [0]                   # what the mapper node asks the depth node for
     out = role.on_proxy_depth(replace(pd, revision=1, is_update=True))
     assert role.timings["deformation"] > 0 and role.taken[0] == 1
     assert out.final is not None and role.finalized                       # then the refinement
+    assert role.lacking() == []
 
 
 # ------------------------------------------------------------------ in-process graph
@@ -160,6 +163,11 @@ def test_depth_role_handles_a_warmup_batch_as_one():
     out = co.depth.on_update(co.updates[0])
     assert out.proxy_depths == [] and co.depth.revision == n_rev
     assert co.depth.on_keyframe(kf(k0)).proxy_depths == [] and co.depth.revision == n_rev
+    # asked again (a mapper lacking a revision of the digest): the current revision of the
+    # keyframes asked for that it knows, nothing new
+    again = co.depth.current([first[1], k0, 10_000]).proxy_depths
+    assert [(p.kf_id, p.revision) for p in again] == [(k, n_rev[k]) for k in sorted(first[:2])]
+    assert co.depth.revision == n_rev
 
 
 def test_tracking_only_needs_no_depth_or_mapper():

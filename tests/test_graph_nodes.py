@@ -65,6 +65,12 @@ node.create_subscription(ProxyDepth, TOPICS["proxy_depth"], lambda m: got["pd"].
 pk = node.create_publisher(Keyframe, TOPICS["keyframes"], Q.keyframe_qos())
 pu = node.create_publisher(PoseGraphUpdate, TOPICS["updates"], Q.pose_graph_qos())
 pr = node.create_publisher(PoseStamped, TOPICS["render_request"], Q.pose_qos())
+from std_msgs.msg import String
+from splat_slam_nodes.node_common import events_qos
+ev = []
+node.create_subscription(String, TOPICS["events"], lambda m: ev.append(json.loads(m.data)), events_qos())
+pe = node.create_publisher(String, TOPICS["events"], events_qos())
+ppd = node.create_publisher(ProxyDepth, TOPICS["proxy_depth"], Q.proxy_depth_qos())
 ''' + SPIN_UNTIL + r'''T0 = time.monotonic()
 ok = spin_until(lambda: pk.get_subscription_count() >= 2 and pu.get_subscription_count() >= 2, 120)
 H, W = 48, 64
@@ -122,6 +128,28 @@ res["infos"] = [[m.header.frame_id, m.width, m.height, list(m.k), m.header.stamp
                 for m in (got["info"][-1:] + got["vinfo"][-1:])]
 res["image_frames"] = [got["rgb"][-1].header.frame_id if got["rgb"] else "",
                        got["view"][-1].header.frame_id if got["view"] else ""]
+# a final digest naming a revision of keyframe 1 that the mapper never got (as if a DDS
+# history had dropped it): the mapper asks the depth node again, then finalises once it has it
+last = {}
+for m in got["pd"]:
+    last[int(m.kf_id)] = max(last.get(int(m.kf_id), -1), int(m.revision))
+digest = {str(k): v for k, v in last.items()}
+digest["1"] = last[1] + 1
+n_pd = len(got["pd"])
+spin_until(lambda: ppd.get_subscription_count() >= 1, 20)
+pe.publish(String(data=json.dumps({"node": "depth", "event": "finalized", "digest": digest,
+                                   "keyframes": 3})))
+asks = lambda: [e for e in ev if e.get("event") == "resend_depth" and e.get("node") == "mapper"]
+res["asked"] = spin_until(lambda: asks(), 30)
+res["asked_ids"] = asks()[0]["kf_ids"] if asks() else None
+res["resent"] = spin_until(lambda: any(int(m.kf_id) == 1 and int(m.revision) == last[1]
+                                       for m in got["pd"][n_pd:]), 30)
+res["final_before"] = any(e.get("event") == "saved" and e.get("node") == "mapper" for e in ev)
+m1 = [m for m in got["pd"] if int(m.kf_id) == 1 and int(m.revision) == last[1]][-1]
+m1.revision = last[1] + 1
+ppd.publish(m1)
+res["final_after"] = spin_until(lambda: any(e.get("event") == "saved" and e.get("node") == "mapper"
+                                            for e in ev), 120)
 cli_s = node.create_client(SaveMap, SERVICES["save_map"]); cli_s.wait_for_service(timeout_sec=30)
 f = cli_s.call_async(SaveMap.Request(directory=out_dir)); spin_until(lambda: f.done(), 120)
 res["save"] = [f.result().success, f.result().message]
@@ -190,6 +218,11 @@ def test_depth_and_mapper_nodes(tmp_path):
     for fr, w, h, k, _ in r["infos"]:
         assert (fr, w, h) == ("camera_optical", 64, 48)
         assert np.allclose(k, [50.0, 0, 31.5, 0, 50.0, 23.5, 0, 0, 1])
+    # a revision named by the final digest but lost on the way is asked for again (graph
+    # event resend_depth), sent again by the depth node, and the mapper finalises once it has it
+    assert r["asked"] and r["asked_ids"] == [1], (r, mlog[-3000:])
+    assert r["resent"], (r, (tmp_path / "depth.log").read_text()[-3000:])
+    assert not r["final_before"] and r["final_after"], (r, mlog[-3000:])
     assert r["save"][0], r["save"]
     saved = tmp_path / "saved"
     for f in ("map.ply", "trajectory_keyframes.txt", "metrics.json", "map_mesh.ply"):
