@@ -70,6 +70,6 @@ shift || true
 case "$cmd" in
   setup) ensure_venv ;;
   demo)  ensure_venv; exec "$PY" -m splat_slam_ros.demo "$@" ;;
-  test)  ensure_venv; exec "$PY" -m pytest "$@" ;;
+  test)  ensure_venv; exec "$PY" -m pytest -n "${SPLAT_TEST_WORKERS:-2}" --dist loadfile "$@" ;;
   *) echo "usage: ./run.sh demo|test|setup [args...]" >&2; exit 2 ;;
 esac

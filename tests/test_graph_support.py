@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import random
 import subprocess
 import sys
 import time
@@ -42,11 +43,22 @@ def need_ros():
                     "msg_defs/build.sh and run with the venv's python")
 
 
+def _domain_id() -> int:
+    """A random ROS_DOMAIN_ID; under ``pytest -n N`` (xdist) from this worker's own share of
+    1..101 (id % N == worker index), so tests running at once never share a domain."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    n = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)
+    if worker.startswith("gw") and n > 1:
+        i = int(worker[2:]) % n
+        return random.SystemRandom().choice([d for d in range(1, 102) if d % n == i])
+    return ros_env.random_domain_id()
+
+
 def isolated_env(**extra) -> Dict[str, str]:
     """Project DDS env with a random ROS_DOMAIN_ID (parallel runs do not cross-talk)."""
     base = {k: v for k, v in os.environ.items()
             if k not in ("FASTRTPS_DEFAULT_PROFILES_FILE", ros_env.OVERRIDE_ENV)}
-    base["ROS_DOMAIN_ID"] = str(ros_env.random_domain_id())
+    base["ROS_DOMAIN_ID"] = str(_domain_id())
     base["PYTHONUNBUFFERED"] = "1"
     base.update(extra)
     return ros_env.ros_environment(base)
