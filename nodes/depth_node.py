@@ -5,7 +5,8 @@ Subscribes  /splat/keyframes (Keyframe), /splat/pose_graph_updates (all reasons)
             {kf_ids} of the mapper: their current proxy depth is published again).
 Publishes   /splat/proxy_depth (ProxyDepth): one per new keyframe (revision 0) and one per
             keyframe whose pose / depth changed after an update (is_update, the next
-            revision). This one ordered stream is what the mapper deforms from.
+            revision; while more updates wait in the queue, only the newest recomputes).
+            This one ordered stream is what the mapper deforms from.
 The protocol (warm-up batches, replays, pending updates, finalisation) is
 :class:`splat_slam_ros.roles.DepthRole`; crash safety: its KeyframeStore in ``node.state_dir``
 — a restarted node resumes from it and publishes the current depth of every keyframe again
@@ -30,7 +31,10 @@ class DepthNode(SplatNode):
         if self.role.kf_stamp:
             self.emit(self.role.current())
             self.log.info(f"resumed from {self.state_dir}: {len(self.role.kf_stamp)} keyframes")
-        self.route(self.role, keyframes=True, updates=True, after=self._after)
+        # under load updates queue up: each moves most keyframes, so all but the newest only
+        # store their poses and the newest recomputes once (DepthRole.on_update's defer)
+        self.route(self.role, keyframes=True, updates=True, after=self._after,
+                   on_update=lambda ev: self.role.on_update(ev, defer=self.waiting["updates"] > 0))
         self.on_events(lambda d: d.get("event") == "resend_depth" and
                        self.worker.submit(self._resend, d.get("kf_ids")))
         self.publish_event("ready")

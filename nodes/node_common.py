@@ -154,6 +154,9 @@ class SplatNode:
         self._trimmed = 0.0
         self.worker = Worker(self)
         self.pubs: Dict[str, Any] = {}
+        # protocol messages queued on the worker, per channel (route)
+        self.waiting: Dict[str, int] = {"updates": 0, "keyframes": 0, "proxy_depth": 0}
+        self._waiting_lock = threading.Lock()
 
     # ------------------------------------------------------------ helpers
     @property
@@ -234,10 +237,12 @@ class SplatNode:
             self.publish_event("finalized", **out.final)
 
     def route(self, role, keyframes: bool = False, updates: bool = False,
-              proxy_depth: bool = False, after: Optional[Callable] = None) -> None:
+              proxy_depth: bool = False, after: Optional[Callable] = None,
+              on_update: Optional[Callable] = None) -> None:
         """Subscribe the protocol channels to ``role``'s handlers (on the worker thread) and
         the ``finalized`` graph events to ``role.on_final``; each Outbox is emitted, then
-        ``after(out)`` runs (node-specific outputs)."""
+        ``after(out)`` runs (node-specific outputs). ``on_update`` replaces
+        ``role.on_update`` (``self.waiting["updates"]``: updates queued behind this one)."""
         from splat_slam_msgs.msg import Keyframe, PoseGraphUpdate, ProxyDepth
 
         from splat_slam_ros.config import ConfigError
@@ -259,13 +264,21 @@ class SplatNode:
                 release_free_memory()
                 self._trimmed = now
 
+        def handle_queued(topic, fn, convert, msg):
+            with self._waiting_lock:
+                self.waiting[topic] -= 1
+            handle(fn, convert, msg)
+
         def sub(kind, topic, qos, fn, convert, take=lambda m: True):
-            self.subscribe(kind, TOPICS[topic], qos,
-                           lambda m, raw: take(m) and self.worker.submit(handle, fn, convert, m),
-                           kind.__name__)
+            def enqueue(m, raw):
+                if take(m):
+                    with self._waiting_lock:
+                        self.waiting[topic] += 1
+                    self.worker.submit(handle_queued, topic, fn, convert, m)
+            self.subscribe(kind, TOPICS[topic], qos, enqueue, kind.__name__)
         from .msg_checks import check_keyframe, check_proxy_depth, check_update  # fuzz-proof
         if updates:        # first: an update and a keyframe both waiting -> the update first
-            sub(PoseGraphUpdate, "updates", Q.pose_graph_qos(), role.on_update,
+            sub(PoseGraphUpdate, "updates", Q.pose_graph_qos(), on_update or role.on_update,
                 lambda m: msg_to_update(check_update(m)),
                 lambda m: takes_update(m, role.update_sources))
         if keyframes:

@@ -379,7 +379,8 @@ class DepthRole:
             self._resume()
 
     def meta(self) -> dict:
-        return {"seq": self.seq, "revision": {str(k): v for k, v in self.revision.items()}}
+        return {"seq": self.seq, "revision": {str(k): v for k, v in self.revision.items()},
+                "dirty": sorted(self.est.dirty) if self.est is not None else []}
 
     def _resume(self) -> None:
         meta = self.store.meta
@@ -391,13 +392,15 @@ class DepthRole:
             self.est.add_keyframes(kfs)
             self.est.take_refreshed()
             self.kf_stamp = {kf.kf_id: kf.timestamp for kf in kfs}
+            # moved by deferred updates before the crash: sent at a new revision by current()
+            self.est.dirty.update(int(k) for k in meta.get("dirty", []))
 
     def current(self, kf_ids: Optional[List[int]] = None) -> Outbox:
         """The latest proxy depth of every keyframe (or of ``kf_ids``) at its current revision:
         after a restart this node's earlier messages left with its DDS history, and a mapper
         that lacks a revision of the final digest asks for it again (consumers skip what they
         have). Unknown ids are ignored."""
-        out = Outbox()
+        out = self._flush()
         if self.est is not None:
             for k in sorted(self.kf_stamp if kf_ids is None else set(kf_ids) & set(self.kf_stamp)):
                 res = self.est.get(k)
@@ -415,10 +418,17 @@ class DepthRole:
         self.revision[k] = self.revision.get(k, -1) + 1
         return self._wrap(res, is_update, self.revision[k])
 
+    def _flush(self) -> Outbox:
+        """Proxy depths of the keyframes that deferred updates moved (next revisions)."""
+        if self.est is None or not self.est.dirty:
+            return Outbox()
+        return Outbox(proxy_depths=[self._send(new, True) for _old, new in self.est.flush()])
+
     def on_keyframe(self, kf: KeyframeData) -> Outbox:
+        flushed = self._flush()              # deferred updates first, in arrival order
         batch = self.batcher.add(kf, lambda k: k in self.kf_stamp)
         if not batch:
-            return Outbox()
+            return flushed
         for k in batch:
             if k.kf_id in self.pending:
                 k.pose, disp = self.pending.pop(k.kf_id)
@@ -428,7 +438,7 @@ class DepthRole:
         if self.est is None:
             self.est = ProxyDepthEstimator(self.cfg, batch[0].intrinsics)
         results = self.est.add_keyframes(batch)       # each sees the others as views (Eq. 5)
-        out = Outbox()
+        out = flushed
         # earlier keyframes that gained a view: their deformation before the new mapping
         out.proxy_depths += [self._send(new, True) for _old, new in self.est.take_refreshed()]
         out.proxy_depths += [self._send(res, False) for res in results]
@@ -437,30 +447,33 @@ class DepthRole:
                 self.store.put_keyframe(k, with_image=False, meta=self.meta())
         return out.extend(self._check_final())
 
-    def on_update(self, ev: UpdateEvent) -> Outbox:
+    def on_update(self, ev: UpdateEvent, defer: bool = False) -> Outbox:
+        """``defer``: a newer update is already waiting (graph node under load): store the
+        new poses now, recompute once for both (the mapper needs the latest, not each)."""
         src = ev.source
         if ev.seq <= self.seq[src]:
-            return Outbox()
+            return Outbox() if defer else self._flush().extend(self._check_final())
         known_max = max(self.kf_stamp) if self.kf_stamp else -1
         for i, k in enumerate(ev.kf_ids):
             if k > known_max:
                 self.pending[int(k)] = (ev.poses[i], None if ev.disparities is None
                                         else ev.disparities[i])
-        changed = self.est.apply_update(ev) if self.est is not None else []
+        changed = self.est.apply_update(ev, defer) if self.est is not None else []
         self.seq[src] = int(ev.seq)
         out = Outbox(proxy_depths=[self._send(new, True) for _old, new in changed])
         _persist_events(self.store, [ev], self.meta())
-        return out.extend(self._check_final())
+        return out if defer else out.extend(self._check_final())
 
     def on_final(self, node: str, info: dict) -> Outbox:
         if node == "tracker":
             self.final["tracker"] = int(info.get("last_seq", 0))
         elif node == "loop_closure":
             self.final["loop"] = int(info.get("last_seq", 0))
-        return self._check_final()
+        return self._flush().extend(self._check_final())
 
     def _check_final(self) -> Outbox:
-        if self.finalized or self.final["tracker"] is None:
+        if self.finalized or self.final["tracker"] is None or \
+                (self.est is not None and self.est.dirty):
             return Outbox()
         if self.seq["tracker"] < self.final["tracker"]:
             return Outbox()

@@ -11,7 +11,7 @@ from splat_slam_ros.depth.proxy_depth import (SOURCE_EMPTY, SOURCE_MONO, SOURCE_
                                         ProxyDepthEstimator, compose_proxy_depth,
                                         consistency_count, fill_small_holes, fit_scale_shift,
                                         multiview_filter, upsample_disparity)
-from splat_slam_ros.types import Intrinsics, KeyframeData, UpdateEvent
+from splat_slam_ros.types import TRACKER_SEQ_START, Intrinsics, KeyframeData, UpdateEvent
 
 # ----------------------------------------------------------------- the scene
 # planes n.X = c (world frame, OpenCV axes: y down), optional axis-aligned bounds of the hit
@@ -366,3 +366,57 @@ def test_filter_cuda_matches_cpu():
     b, _ = multiview_filter(torch.from_numpy(depth).cuda(), torch.from_numpy(poses).cuda(),
                             ivec(BA))
     assert (a == b.cpu()).float().mean() > 0.999
+
+
+def test_deferred_updates_recompute_once_with_the_newest_poses():
+    """A node with several updates queued defers all but the newest: one recomputation of
+    everything they moved, equal to applying the newest poses directly."""
+    est, poses, depth, _ = run_estimator(10, mv_neighbors=2)
+    ref, _, _, _ = run_estimator(10, mv_neighbors=2)
+    est.take_refreshed()
+    ref.take_refreshed()
+    p2, p5a, p5b = poses[2].copy(), poses[5].copy(), poses[5].copy()
+    p2[:3, 3] += [0.2, 0.0, 0.0]
+    p5a[:3, 3] += [0.3, 0.0, 0.0]
+    p5b[:3, 3] += [0.0, 0.1, 0.0]
+    n0 = est.timings["n"]
+    assert est.apply_update(UpdateEvent(8, "loop_closure", [5], p5a[None]), defer=True) == []
+    assert est.apply_update(UpdateEvent(9, "loop_closure", [2], p2[None]), defer=True) == []
+    assert est.timings["n"] == n0 and est.dirty == {2, 5}         # nothing computed yet
+    pairs = est.apply_update(UpdateEvent(10, "global_ba", [5], p5b[None]))
+    assert sorted(new.kf_id for _, new in pairs) == [0, 1, 2, 3, 4, 5, 6]   # + their viewers
+    assert est.timings["n"] == n0 + 7 and not est.dirty
+    ref.apply_update(UpdateEvent(10, "global_ba", [2, 5], np.stack([p2, p5b])))
+    for _, new in pairs:
+        assert new.update_seq == 10
+        np.testing.assert_array_equal(new.depth, ref.get(new.kf_id).depth)
+        np.testing.assert_array_equal(new.pose, ref.get(new.kf_id).pose)
+    assert est.flush() == []
+
+
+def test_depth_role_defers_queued_updates_and_flushes_before_anything_else():
+    from splat_slam_ros.roles import DepthRole
+    cfg = SlamConfig()
+    cfg.set("depth.mv_neighbors", 2)
+    role = DepthRole(cfg, loop_closure=False)
+    poses, depth = scene(7)
+    for i in range(6):
+        assert [p.revision for p in role.on_keyframe(keyframe(i, 1.0 / depth[i], poses[i]))
+                .proxy_depths][-1:] == [0]
+    rev = dict(role.revision)
+    moved = poses[3].copy()
+    moved[:3, 3] += [0.2, 0.0, 0.0]
+    out = role.on_update(UpdateEvent(TRACKER_SEQ_START + 1, "local_ba", [3], moved[None]),
+                         defer=True)
+    assert out.proxy_depths == [] and role.revision == rev and role.meta()["dirty"] == [3]
+    # the next keyframe: the deferred update's depths go out first, at their next revision
+    out = role.on_keyframe(keyframe(6, 1.0 / depth[6], poses[6]))
+    sent = [(p.kf_id, p.revision) for p in out.proxy_depths]
+    assert sent[-1] == (6, 0) and sorted(sent[:-1]) == [(k, rev[k] + 1) for k in (2, 3, 4, 5)]
+    # a deferred update when the tracker's final arrives: flushed, then the digest
+    moved[:3, 3] += [0.0, 0.1, 0.0]
+    assert role.on_update(UpdateEvent(TRACKER_SEQ_START + 2, "local_ba", [3], moved[None]),
+                          defer=True).final is None
+    out = role.on_final("tracker", {"last_seq": TRACKER_SEQ_START + 2})
+    assert {p.kf_id for p in out.proxy_depths} >= {3} and out.final is not None
+    assert out.final["digest"]["3"] == rev[3] + 2 and role.meta()["dirty"] == []

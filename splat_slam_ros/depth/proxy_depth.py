@@ -530,7 +530,9 @@ class ProxyDepthEstimator:
         self.capacity = max(2, int(getattr(cfg.tracking, "keyframe_buffer", 512)))
         self._kfs: "OrderedDict[int, _KfState]" = OrderedDict()
         self._refreshed: List[Tuple[ProxyDepthResult, ProxyDepthResult]] = []
+        self.dirty: set = set()        # moved by deferred updates, not recomputed yet
         self.last_seq = 0
+        self._flush_seq = 0
         self.mono = mono_model
         self.mono_kind = getattr(mono_model, "kind", "depth")
         self._mono_path = None
@@ -608,20 +610,23 @@ class ProxyDepthEstimator:
         out, self._refreshed = self._refreshed, []
         return out
 
-    def apply_update(self, ev: UpdateEvent) -> List[Tuple[ProxyDepthResult, ProxyDepthResult]]:
+    def apply_update(self, ev: UpdateEvent, defer: bool = False
+                     ) -> List[Tuple[ProxyDepthResult, ProxyDepthResult]]:
         """Apply a BA / loop-closure / global-BA update.
 
         Recomputes the keyframes whose pose or disparity changed and every stored keyframe
         that uses one of them as a view. Returns (old, new) for each keyframe whose pose,
-        depth or source changed (what the mapper's deformation needs).
+        depth or source changed (what the mapper's deformation needs). ``defer``: only store
+        the new poses / disparities (a newer update is already waiting; :meth:`flush` or the
+        next update without ``defer`` recomputes everything moved since).
         """
         self.last_seq = max(self.last_seq, int(ev.seq))
+        self._flush_seq = int(ev.seq)           # the results carry the newest update's seq
         poses = np.asarray(ev.poses, dtype=np.float64).reshape(-1, 4, 4)
         if len(poses) != len(ev.kf_ids):
             raise ProxyDepthError(f"update {ev.seq}: {len(ev.kf_ids)} kf_ids but "
                                   f"{len(poses)} poses")
         disps = None if ev.disparities is None else np.asarray(ev.disparities, np.float32)
-        changed = []
         for i, k in enumerate(ev.kf_ids):
             st = self._kfs.get(int(k))
             if st is None:
@@ -637,14 +642,19 @@ class ProxyDepthEstimator:
                     st.disparity = disps[i].copy()
                     moved = True
             if moved:
-                changed.append(int(k))
-        if not changed:
+                self.dirty.add(int(k))
+        return [] if defer else self.flush()
+
+    def flush(self) -> List[Tuple[ProxyDepthResult, ProxyDepthResult]]:
+        """Recompute what the updates since the last flush moved (see :meth:`apply_update`)."""
+        cset = {k for k in self.dirty if k in self._kfs}
+        self.dirty.clear()
+        if not cset:
             return []
-        cset = set(changed)
         recompute = [k for k in self._kfs
                      if k in cset or any(n in cset for n in self.neighbours(k))]
         olds = {k: self._kfs[k].result for k in recompute}
-        new = self._compute(recompute, seq=int(ev.seq))
+        new = self._compute(recompute, seq=self._flush_seq)
         out = []
         for k in recompute:
             old = olds[k]
