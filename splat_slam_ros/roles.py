@@ -89,6 +89,17 @@ def _newest_seq(seq: int, events) -> int:
     return max([int(seq)] + [int(e.seq) for e in events])
 
 
+MIN_DEPTH_FRACTION = 0.01   # a proxy depth with fewer valid pixels is held by the mapper
+
+
+def _valid_fraction(pd: ProxyDepth) -> float:
+    d = np.asarray(pd.depth)
+    ok = np.isfinite(d) & (d > 0)
+    if pd.valid is not None:
+        ok &= np.asarray(pd.valid, bool)
+    return float(ok.mean()) if ok.size else 0.0
+
+
 def _ack(kf: KeyframeData) -> Tuple[int, int, float]:
     return int(kf.frame_index), int(kf.kf_id), float(kf.timestamp)
 
@@ -503,6 +514,7 @@ class MapperRole:
         self.digest: Optional[Dict[int, int]] = None
         self.finalized = False
         self.dirty: set = set()                     # keyframes whose depth changed
+        self.held: set = set()                      # acked, waiting for a depth (see _try_map)
         self.snapshot_every = max(1, int(snapshot_every))
         self.n_since_snapshot = 0
         self.timings: Dict[str, float] = {"mapping": 0.0, "deformation": 0.0, "refine": 0.0}
@@ -610,15 +622,26 @@ class MapperRole:
     def on_final(self, node: str, info: dict) -> Outbox:
         if node == "depth":
             self.digest = {int(k): int(v) for k, v in (info.get("digest") or {}).items()}
-            return self._check_final()
+            return self._try_map()                  # held keyframes: mapped with what is there
         return Outbox()
 
     # ------------------------------------------------------------ work
     def _try_map(self) -> Outbox:
+        """Map every keyframe that has its depth. A proxy depth with (almost) no valid pixel
+        (revision 0 of a keyframe that had no views yet: the first of a small warm-up batch)
+        would anchor no Gaussians and leave the map without a scene depth: such a keyframe
+        is acked (lockstep goes on) and held until a revision with depth or the final digest."""
         out = Outbox()
         for k in sorted(self.pending_kf):
-            if k in self.pending_depth:
-                out.extend(self._map(self.pending_kf.pop(k), self.pending_depth.pop(k)))
+            if k not in self.pending_depth:
+                continue
+            pd = self.pending_depth[k]
+            if self.digest is None and _valid_fraction(pd) < MIN_DEPTH_FRACTION:
+                if k not in self.held:
+                    self.held.add(k)
+                    out.acks.append(_ack(self.pending_kf[k]))
+                continue
+            out.extend(self._map(self.pending_kf.pop(k), self.pending_depth.pop(k)))
         return out.extend(self._check_final())
 
     def _revisit(self, pd: ProxyDepth) -> Optional[int]:
@@ -668,7 +691,9 @@ class MapperRole:
             self.snapshot()
         info = dict(st, kf_id=int(kf.kf_id), pose=pd.pose, timestamp=float(kf.timestamp),
                     n_mapped=sum(self.offered.values()))
-        return Outbox(acks=[_ack(kf)], mapped=[info])
+        held = kf.kf_id in self.held
+        self.held.discard(kf.kf_id)
+        return Outbox(acks=[] if held else [_ack(kf)], mapped=[info])
 
     def lacking(self) -> List[int]:
         """Keyframes whose revision in the depth stage's final digest this stage has not taken

@@ -226,7 +226,7 @@ class Mapper:
                             float(kf_id if timestamp is None else timestamp), pose, img_t,
                             depth_t, valid_t, torch.zeros(2, device=self.device))
         self._add_keyframe_record(kf)
-        if first and bool(valid_t.any()):
+        if self._scene_depth <= 0 and bool(valid_t.any()):   # the first keyframe with depth
             self._scene_depth = float(depth_t[valid_t].median())
 
         # supplementary "Map Initialization": anchor new Gaussians from the proxy depth
