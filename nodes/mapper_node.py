@@ -68,7 +68,11 @@ class MapperNode(SplatNode):
         self.services = MapServices(self)                 # save / reset / render
         self._lack_prev: tuple = ()
         self._resync_queued = False
-        self.node.create_timer(RESYNC_S, self._resync_tick)
+        # steady clock: with use_sim_time (bag replay) ROS time stops with the player's
+        # /clock at the end of the stream, exactly when this check is needed
+        from rclpy.clock import Clock, ClockType
+        self.node.create_timer(RESYNC_S, self._resync_tick,
+                               clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.publish_event("ready")
 
     # ------------------------------------------------------------ lost depth

@@ -188,8 +188,10 @@ def test_depth_and_mapper_nodes(tmp_path):
     cfg.write_text(FAST_CFG)
     env = isolated_env()
     depth = _node("depth", env, cfg, tmp_path / "depth.log")
+    # use_sim_time as under splat-slam-launch --bag: no /clock here, so ROS time stands still
+    # (as after the end of a bag); the mapper's checks for lost depth must still run
     mapper = _node("mapper", env, cfg, tmp_path / "mapper.log", f"node.output_dir:={tmp_path}",
-                   "node.allow_reset:=true")
+                   "node.allow_reset:=true", "use_sim_time:=true")
     feeder = start([PY, "-c", FEEDER, "saved"], env, tmp_path / "feeder.log")
     try:
         assert feeder.wait(timeout=400) == 0, (tmp_path / "feeder.log").read_text()[-3000:]
