@@ -99,14 +99,17 @@ def test_loop_role_takes_each_tracker_update_once_and_finalises_after_the_last()
     assert role.on_update(replace(ev, seq=5)).final is None             # final only once
 
 
-def test_mapper_role_skips_old_revisions_and_waits_for_the_digest():
-    cfg = cfg_full()
-    role = MapperRole(cfg)
+def mapper_role_inputs():
+    """A MapperRole, keyframe 0 of the test sequence and its ground-truth depth + frame."""
     frames, _ = sequence(40)
     f = frames[0]
     k0 = replace(kf(0), image=f.image, disparity=np.ones((30, 40), np.float32),
                  confidence=np.ones((30, 40), np.float32))
-    depth = f.gt_depth.astype(np.float32)
+    return MapperRole(cfg_full()), k0, f.gt_depth.astype(np.float32), f
+
+
+def test_mapper_role_skips_old_revisions_and_waits_for_the_digest():
+    role, k0, depth, f = mapper_role_inputs()
     pd = ProxyDepth(0, depth, np.ones_like(depth, np.uint8), f.gt_pose, revision=0)
     assert role.on_keyframe(k0).mapped == []               # waits for its depth
     out = role.on_proxy_depth(pd)
@@ -125,13 +128,7 @@ def test_mapper_role_holds_a_keyframe_without_depth_until_a_revision_has_some():
     """Revision 0 of the first keyframe of a 2-keyframe warm-up has no valid pixel (no views
     yet): mapped, it anchored no Gaussians and left the map without a scene depth (every
     later Gaussian "large": 6x the splits, PSNR 27 instead of 30 dB on fr2/desk)."""
-    cfg = cfg_full()
-    role = MapperRole(cfg)
-    frames, _ = sequence(40)
-    f = frames[0]
-    k0 = replace(kf(0), image=f.image, disparity=np.ones((30, 40), np.float32),
-                 confidence=np.ones((30, 40), np.float32))
-    depth = f.gt_depth.astype(np.float32)
+    role, k0, depth, f = mapper_role_inputs()
     empty = ProxyDepth(0, np.zeros_like(depth), np.zeros_like(depth, np.uint8), f.gt_pose,
                        revision=0)
     role.on_keyframe(k0)
