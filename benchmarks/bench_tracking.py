@@ -299,18 +299,10 @@ def main() -> None:
     if args.config and not Path(args.config).is_file():
         print(f"error: config file not found: {args.config}", file=sys.stderr)
         sys.exit(2)
-    extra = {}
-    for kv in args.set or []:
-        k, eq, v = kv.partition("=")
-        try:
-            extra[k] = json.loads(v)
-        except json.JSONDecodeError:
-            extra[k] = v
-        if not eq or not k:
-            print(f"error: --set expects KEY=VALUE, got {kv!r}", file=sys.stderr)
-            sys.exit(2)
+    from splat_slam_ros.cli.common import parse_overrides
     from splat_slam_ros.config import ConfigError, load_config
     try:
+        extra = parse_overrides(args.set)
         load_config(args.config or None, extra)         # a bad key: one line, before any run
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -110,7 +110,7 @@ def evaluate_map_depth(dataset, out: Path, cfg: SlamConfig, metrics: dict) -> No
     w, h = cfg.camera.processing_size(K.width, K.height)     # rendered at processing size
     if w <= 0 or h <= 0:
         w, h = K.width, K.height
-    Ks = K.scaled(w / K.width, h / K.height)
+    Ks = K.resized(w, h)
     mp = Mapper.load_ply(ply, cfg, Ks)
     want = {round(float(t), 4): T for t, T in zip(ts, P)}
     errs = []

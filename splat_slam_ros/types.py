@@ -101,6 +101,10 @@ class Intrinsics:
                           int(round(self.height * sy)), self.distortion_model,
                           list(self.distortion))
 
+    def resized(self, width: int, height: int) -> "Intrinsics":
+        """Intrinsics of the image resized to ``width`` x ``height`` (see :meth:`scaled`)."""
+        return self.scaled(width / self.width, height / self.height)
+
 
 @dataclass
 class Frame:

@@ -27,14 +27,6 @@ import torch
 from splat_slam_ros.geometry import intr_tensor, se3_inverse
 
 
-def to_grey(image: np.ndarray) -> np.ndarray:
-    """(H, W, 3) RGB or (H, W) uint8 -> (H, W) uint8 grey."""
-    img = np.asarray(image)
-    if img.ndim == 3:
-        img = cv2.cvtColor(np.ascontiguousarray(img[..., :3]), cv2.COLOR_RGB2GRAY)
-    return np.ascontiguousarray(img.astype(np.uint8, copy=False))
-
-
 _DIS = {}
 
 

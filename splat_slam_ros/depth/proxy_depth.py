@@ -16,7 +16,7 @@ image). The mapper needs a depth map at the tracking resolution that it can trus
    the corner that best explains the pixel's colour (``depth.upsample_guided``, the depth
    edge then follows the image edge) or the nearest one, and the pixel is empty when that
    corner is. Across a depth discontinuity no intermediate ("flying") depth is produced.
-   Then (``depth.dense_views`` > 0, the default) the dense depth of :mod:`dense_depth`
+   Then (``depth.dense_views`` > 0; off by default) the dense depth of :mod:`dense_depth`
    (per-pixel triangulation from DIS flow to neighbouring keyframes with the BA poses, kept
    where ``dense_min_views`` views agree) replaces it, and fills its holes where
    ``dense_fill_views`` agree.
@@ -39,13 +39,15 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence, Tuple
 
+import cv2
 import numpy as np
 import torch
 
 from splat_slam_ros.config import SlamConfig
-from splat_slam_ros.depth.dense_depth import DenseProxy, to_grey
+from splat_slam_ros.depth.dense_depth import DenseProxy
 from splat_slam_ros.geometry import intr_tensor, pixel_grid, se3_inverse
 from splat_slam_ros.runtime import resolve_device
+from splat_slam_ros.tracking.flow_frontend import to_gray
 from splat_slam_ros.types import Intrinsics, KeyframeData, UpdateEvent
 
 SOURCE_EMPTY = 0
@@ -79,7 +81,7 @@ class ProxyDepthResult:
 # ------------------------------------------------------------------ helpers
 def ba_intrinsics(intr: Intrinsics, h: int, w: int) -> Intrinsics:
     """Intrinsics of the (h, w) BA grid of an image with intrinsics ``intr``."""
-    return intr.scaled(w / intr.width, h / intr.height)
+    return intr.resized(w, h)
 
 
 def _disp_to_depth(disp: torch.Tensor) -> torch.Tensor:
@@ -685,19 +687,17 @@ class ProxyDepthEstimator:
             mono = self.mono.predict(np.asarray(kf.image))
             self.timings["mono_ms"] += 1e3 * (time.perf_counter() - t0)
         if mono is not None and mono.shape != (H, W):
-            import cv2
             mono = cv2.resize(mono, (W, H), interpolation=cv2.INTER_LINEAR)
         if mono is not None:       # kept for recomputations; relative depth: 1e-3 is plenty
             mono = np.where(np.isfinite(mono) & (mono > 0), mono, 0).astype(np.float16)
         guide = grey = None
         img = np.asarray(kf.image) if kf.image is not None else None
         if img is not None and img.shape[:2] != (H, W) and img.ndim in (2, 3):
-            import cv2
             img = cv2.resize(img, (W, H), interpolation=cv2.INTER_AREA)
         if self.dc.upsample_guided and img is not None and img.ndim == 3:
             guide = corner_preference(img, disp.shape[0], disp.shape[1])
         if self.dc.dense_views > 0 and img is not None and img.ndim in (2, 3):
-            grey = to_grey(img)
+            grey = to_gray(img).astype(np.uint8, copy=False)
         old = self._kfs.pop(int(kf.kf_id), None)
         self._kfs[int(kf.kf_id)] = _KfState(int(kf.kf_id), np.asarray(kf.pose, np.float64).copy(),
                                             disp.copy(), mono, guide,

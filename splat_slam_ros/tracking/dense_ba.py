@@ -352,8 +352,9 @@ def pose_only_refine_multi(T_refs: torch.Tensor, disp_refs: torch.Tensor, T_cur:
     weight left out. Residual, weights and Huber are those of the BA (:func:`_edge_terms`)."""
     dev, dt = disp_refs.device, disp_refs.dtype
     K, h, w = disp_refs.shape
-    fx, fy, cx, cy = intr_tensor(intr, dt, dev)
-    q = _rays(h, w, intr_tensor(intr, dt, dev))                              # (3, P)
+    k4 = intr_tensor(intr, dt, dev)
+    fx, fy, cx, cy = k4
+    q = _rays(h, w, k4)                                                      # (3, P)
     keep = weights.reshape(-1, 2).sum(-1) > 0
     d = disp_refs.reshape(-1)[keep]
     R = T_refs[:, :3, :3].to(dt)

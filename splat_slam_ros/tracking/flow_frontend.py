@@ -170,9 +170,11 @@ def flow_input(image: np.ndarray, disp_shape, ba_downsample: int) -> np.ndarray:
 
 
 def to_gray(img: np.ndarray) -> np.ndarray:
-    if img.ndim == 2:
-        return img
-    return cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    """(H, W, 3|4) RGB(A) or (H, W) grey -> contiguous (H, W) grey of the same dtype."""
+    img = np.asarray(img)
+    if img.ndim == 3:
+        img = cv2.cvtColor(np.ascontiguousarray(img[..., :3]), cv2.COLOR_RGB2GRAY)
+    return np.ascontiguousarray(img)
 
 
 def image_is_degenerate(img: np.ndarray, min_std: float = 2.0, min_grad: float = 0.5) -> bool:

@@ -78,7 +78,7 @@ class LoopCloser:
     # ------------------------------------------------------------ inputs
     def _setup(self, kd: KeyframeData) -> None:
         h, w = kd.disparity.shape                  # the tracker's BA grid (any image size)
-        bi = kd.intrinsics.scaled(w / kd.intrinsics.width, h / kd.intrinsics.height)
+        bi = kd.intrinsics.resized(w, h)
         self.intr = intr_tensor(bi, torch.float32, self.device)
         self.px_scale = flow_scale(self.intr)      # thresholds are in reference BA px
         self.h, self.w = h, w
