@@ -515,6 +515,7 @@ class MapperRole:
         self.finalized = False
         self.dirty: set = set()                     # keyframes whose depth changed
         self.held: set = set()                      # acked, waiting for a depth (see _try_map)
+        self.gone: set = set()                      # merged since the last snapshot
         self.snapshot_every = max(1, int(snapshot_every))
         self.n_since_snapshot = 0
         self.timings: Dict[str, float] = {"mapping": 0.0, "deformation": 0.0, "refine": 0.0}
@@ -543,7 +544,10 @@ class MapperRole:
         staged = {f"kf{k}_mdepth": self.store.stage(f"kf{k}_mdepth",
                                                      **keyframe_depth(self.mapper, k))
                   for k in sorted(self.dirty) if k in self.mapper.keyframes}
+        for k in sorted(self.gone):                    # merged keyframes: records deleted
+            staged[f"kf{k}_mdepth"] = staged[f"kf{k}_image"] = None
         self.dirty.clear()
+        self.gone.clear()
         i = self.intr
         staged["map"] = self.store.stage("map", **arrays)
         self.store.commit(staged, {"map": meta,
@@ -559,6 +563,7 @@ class MapperRole:
         for d in (self.pending_kf, self.pending_depth, self.offered, self.taken):
             d.clear()
         self.dirty.clear()
+        self.gone.clear()
         if self.store is not None:
             self.store.clear()
 
@@ -599,9 +604,10 @@ class MapperRole:
             # Map deformation (§3.2): the keyframe's Gaussians follow its new pose and depth
             t0 = time.perf_counter()
             self.mapper.apply_update(k, pd.pose, pd.depth, pd.valid)
-            self.timings["deformation"] += time.perf_counter() - t0
             self.taken[k] = int(pd.revision)
             self.dirty.add(k)
+            self._merge_revisit(k, pd)
+            self.timings["deformation"] += time.perf_counter() - t0
             self.last_update_seq = max(self.last_update_seq, int(pd.update_seq))
             out = Outbox()
         elif k in self.offered:                         # consumed, not mapped (redundant view)
@@ -644,9 +650,10 @@ class MapperRole:
             out.extend(self._map(self.pending_kf.pop(k), self.pending_depth.pop(k)))
         return out.extend(self._check_final())
 
-    def _revisit(self, pd: ProxyDepth) -> Optional[int]:
-        """A mapped keyframe that sees what ``pd``'s keyframe sees (``mapping.revisit_cull_deg``:
-        centre within kf_translation x median depth, optical axes within that angle)."""
+    def _revisit(self, pd: ProxyDepth, exclude: Optional[int] = None) -> Optional[int]:
+        """The mapped keyframe (other than ``exclude``) nearest to ``pd``'s keyframe that sees
+        what it sees (``mapping.revisit_cull_deg``: centre within kf_translation x median
+        depth, optical axes within that angle); None when there is none or the test is off."""
         mc = self.cfg.mapping
         if mc.revisit_cull_deg <= 0 or self.mapper is None or not self.mapper.keyframes:
             return None
@@ -657,12 +664,31 @@ class MapperRole:
         cos_max = np.cos(np.radians(mc.revisit_cull_deg))
         best = None
         for k, m in self.mapper.keyframes.items():
+            if k == exclude:
+                continue
             P = np.asarray(m.pose, np.float64)
             dist = float(np.linalg.norm(P[:3, 3] - T[:3, 3]))
             if dist < mc.kf_translation * med and float(P[:3, 2] @ T[:3, 2]) > cos_max and \
                     (best is None or dist < best[0]):
                 best = (dist, k)
         return None if best is None else best[1]
+
+    def _merge_revisit(self, k: int, pd: ProxyDepth) -> None:
+        """Keyframe ``k`` (mapped) moved: a new keyframe is mapped with the tracker's pose
+        before loop closure corrects it, so a revisit is often recognised only after a later
+        update. When ``k`` now sees what another mapped keyframe sees, the newer of the two
+        is merged into the older (``Mapper.merge_keyframe``): the mapped keyframes stay
+        bounded in a revisited room, and its Gaussians stay, following the older one."""
+        twin = self._revisit(pd, exclude=k)
+        if twin is None:
+            return
+        drop, keep = max(k, twin), min(k, twin)
+        if self.mapper.keyframes[drop].index == 0:       # the exposure gauge stays
+            drop, keep = keep, drop
+        self.mapper.merge_keyframe(drop, keep)
+        self.offered[drop] = False                      # later revisions: taken, not applied
+        self.dirty.discard(drop)
+        self.gone.add(drop)
 
     def _map(self, kf: KeyframeData, pd: ProxyDepth) -> Outbox:
         t0 = time.perf_counter()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from splat_slam_ros.io.keyframe_store import KeyframeStore
 from splat_slam_ros.roles import TrackerRole
@@ -141,3 +142,63 @@ def test_mapper_role_does_not_map_revisits_when_asked():
     assert sum(off.offered.values()) >= 6                 # the window rules map the way back
     assert [k for k, m in on.offered.items() if m] == [0, 1, 2, 3]       # revisits are not
     assert len(on.mapper.keyframes) == 4
+
+
+def test_mapper_role_merges_a_keyframe_that_an_update_shows_to_be_a_revisit(tmp_path):
+    """A revisit keyframe arrives with a drifted pose (mapped as a new place); the update that
+    corrects it puts it on an older mapped keyframe: it is merged, its Gaussians stay and follow
+    the older keyframe, and a restart restores the merged map."""
+    from splat_slam_ros.config import MappingConfig, SlamConfig
+    from splat_slam_ros.roles import MapperRole
+    from splat_slam_ros.types import KeyframeData, ProxyDepth
+    from test_tracker import render_room
+    cfg = SlamConfig()
+    cfg.mapping = MappingConfig.fast(iters_first=5, iters_per_keyframe=1, revisit_cull_deg=10.0)
+    role = MapperRole(cfg, store=KeyframeStore(tmp_path / "mapper"))
+
+    def pose(x, y=0.0):
+        T = np.eye(4)
+        T[0, 3], T[1, 3] = x, y
+        return T
+
+    def offer(k, true_x, est_x):
+        img, depth = render_room(pose(true_x), INTR)
+        role.on_keyframe(KeyframeData(k, k, float(k), pose(est_x), img, INTR,
+                                      np.ones((30, 40), np.float32), np.ones((30, 40), np.float32)))
+        role.on_proxy_depth(ProxyDepth(k, depth, np.ones_like(depth, np.uint8), pose(est_x),
+                                       timestamp=k))
+        return depth
+
+    for k, x in enumerate([0.0, 0.5, 1.0]):
+        offer(k, x, x)
+    depth3 = offer(3, 0.5, 1.6)                              # drifted: a "new place"
+    assert sorted(role.mapper.keyframes) == [0, 1, 2, 3]
+    n_gauss = len(role.mapper.map)
+    own3 = (role.mapper.map.kf_id == 3).nonzero()[:, 0]
+    assert len(own3) > 0
+    # loop closure corrects kf 3 onto kf 1's view -> merged into kf 1
+    role.on_proxy_depth(ProxyDepth(3, depth3, np.ones_like(depth3, np.uint8), pose(0.5),
+                                   revision=1, timestamp=3))
+    m = role.mapper
+    assert sorted(m.keyframes) == [0, 1, 2] and role.offered[3] is False
+    assert m.counts["merged_keyframes"] == 1 and 3 not in m.window.window
+    assert len(m.map) == n_gauss and int((m.map.kf_id == 3).sum()) == 0
+    uid3 = m.map.uid[own3].clone()
+    before = m.map.means[torch.isin(m.map.uid, uid3)].clone()
+    # the older keyframe moves: the merged Gaussians move with it
+    depth1 = render_room(pose(0.5), INTR)[1]
+    role.on_proxy_depth(ProxyDepth(1, depth1, np.ones_like(depth1, np.uint8), pose(0.5, 0.1),
+                                   revision=1, timestamp=1))
+    after = m.map.means[torch.isin(m.map.uid, uid3)]
+    assert torch.allclose(after - before, torch.tensor([0.0, 0.1, 0.0]), atol=1e-4)
+    # a later revision of the merged keyframe is taken, not applied
+    role.on_proxy_depth(ProxyDepth(3, depth3, np.ones_like(depth3, np.uint8), pose(0.5),
+                                   revision=2, timestamp=3))
+    assert role.taken[3] == 2 and sorted(m.keyframes) == [0, 1, 2]
+    role.snapshot()
+    assert not role.store.has("kf3_image") and not role.store.has("kf3_mdepth")
+    again = MapperRole(cfg, store=KeyframeStore(tmp_path / "mapper"))
+    assert sorted(again.mapper.keyframes) == [0, 1, 2] and len(again.mapper.map) == n_gauss
+    assert again.offered[3] is False
+    # the next new keyframe gets a fresh index (no clash with the merged one's)
+    assert again.mapper._next_index == 4

@@ -83,7 +83,8 @@ class Mapper:
         self.n_deformations = 0
         self.n_deformed_gaussians = 0
         self.counts = {"cloned": 0, "split": 0, "pruned_opacity": 0, "pruned_size": 0,
-                       "pruned_visibility": 0}
+                       "pruned_visibility": 0, "merged_keyframes": 0}
+        self._next_index = 0           # MappedKeyframe.index of the next mapped keyframe
         self.last_ms = 0.0
         self.skipped_iters = 0         # steps dropped to stay within the time budgets
         self._last_mapped_ts: Optional[float] = None
@@ -222,7 +223,7 @@ class Mapper:
             self.history.append(history_entry(stats, timestamp))
             return stats
 
-        kf = MappedKeyframe(kf_id, len(self.keyframes),
+        kf = MappedKeyframe(kf_id, self._next_index,
                             float(kf_id if timestamp is None else timestamp), pose, img_t,
                             depth_t, valid_t, torch.zeros(2, device=self.device))
         self._add_keyframe_record(kf)
@@ -287,6 +288,7 @@ class Mapper:
             else:
                 self._exp_opt.add_param_group(grp)
         self.keyframes[kf.kf_id] = kf
+        self._next_index = max(self._next_index, kf.index + 1)
 
     # =========================================================== optimisation
     def _pick_views(self, single_random: bool) -> List[int]:
@@ -489,7 +491,7 @@ class Mapper:
         g = self.map
         if m.prune_covis_min <= 0 or len(g) == 0:
             return 0
-        cand = g.created >= len(self.keyframes) - m.prune_recent_kfs
+        cand = g.created >= self._next_index - m.prune_recent_kfs
         count = torch.zeros(len(g), dtype=torch.long, device=g.device)
         for j in self.window.window:
             vis = self.window.visibility.get(j)
@@ -527,6 +529,35 @@ class Mapper:
         self.n_deformations += 1
         self.n_deformed_gaussians += int(len(sel))
         return int(len(sel))
+
+    @torch.no_grad()
+    def merge_keyframe(self, kf_id: int, into: int) -> int:
+        """A mapped keyframe whose view an older one already has leaves the map's keyframes
+        (a bounded map in a revisited room): its Gaussians are anchored to ``into`` from now on
+        (they follow its deformations, Eq. 9), its view leaves the window and the optimisation.
+        Returns the Gaussians re-anchored. The first keyframe (exposure gauge) stays."""
+        kf_id, into = int(kf_id), int(into)
+        kf, keep = self.keyframes.get(kf_id), self.keyframes.get(into)
+        if kf is None or keep is None or kf_id == into:
+            raise MapError(f"cannot merge keyframe {kf_id} into {into}: both must be mapped")
+        if kf.index == 0:
+            raise MapError(f"keyframe {kf_id} fixes the exposure gauge and cannot be merged")
+        sel = self.map.kf_id == kf_id
+        n = int(sel.sum())
+        self.map.kf_id[sel] = into
+        if self._exp_opt is not None:           # its exposure leaves the optimiser
+            self._exp_opt.param_groups = [g for g in self._exp_opt.param_groups
+                                          if g["params"][0] is not kf.exposure]
+            self._exp_opt.state.pop(kf.exposure, None)
+        w = self.window
+        if kf_id in w.window:
+            w.window.remove(kf_id)
+        w.forget(kf_id)
+        if w.last == kf_id:
+            w.last = w.window[0] if w.window else into
+        del self.keyframes[kf_id]
+        self.counts["merged_keyframes"] += 1
+        return n
 
     def apply_updates(self, kf_ids: Sequence[int], poses, depths=None, valids=None) -> int:
         """Several keyframes of one update event (see :meth:`apply_update`)."""
@@ -612,7 +643,7 @@ class Mapper:
                 "next_uid": g.next_uid, "iteration": int(self.iteration),
                 "n_deformations": int(self.n_deformations),
                 "n_deformed_gaussians": int(self.n_deformed_gaussians),
-                "scene_depth": float(self._scene_depth)}
+                "scene_depth": float(self._scene_depth), "next_index": int(self._next_index)}
         return arrays, meta
 
     def load_state_dict(self, arrays: Dict[str, np.ndarray], meta: Dict, image_of,
@@ -648,6 +679,7 @@ class Mapper:
         self.n_deformations = int(meta.get("n_deformations", 0))
         self.n_deformed_gaussians = int(meta.get("n_deformed_gaussians", 0))
         self._scene_depth = float(meta.get("scene_depth", 0.0))
+        self._next_index = max(self._next_index, int(meta.get("next_index", 0)))
 
     def save_renders(self, folder, depth_scale: float = 1000.0) -> int:
         """Write ``kf_<id>.png`` (rendered colour with the keyframe's exposure) and
