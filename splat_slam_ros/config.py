@@ -212,7 +212,8 @@ class MappingConfig:
     scene_extent: float = 0.0            # metres; 0 = from keyframe centres and depth
     keyframe_every: int = 0              # map_sequence only: map every k-th frame (0 = window rules)
     # revisits: a keyframe is not mapped when a mapped one is within kf_translation x median
-    # depth and this many degrees of viewing direction (0 = off; bounds long runs in one room)
+    # depth and this many degrees of viewing direction, and a mapped keyframe that an update
+    # moves onto another one's view is merged into the older (0 = off; bounds long runs in one room)
     revisit_cull_deg: float = 0.0
     seed: int = 0
     # map_mesh.ply: TSDF fusion of rendered depth + colour at the keyframe poses (mapping/mesh.py)
