@@ -677,8 +677,9 @@ class MapperRole:
         """Keyframe ``k`` (mapped) moved: a new keyframe is mapped with the tracker's pose
         before loop closure corrects it, so a revisit is often recognised only after a later
         update. When ``k`` now sees what another mapped keyframe sees, the newer of the two
-        is merged into the older (``Mapper.merge_keyframe``): the mapped keyframes stay
-        bounded in a revisited room, and its Gaussians stay, following the older one."""
+        is merged into the older (``Mapper.merge_keyframe``: its Gaussians in the older view
+        are removed as duplicates, the rest follow the older keyframe), so keyframes and
+        Gaussians stay bounded in a revisited room."""
         twin = self._revisit(pd, exclude=k)
         if twin is None:
             return

@@ -27,7 +27,7 @@ import torch
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.mapping.deformation import deform_gaussians
 from splat_slam_ros.mapping.gaussian_map import GaussianMap
-from splat_slam_ros.geometry import quat_to_matrix, se3_inverse
+from splat_slam_ros.geometry import project, quat_to_matrix, se3_inverse, transform_points
 from splat_slam_ros.mapping.keyframe_views import history_entry, write_keyframe_views
 from splat_slam_ros.mapping.keyframe_window import KeyframeDecision, KeyframeWindow
 from splat_slam_ros.mapping.map_init import init_gaussians
@@ -531,20 +531,25 @@ class Mapper:
         return int(len(sel))
 
     @torch.no_grad()
-    def merge_keyframe(self, kf_id: int, into: int) -> int:
-        """A mapped keyframe whose view an older one already has leaves the map's keyframes
-        (a bounded map in a revisited room): its Gaussians are anchored to ``into`` from now on
-        (they follow its deformations, Eq. 9), its view leaves the window and the optimisation.
-        Returns the Gaussians re-anchored. The first keyframe (exposure gauge) stays."""
+    def merge_keyframe(self, kf_id: int, into: int) -> Tuple[int, int]:
+        """A mapped keyframe whose view an older one (``into``) already has leaves the map's
+        keyframes (a bounded map in a revisited room), as if it had been recognised as a
+        revisit when it arrived: its Gaussians inside the older keyframe's view duplicate
+        that view's and are removed; the rest (what only it saw) are anchored to ``into``
+        and follow its deformations (Eq. 9). Its view leaves the window and the optimiser.
+        Returns (Gaussians removed, Gaussians re-anchored). The first keyframe (exposure
+        gauge) stays."""
         kf_id, into = int(kf_id), int(into)
         kf, keep = self.keyframes.get(kf_id), self.keyframes.get(into)
         if kf is None or keep is None or kf_id == into:
             raise MapError(f"cannot merge keyframe {kf_id} into {into}: both must be mapped")
         if kf.index == 0:
             raise MapError(f"keyframe {kf_id} fixes the exposure gauge and cannot be merged")
-        sel = self.map.kf_id == kf_id
-        n = int(sel.sum())
-        self.map.kf_id[sel] = into
+        own = self.map.kf_id == kf_id
+        seen = own & self._in_view(self.map.means, keep.pose)
+        self.map.kf_id[own & ~seen] = into
+        n_moved = int((own & ~seen).sum())
+        n_removed = self.map.remove(seen)
         if self._exp_opt is not None:           # its exposure leaves the optimiser
             self._exp_opt.param_groups = [g for g in self._exp_opt.param_groups
                                           if g["params"][0] is not kf.exposure]
@@ -557,7 +562,14 @@ class Mapper:
             w.last = w.window[0] if w.window else into
         del self.keyframes[kf_id]
         self.counts["merged_keyframes"] += 1
-        return n
+        return n_removed, n_moved
+
+    def _in_view(self, means: torch.Tensor, pose) -> torch.Tensor:
+        """Which points project inside the image of a camera at ``pose`` (in front of it)."""
+        X = transform_points(self._viewmat(pose), means)
+        uv = project(X, torch.tensor(self.intr, dtype=X.dtype, device=X.device))
+        return (X[:, 2] > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 0] < self.W) & (uv[:, 1] >= 0) & \
+            (uv[:, 1] < self.H)
 
     def apply_updates(self, kf_ids: Sequence[int], poses, depths=None, valids=None) -> int:
         """Several keyframes of one update event (see :meth:`apply_update`)."""
