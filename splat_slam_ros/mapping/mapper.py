@@ -246,7 +246,7 @@ class Mapper:
                        budget_s=self.keyframe_budget(empty, kf.timestamp),
                        min_iters=self.mcfg.min_iters_per_keyframe)
         self._last_mapped_ts = kf.timestamp
-        n_vis_pruned = self._visibility_prune() if self.window.full else 0
+        n_vis_pruned = self._visibility_prune() if self._enough_views() else 0
         self.last_ms = 1000 * (time.perf_counter() - t0)
         stats.update({"new_gaussians": n_new, "left_window": removed,
                       "visibility_pruned": n_vis_pruned, "loss": round(self.last_loss, 5)})
@@ -483,6 +483,14 @@ class Mapper:
         self.counts["pruned_size"] += int((big & ~low).sum())
         return g.remove(rm)
 
+    def _enough_views(self) -> bool:
+        """Visibility pruning needs enough views to judge (MonoGS: a full window). In a
+        revisited room merged keyframes keep the window from ever filling: there it also
+        runs once the window holds every mapped keyframe, more than prune_covis_min of them."""
+        w = self.window
+        return w.full or (self.counts["merged_keyframes"] > 0 and
+                          len(w) == len(self.keyframes) > self.mcfg.prune_covis_min)
+
     @torch.no_grad()
     def _visibility_prune(self) -> int:
         """New Gaussians (last ``prune_recent_kfs`` keyframes) seen by fewer than
@@ -655,7 +663,8 @@ class Mapper:
                 "next_uid": g.next_uid, "iteration": int(self.iteration),
                 "n_deformations": int(self.n_deformations),
                 "n_deformed_gaussians": int(self.n_deformed_gaussians),
-                "scene_depth": float(self._scene_depth), "next_index": int(self._next_index)}
+                "scene_depth": float(self._scene_depth), "next_index": int(self._next_index),
+                "counts": dict(self.counts)}
         return arrays, meta
 
     def load_state_dict(self, arrays: Dict[str, np.ndarray], meta: Dict, image_of,
@@ -692,6 +701,7 @@ class Mapper:
         self.n_deformed_gaussians = int(meta.get("n_deformed_gaussians", 0))
         self._scene_depth = float(meta.get("scene_depth", 0.0))
         self._next_index = max(self._next_index, int(meta.get("next_index", 0)))
+        self.counts.update({k: int(v) for k, v in (meta.get("counts") or {}).items()})
 
     def save_renders(self, folder, depth_scale: float = 1000.0) -> int:
         """Write ``kf_<id>.png`` (rendered colour with the keyframe's exposure) and
