@@ -516,6 +516,8 @@ class MapperRole:
         self.dirty: set = set()                     # keyframes whose depth changed
         self.held: set = set()                      # acked, waiting for a depth (see _try_map)
         self.gone: set = set()                      # merged since the last snapshot
+        self.loop_seen = False                      # a loop closer's updates arrive
+        self.settled: set = set()                   # keyframes a loop-closure update moved
         self.snapshot_every = max(1, int(snapshot_every))
         self.n_since_snapshot = 0
         self.timings: Dict[str, float] = {"mapping": 0.0, "deformation": 0.0, "refine": 0.0}
@@ -564,6 +566,7 @@ class MapperRole:
             d.clear()
         self.dirty.clear()
         self.gone.clear()
+        self.settled.clear()
         if self.store is not None:
             self.store.clear()
 
@@ -600,6 +603,9 @@ class MapperRole:
         k = int(pd.kf_id)
         if pd.revision <= self.taken.get(k, -1):        # a replay
             return Outbox()
+        if int(pd.update_seq) >= LOOP_SEQ_START:        # made after a loop-closure update
+            self.loop_seen = True
+            self.settled.add(k)
         if self.mapper is not None and k in self.mapper.keyframes:
             # Map deformation (§3.2): the keyframe's Gaussians follow its new pose and depth
             t0 = time.perf_counter()
@@ -623,6 +629,7 @@ class MapperRole:
     def on_update(self, ev: UpdateEvent) -> Outbox:
         # the deformation itself follows the depth stage's ProxyDepth stream
         self.last_update_seq = max(self.last_update_seq, int(ev.seq))
+        self.loop_seen |= int(ev.seq) >= LOOP_SEQ_START
         return Outbox()
 
     def on_final(self, node: str, info: dict) -> Outbox:
@@ -636,19 +643,33 @@ class MapperRole:
         """Map every keyframe that has its depth. A proxy depth with (almost) no valid pixel
         (revision 0 of a keyframe that had no views yet: the first of a small warm-up batch)
         would anchor no Gaussians and leave the map without a scene depth: such a keyframe
-        is acked (lockstep goes on) and held until a revision with depth or the final digest."""
+        is acked (lockstep goes on) and held until a revision with depth or the final digest.
+        In revisit mode a keyframe is also held until loop closure has corrected its pose
+        (:meth:`_unsettled`)."""
         out = Outbox()
         for k in sorted(self.pending_kf):
             if k not in self.pending_depth:
                 continue
             pd = self.pending_depth[k]
-            if self.digest is None and _valid_fraction(pd) < MIN_DEPTH_FRACTION:
+            if self.digest is None and (_valid_fraction(pd) < MIN_DEPTH_FRACTION or
+                                        self._unsettled(k)):
                 if k not in self.held:
                     self.held.add(k)
                     out.acks.append(_ack(self.pending_kf[k]))
                 continue
             out.extend(self._map(self.pending_kf.pop(k), self.pending_depth.pop(k)))
         return out.extend(self._check_final())
+
+    def _unsettled(self, k: int) -> bool:
+        """Revisit mode (``mapping.revisit_cull_deg``) with a loop closer running: a new
+        keyframe comes with the tracker's drifting pose, and mapped like that a revisit looks
+        like a new place (duplicate Gaussians, a view that conflicts with the map and drives
+        densification until a later merge). Such a keyframe waits, acked, for a depth
+        revision made after a loop-closure update (its pose corrected) or the final digest;
+        the first keyframe of the map never waits."""
+        return (self.cfg.mapping.revisit_cull_deg > 0 and self.loop_seen and
+                self.mapper is not None and bool(self.mapper.keyframes) and
+                k not in self.settled)
 
     def _revisit(self, pd: ProxyDepth, exclude: Optional[int] = None) -> Optional[int]:
         """The mapped keyframe (other than ``exclude``) nearest to ``pd``'s keyframe that sees

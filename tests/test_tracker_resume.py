@@ -208,3 +208,57 @@ def test_mapper_role_merges_a_keyframe_that_an_update_shows_to_be_a_revisit(tmp_
     assert again.offered[3] is False
     # the next new keyframe gets a fresh index (no clash with the merged one's)
     assert again.mapper._next_index == 4
+    assert again.mapper.counts["merged_keyframes"] == 1
+    # merges keep the window from filling: visibility pruning runs once the window holds every
+    # mapped keyframe and more than prune_covis_min of them
+    role = again
+    assert not role.mapper.window.full and not role.mapper._enough_views()
+    offer(4, 1.5, 1.5)
+    assert len(role.mapper.keyframes) == 4 == len(role.mapper.window)
+    assert not role.mapper.window.full and role.mapper._enough_views()
+
+
+def test_mapper_role_in_revisit_mode_waits_for_a_loop_corrected_pose():
+    """With a loop closer running, a new keyframe is mapped once a depth revision made after a
+    loop-closure update arrives (its drifted pose corrected), so a revisit is recognised on
+    arrival instead of being mapped as a new place; without loop updates nothing waits."""
+    from splat_slam_ros.config import MappingConfig, SlamConfig
+    from splat_slam_ros.roles import MapperRole
+    from splat_slam_ros.types import LOOP_SEQ_START, KeyframeData, ProxyDepth, UpdateEvent
+    from test_tracker import render_room
+    cfg = SlamConfig()
+    cfg.mapping = MappingConfig.fast(iters_first=5, iters_per_keyframe=1, revisit_cull_deg=10.0)
+    role = MapperRole(cfg)
+
+    def pose(x):
+        T = np.eye(4)
+        T[0, 3] = x
+        return T
+
+    def depth_of(k, true_x, est_x, rev=0, seq=0):
+        depth = render_room(pose(true_x), INTR)[1]
+        return role.on_proxy_depth(ProxyDepth(k, depth, np.ones_like(depth, np.uint8),
+                                              pose(est_x), revision=rev, update_seq=seq,
+                                              timestamp=k))
+
+    def keyframe(k, true_x, est_x):
+        img = render_room(pose(true_x), INTR)[0]
+        return role.on_keyframe(KeyframeData(k, k, float(k), pose(est_x), img, INTR,
+                                             np.ones((30, 40), np.float32),
+                                             np.ones((30, 40), np.float32)))
+
+    for k, x in enumerate([0.0, 0.5]):                      # no loop closer seen yet
+        keyframe(k, x, x)
+        depth_of(k, x, x)
+    assert sorted(role.mapper.keyframes) == [0, 1]
+    role.on_update(UpdateEvent(seq=LOOP_SEQ_START, reason="loop_closure", kf_ids=[],
+                               poses=np.zeros((0, 4, 4)), disparities=np.zeros((0, 30, 40))))
+    assert role.loop_seen
+    out = keyframe(2, 0.0, 0.9)                             # a revisit of kf 0, drifted
+    out.extend(depth_of(2, 0.0, 0.9))
+    assert 2 in role.held and 2 not in role.offered and len(out.acks) == 1   # acked, waiting
+    assert not depth_of(2, 0.0, 0.85, rev=1, seq=7).acks    # a tracker update: still waiting
+    assert 2 not in role.offered
+    out = depth_of(2, 0.0, 0.0, rev=2, seq=LOOP_SEQ_START + 1)   # loop closure corrected it
+    assert role.offered[2] is False and sorted(role.mapper.keyframes) == [0, 1]
+    assert not out.acks and 2 not in role.held              # acked once, when it was held

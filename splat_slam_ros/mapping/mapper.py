@@ -558,6 +558,11 @@ class Mapper:
         self.map.kf_id[own & ~seen] = into
         n_moved = int((own & ~seen).sum())
         n_removed = self.map.remove(seen)
+        # densification statistics gathered while its view sat at a wrong (uncorrected) pose
+        # say nothing about missing detail: reset for what that view covers
+        stale = self._in_view(self.map.means, kf.pose)
+        self.map.grad_accum[stale] = 0
+        self.map.grad_count[stale] = 0
         if self._exp_opt is not None:           # its exposure leaves the optimiser
             self._exp_opt.param_groups = [g for g in self._exp_opt.param_groups
                                           if g["params"][0] is not kf.exposure]

@@ -112,19 +112,20 @@ class KeyframeSet:
         """Ids of ``before`` (a :meth:`snapshot`) that moved by more than ``pose_thresh``
         (rotation in rad, translation relative to the mean depth) or whose mean disparity
         changed by more than ``disp_thresh`` (relative): what an update event must carry."""
-        ids = []
-        for k, (P0, D0) in before.items():
-            if k not in self._kf:
-                continue
-            P1, D1 = self._kf[k].pose, self._kf[k].disp
-            dxi = se3_log(se3_inverse(P0) @ P1)
-            scale = 1.0 / max(float(D1.mean()), 1e-6)
-            moved = float(dxi[:3].norm()) > pose_thresh * scale or \
-                float(dxi[3:].norm()) > pose_thresh
-            dd = float((D1 - D0).abs().mean()) / max(float(D0.abs().mean()), 1e-9)
-            if moved or dd > disp_thresh:
-                ids.append(k)
-        return ids
+        ids = [k for k in before if k in self._kf]
+        if not ids:
+            return []
+        # one batched log over every keyframe (a global BA asks about all of them)
+        P0 = torch.stack([before[k][0] for k in ids])
+        P1 = torch.stack([self._kf[k].pose for k in ids])
+        D0 = torch.stack([before[k][1] for k in ids])
+        D1 = torch.stack([self._kf[k].disp for k in ids])
+        dxi = se3_log(se3_inverse(P0) @ P1)
+        scale = 1.0 / D1.flatten(1).mean(1).clamp_min(1e-6)
+        moved = (dxi[:, :3].norm(dim=1) > pose_thresh * scale) | \
+            (dxi[:, 3:].norm(dim=1) > pose_thresh)
+        dd = (D1 - D0).abs().flatten(1).mean(1) / D0.abs().flatten(1).mean(1).clamp_min(1e-9)
+        return [k for k, m in zip(ids, (moved | (dd > disp_thresh)).tolist()) if m]
 
     def update_event(self, seq: int, reason: str, ids: Sequence[int]) -> UpdateEvent:
         """An :class:`UpdateEvent` with the current poses / disparities of ``ids``."""
