@@ -15,9 +15,9 @@ node process (/proc/<pid>/status VmRSS), the tracker's keyframes (its checkpoint
 the mapper's Gaussians and mapped keyframes (/splat/map/status). At the end it checks:
 - RSS plateau: every node's RSS at the end within 10 % of its RSS at the middle of the run;
 - bounded map: Gaussians at the end within 10 % of the middle, mapped keyframes within 10 %
-  (or 3 keyframes) of the middle (the
-  default config sets mapping.revisit_cull_deg: a keyframe that revisits a mapped view is
-  consumed but not mapped);
+  (or 3 keyframes) of the middle (the benchmark's config sets mapping.revisit_cull_deg: a
+  keyframe that revisits a mapped view is consumed but not mapped, new keyframes wait for a
+  loop-corrected pose, and a mapped keyframe an update shows to be a revisit is merged);
 - nothing lost: no node restarted or died, every keyframe the tracker published reached the
   mapper, every frame the tracker took is in the full trajectory (realtime mode drops frames
   by design when the tracker is busy, and DDS may not deliver some: both are counted).
