@@ -262,3 +262,31 @@ def test_mapper_role_in_revisit_mode_waits_for_a_loop_corrected_pose():
     out = depth_of(2, 0.0, 0.0, rev=2, seq=LOOP_SEQ_START + 1)   # loop closure corrected it
     assert role.offered[2] is False and sorted(role.mapper.keyframes) == [0, 1]
     assert not out.acks and 2 not in role.held              # acked once, when it was held
+
+
+def test_checkpoint_packs_one_record_per_checkpoint_and_bounded_disk(tmp_path):
+    """Changed keyframes of one checkpoint go into one record; records nobody refers to are
+    deleted, and mostly stale ones are rewritten, so the stored items stay O(live items)."""
+    from splat_slam_ros.tracking.tracker_state import _Packs
+    st = KeyframeStore(tmp_path / "s")
+    packs = _Packs("tkfp", None)
+    rng = np.random.default_rng(0)
+    version = {}
+
+    def arrays(key):
+        return {"v": np.array([version[key]])}
+
+    for step in range(60):
+        changed = [str(k) for k in rng.choice(40, size=rng.integers(1, 30), replace=False)]
+        for key in changed:
+            version[key] = step
+        staged = {}
+        packs.write(st, staged, {key: arrays(key) for key in changed}, arrays)
+        assert len([n for n, f in staged.items() if f is not None]) <= 1     # one file
+        st.commit(staged, {"packs": packs.state()})
+        stored = sum(packs.size.values())
+        assert stored <= 2 * len(version) + len(changed)
+    again = _Packs("tkfp", KeyframeStore(tmp_path / "s").meta["packs"])
+    for key, v in version.items():                      # the newest version of every item
+        assert int(again.read(st, key)["v"][0]) == v
+    assert set(st.names()) == set(again.size)

@@ -8,14 +8,20 @@ Each checkpoint writes only what changed since the previous one:
 
   ``tstate``       poses of all keyframes (the BA variables ``omega`` of Eq. 1), motion state
                    (last pose, constant-velocity model, last flow) - small, rewritten
-  ``tkf<k>``       disparity + flow confidence of keyframe k, rewritten when its disparity
-                   tensor was replaced (local BA, global BA write new tensors)
+  ``tkfp<n>``      disparity + flow confidence of the keyframes whose disparity tensor was
+                   replaced since the previous checkpoint (local BA, loop closure and global BA
+                   write new tensors), all in one file; the manifest says which file holds
+                   each keyframe's newest version, and a file no keyframe refers to is deleted
   ``timg<k>``      the image handed on with a window keyframe (mapping size; prepared as the
                    flow front-end input again on restore, resized to the BA grid x
                    ba_downsample), deleted once the keyframe leaves the window
-  ``tedge<i>_<j>`` one flow edge of the window's factor graph (target + weight, Eq. 1),
-                   written once, deleted when pruned; ages and kinds live in the manifest
+  ``tedgep<n>``    the flow edges of the window's factor graph (target + weight, Eq. 1) added
+                   since the previous checkpoint, in one file, deleted once all its edges were
+                   pruned; ages and kinds live in the manifest
   ``trec<n>``      the frame records (trajectory filler) since the previous checkpoint
+
+One file per checkpoint for each kind (not one per keyframe or edge): every file costs an
+fsync, and a loop-closure update moves dozens of keyframes.
 
 Metadata (window, published ids, next keyframe id, update numbers, ...) goes into the same
 atomic manifest commit, so a checkpoint is either complete or absent. A restored tracker
@@ -24,7 +30,7 @@ continues with new keyframe ids and update numbers, never reusing published ones
 from __future__ import annotations
 
 import itertools
-from typing import Dict, List, Optional, Sequence
+from typing import Callable, Dict, List, Optional, Sequence
 
 import numpy as np
 import torch
@@ -107,6 +113,84 @@ def _records_from(a: Dict[str, np.ndarray]) -> List[FrameRecord]:
     return out
 
 
+def _disp_arrays(ks: KeyframeState) -> Dict[str, np.ndarray]:
+    return {"disp": ks.disp.cpu().numpy(),
+            "conf": (ks.conf if ks.conf is not None else torch.ones_like(ks.disp)).cpu().numpy(),
+            "info": np.array([ks.frame_index, ks.timestamp])}
+
+
+def _edge_arrays(val) -> Dict[str, np.ndarray]:
+    return {"target": val[0].cpu().numpy(), "weight": val[1].cpu().numpy()}
+
+
+class _Packs:
+    """Items (keyframes, edges) written together, one store record per checkpoint: the
+    manifest maps each item to the record holding its newest version, and a record no item
+    refers to any more is deleted with the commit that stops referring to it. A record whose
+    items are mostly newer elsewhere has its remaining items written again (disk stays
+    O(items), not O(items x checkpoints))."""
+
+    def __init__(self, prefix: str, state: Optional[dict]):
+        state = state or {}
+        self.prefix = prefix
+        self.of: Dict[str, str] = dict(state.get("of", {}))       # item key -> record name
+        self.size: Dict[str, int] = {k: int(v) for k, v in state.get("size", {}).items()}
+        nums = [int(v[len(prefix):]) for v in self.size]
+        self.n = max(nums) + 1 if nums else 0
+        self._cache: Dict[str, Dict[str, np.ndarray]] = {}
+
+    def state(self) -> dict:
+        return {"of": dict(self.of), "size": dict(self.size)}
+
+    def stale(self) -> List[str]:
+        """Items of records that less than half of their items still refer to."""
+        live: Dict[str, List[str]] = {}
+        for key, name in self.of.items():
+            live.setdefault(name, []).append(key)
+        return [key for name, keys in live.items() if 2 * len(keys) < self.size.get(name, 0)
+                for key in keys]
+
+    def write(self, st: KeyframeStore, staged: dict, items: Dict[str, Dict[str, np.ndarray]],
+              current: Callable[[str], Dict[str, np.ndarray]]) -> None:
+        """Stage one record with the changed ``items`` (key -> arrays) and the unchanged
+        items (``current(key)``) of records this leaves mostly stale; delete dead records."""
+        name = f"{self.prefix}{self.n}"
+        self.of.update({key: name for key in items})
+        for key in self.stale():
+            items[key] = current(key)
+            self.of[key] = name
+        if items:
+            self.n += 1
+            keys = list(items)                   # one stacked array per field (few zip members)
+            staged[name] = st.stage(name, keys=np.array(keys), **{
+                f: np.stack([items[k][f] for k in keys]) for f in items[keys[0]]})
+            self.size[name] = len(items)
+        live = set(self.of.values())
+        for dead in [n for n in self.size if n not in live]:     # nothing refers to it
+            staged[dead] = None
+            del self.size[dead]
+
+    def drop(self, key: str) -> None:
+        self.of.pop(key, None)
+
+    def read(self, st: KeyframeStore, key: str) -> Dict[str, np.ndarray]:
+        name = self.of.get(key)
+        if name is None or not st.has(name):
+            raise TrackerStateError(f"tracker checkpoint in {st.dir} misses the record of {key}")
+        if name not in self._cache:
+            rec = st.get(name)
+            rec["_row"] = {str(k): i for i, k in enumerate(rec.pop("keys").tolist())}
+            self._cache[name] = rec
+        rec = self._cache[name]
+        if key not in rec["_row"]:
+            raise TrackerStateError(f"tracker checkpoint in {st.dir}: {name} lacks {key}")
+        i = rec["_row"][key]
+        return {f: v[i] for f, v in rec.items() if f != "_row"}
+
+    def done_reading(self) -> None:
+        self._cache.clear()
+
+
 class TrackerCheckpoint:
     """Incremental save / restore of a Tracker's state in ``store`` (see module doc)."""
 
@@ -116,6 +200,8 @@ class TrackerCheckpoint:
         self._edges_saved: Dict[tuple, tuple] = {}        # (i, j) -> (target, weight) written
         self._n_records = int(store.meta.get("trk_records", 0))
         self._chunks = int(store.meta.get("trk_chunks", 0))
+        self._disps = _Packs("tkfp", store.meta.get("trk_disp_records"))
+        self._edges = _Packs("tedgep", store.meta.get("trk_edge_records"))
 
     @property
     def exists(self) -> bool:
@@ -143,28 +229,28 @@ class TrackerCheckpoint:
                 staged[f"timg{k}"] = st.stage(f"timg{k}", image=np.asarray(kd.image, np.uint8))
         for k in list(self._disp_saved):
             if k not in trk.kfs:                              # dropped candidate / reset
-                staged[f"tkf{k}"] = None
+                self._disps.drop(str(k))
                 del self._disp_saved[k]
+        disps = {}
         for k in ids:
             ks = trk.kfs[k]
             if ks.prep is None and st.has(f"timg{k}"):
                 staged[f"timg{k}"] = None
             if self._disp_saved.get(k) is not ks.disp:
-                staged[f"tkf{k}"] = st.stage(f"tkf{k}", disp=ks.disp.cpu().numpy(),
-                                             conf=(ks.conf if ks.conf is not None else
-                                                   torch.ones_like(ks.disp)).cpu().numpy(),
-                                             info=np.array([ks.frame_index, ks.timestamp]))
+                disps[str(k)] = _disp_arrays(ks)
                 self._disp_saved[k] = ks.disp
+        self._disps.write(st, staged, disps, lambda key: _disp_arrays(trk.kfs[int(key)]))
         edges = trk.graph.edges
         for e in [e for e in self._edges_saved if e not in edges]:
-            staged[f"tedge{e[0]}_{e[1]}"] = None
+            self._edges.drop(f"{e[0]}_{e[1]}")
             del self._edges_saved[e]
+        added = {}
         for e, val in edges.items():
             if self._edges_saved.get(e) is not val:
-                staged[f"tedge{e[0]}_{e[1]}"] = st.stage(f"tedge{e[0]}_{e[1]}",
-                                                         target=val[0].cpu().numpy(),
-                                                         weight=val[1].cpu().numpy())
+                added[f"{e[0]}_{e[1]}"] = _edge_arrays(val)
                 self._edges_saved[e] = val
+        self._edges.write(st, staged, added, lambda key: _edge_arrays(
+            edges[tuple(int(x) for x in key.split("_"))]))
         new = trk.records[self._n_records:]
         if new:
             staged[f"trec{self._chunks}"] = st.stage(f"trec{self._chunks}",
@@ -189,6 +275,8 @@ class TrackerCheckpoint:
                 "trk_last_stamp": (float(trk.records[-1].timestamp) if trk.records else None),
                 "trk_motion_typical": trk.motion._typical,
                 "trk_last_flow_ref": None if lf is None else int(lf[0]),
+                "trk_disp_records": self._disps.state(),
+                "trk_edge_records": self._edges.state(),
                 "trk_edges": {f"{i}_{j}": [int(trk.graph.age[(i, j)]), trk.graph.kind[(i, j)]]
                               for (i, j) in trk.graph.edges}}
 
@@ -199,11 +287,9 @@ class TrackerCheckpoint:
         st, m = self.store, self.store.meta
         s = st.get("tstate")
         dev = trk.device
-        if len(s["ids"]) and any(f"tkf{int(k)}" not in st.names() for k in s["ids"]):
-            raise TrackerStateError(f"tracker checkpoint in {st.dir} misses keyframe records")
         trk.kfs.clear()
         for n, k in enumerate(int(x) for x in s["ids"]):
-            r = st.get(f"tkf{k}")
+            r = self._disps.read(st, str(k))
             if r["disp"].shape != (trk.h, trk.w):
                 raise TrackerStateError(f"tracker checkpoint in {st.dir} has {r['disp'].shape} "
                                         f"disparities, the tracker runs at {(trk.h, trk.w)}")
@@ -219,7 +305,7 @@ class TrackerCheckpoint:
             self._disp_saved[k] = ks.disp
         for key, (age, kind) in m.get("trk_edges", {}).items():
             i, j = (int(x) for x in key.split("_"))
-            e = st.get(f"tedge{key}")
+            e = self._edges.read(st, key)
             val = (torch.as_tensor(e["target"], device=dev), torch.as_tensor(e["weight"], device=dev))
             trk.graph.edges[(i, j)] = val
             trk.graph.age[(i, j)] = int(age)
@@ -245,3 +331,5 @@ class TrackerCheckpoint:
             int(ref), torch.as_tensor(s["last_flow"], device=dev))
         trk._seq = itertools.count(int(next_seq))
         self._n_records = len(recs)
+        self._disps.done_reading()
+        self._edges.done_reading()
