@@ -35,7 +35,7 @@ RESULTS = REPO / "benchmarks" / "results" / "mapping.json"
 
 from splat_slam_ros.config import load_config  # noqa: E402
 from splat_slam_ros.io.datasets import open_dataset  # noqa: E402
-from splat_slam_ros.mapping.mapper import map_sequence  # noqa: E402
+from splat_slam_ros.mapping.map_sequence import map_sequence  # noqa: E402
 from splat_slam_ros.types import Frame, Intrinsics  # noqa: E402
 
 ICL_K = Intrinsics(481.2, -480.0, 319.5, 239.5, 640, 480)

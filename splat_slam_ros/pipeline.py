@@ -20,7 +20,7 @@ from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.coordinator import Coordinator
 from splat_slam_ros.evaluation import ate
 from splat_slam_ros.io.trajectory_io import read_trajectory, write_tum
-from splat_slam_ros.mapping.mapper import map_sequence
+from splat_slam_ros.mapping.map_sequence import map_sequence
 from splat_slam_ros.report import WarningRecorder, write_report
 
 

@@ -10,7 +10,8 @@ from splat_slam_ros.geometry import se3_exp, se3_inverse
 from splat_slam_ros.mapping.keyframe_window import (KeyframeWindow, covisibility_iou,
                                             overlap_coefficient)
 from splat_slam_ros.mapping.map_init import init_gaussians, nn_scale
-from splat_slam_ros.mapping.mapper import MapError, Mapper, map_sequence
+from splat_slam_ros.mapping.mapper import MapError, Mapper
+from splat_slam_ros.mapping.map_sequence import map_sequence
 from splat_slam_ros.types import Frame, Intrinsics
 
 W, H, F = 48, 36, 42.0
