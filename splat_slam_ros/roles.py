@@ -517,7 +517,8 @@ class MapperRole:
         self.held: set = set()                      # acked, waiting for a depth (see _try_map)
         self.gone: set = set()                      # merged since the last snapshot
         self.loop_seen = False                      # a loop closer's updates arrive
-        self.settled: set = set()                   # keyframes a loop-closure update moved
+        self.settled: set = set()                   # keyframes loop closure has corrected
+        self.newest_kf = -1
         self.snapshot_every = max(1, int(snapshot_every))
         self.n_since_snapshot = 0
         self.timings: Dict[str, float] = {"mapping": 0.0, "deformation": 0.0, "refine": 0.0}
@@ -596,6 +597,7 @@ class MapperRole:
     def on_keyframe(self, kf: KeyframeData) -> Outbox:
         if kf.kf_id in self.offered or kf.kf_id in self.pending_kf:
             return Outbox()
+        self.newest_kf = max(self.newest_kf, int(kf.kf_id))
         self.pending_kf[kf.kf_id] = kf
         return self._try_map()
 
@@ -629,8 +631,17 @@ class MapperRole:
     def on_update(self, ev: UpdateEvent) -> Outbox:
         # the deformation itself follows the depth stage's ProxyDepth stream
         self.last_update_seq = max(self.last_update_seq, int(ev.seq))
-        self.loop_seen |= int(ev.seq) >= LOOP_SEQ_START
-        return Outbox()
+        if int(ev.seq) < LOOP_SEQ_START:
+            return Outbox()
+        self.loop_seen = True
+        # the loop closer got past the keyframes up to these without moving them: their pose
+        # is as corrected as it gets (the ones it moved settle with their next proxy depth)
+        moved = {int(k) for k in ev.kf_ids}
+        now = {k for k in self.pending_kf if moved and k <= max(moved) and k not in moved}
+        if not now - self.settled:
+            return Outbox()
+        self.settled |= now
+        return self._try_map()
 
     def on_final(self, node: str, info: dict) -> Outbox:
         if node == "depth":
@@ -665,11 +676,14 @@ class MapperRole:
         keyframe comes with the tracker's drifting pose, and mapped like that a revisit looks
         like a new place (duplicate Gaussians, a view that conflicts with the map and drives
         densification until a later merge). Such a keyframe waits, acked, for a depth
-        revision made after a loop-closure update (its pose corrected) or the final digest;
-        the first keyframe of the map never waits."""
+        revision made after a loop-closure update (its pose corrected), an update of the
+        loop closer that got past it without moving it, ``mapping.window_size`` newer
+        keyframes (a bound on the wait), or the final digest; the map's first keyframe never
+        waits."""
         return (self.cfg.mapping.revisit_cull_deg > 0 and self.loop_seen and
                 self.mapper is not None and bool(self.mapper.keyframes) and
-                k not in self.settled)
+                k not in self.settled and
+                self.newest_kf - k < self.cfg.mapping.window_size)
 
     def _revisit(self, pd: ProxyDepth, exclude: Optional[int] = None) -> Optional[int]:
         """The mapped keyframe (other than ``exclude``) nearest to ``pd``'s keyframe that sees
