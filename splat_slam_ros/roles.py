@@ -631,17 +631,8 @@ class MapperRole:
     def on_update(self, ev: UpdateEvent) -> Outbox:
         # the deformation itself follows the depth stage's ProxyDepth stream
         self.last_update_seq = max(self.last_update_seq, int(ev.seq))
-        if int(ev.seq) < LOOP_SEQ_START:
-            return Outbox()
-        self.loop_seen = True
-        # the loop closer got past the keyframes up to these without moving them: their pose
-        # is as corrected as it gets (the ones it moved settle with their next proxy depth)
-        moved = {int(k) for k in ev.kf_ids}
-        now = {k for k in self.pending_kf if moved and k <= max(moved) and k not in moved}
-        if not now - self.settled:
-            return Outbox()
-        self.settled |= now
-        return self._try_map()
+        self.loop_seen |= int(ev.seq) >= LOOP_SEQ_START
+        return Outbox()
 
     def on_final(self, node: str, info: dict) -> Outbox:
         if node == "depth":
@@ -676,10 +667,11 @@ class MapperRole:
         keyframe comes with the tracker's drifting pose, and mapped like that a revisit looks
         like a new place (duplicate Gaussians, a view that conflicts with the map and drives
         densification until a later merge). Such a keyframe waits, acked, for a depth
-        revision made after a loop-closure update (its pose corrected), an update of the
-        loop closer that got past it without moving it, ``mapping.window_size`` newer
-        keyframes (a bound on the wait), or the final digest; the map's first keyframe never
-        waits."""
+        revision made after a loop-closure update (its pose corrected), for at most
+        ``mapping.window_size`` newer keyframes (a live map must not lag further: mapped
+        then, a revisit is merged later), or the final digest; the map's first keyframe never
+        waits. (Also settling a keyframe when a loop update passed it without moving it let
+        drifted keyframes in again: soak run M, Gaussians +52 %.)"""
         return (self.cfg.mapping.revisit_cull_deg > 0 and self.loop_seen and
                 self.mapper is not None and bool(self.mapper.keyframes) and
                 k not in self.settled and
