@@ -670,8 +670,7 @@ class MapperRole:
         revision made after a loop-closure update (its pose corrected), for at most
         ``mapping.window_size`` newer keyframes (a live map must not lag further: mapped
         then, a revisit is merged later), or the final digest; the map's first keyframe never
-        waits. (Also settling a keyframe when a loop update passed it without moving it let
-        drifted keyframes in again: soak run M, Gaussians +52 %.)"""
+        waits."""
         return (self.cfg.mapping.revisit_cull_deg > 0 and self.loop_seen and
                 self.mapper is not None and bool(self.mapper.keyframes) and
                 k not in self.settled and

@@ -109,7 +109,6 @@ def test_keyframes_handed_on_at_the_mapping_size():
     mapping image's (the same pixels the camera stage would give at that size), the
     disparity is on the tracker's 48x36 BA grid, and a loop closer / proxy depth stage
     fed with it gets the geometry of that grid back."""
-    from splat_slam_ros.depth.proxy_depth import ba_intrinsics
     from splat_slam_ros.tracking.flow_frontend import ImagePreprocessor, flow_input
     from splat_slam_ros.tracking.loop_closure import LoopCloser
     frames, gt_ts, gt = fr2desk_clip("640x480", 30, 5)
@@ -126,7 +125,7 @@ def test_keyframes_handed_on_at_the_mapping_size():
         assert kd.intrinsics.fx == pytest.approx(mp.intrinsics.fx)
         assert np.array_equal(kd.image, mp(frames[kd.frame_index].image))
         # BA-grid intrinsics from the handed-on camera = the tracker's own
-        bi = ba_intrinsics(kd.intrinsics, 36, 48)
+        bi = kd.intrinsics.resized(48, 36)
         assert np.allclose([bi.fx, bi.fy, bi.cx, bi.cy], tr.intr.tolist(), atol=1e-4)
         assert flow_input(kd.image, kd.disparity.shape, 8).shape == (288, 384, 3)
     lc = LoopCloser(cfg)

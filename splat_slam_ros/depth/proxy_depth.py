@@ -79,11 +79,6 @@ class ProxyDepthResult:
 
 
 # ------------------------------------------------------------------ helpers
-def ba_intrinsics(intr: Intrinsics, h: int, w: int) -> Intrinsics:
-    """Intrinsics of the (h, w) BA grid of an image with intrinsics ``intr``."""
-    return intr.resized(w, h)
-
-
 def _disp_to_depth(disp: torch.Tensor) -> torch.Tensor:
     ok = torch.isfinite(disp) & (disp > 0)
     return torch.where(ok, 1.0 / torch.where(ok, disp, torch.ones_like(disp)),
@@ -725,7 +720,7 @@ class ProxyDepthEstimator:
         disp = torch.from_numpy(np.stack([self._kfs[k].disparity for k in used])).to(dev)
         poses = torch.from_numpy(np.stack([self._kfs[k].pose for k in used])).to(dev)
         h, w = disp.shape[1:]
-        intr_ba = ba_intrinsics(self.intr, h, w)
+        intr_ba = self.intr.resized(w, h)      # the (h, w) BA grid
         pairs = torch.tensor([(index[k], index[n]) for k in ids for n in nb[k]],
                              dtype=torch.long, device=dev).reshape(-1, 2)
         depth_ba = _disp_to_depth(disp)

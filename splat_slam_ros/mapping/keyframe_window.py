@@ -83,6 +83,15 @@ class KeyframeWindow:
     def forget(self, kf_id: int) -> None:
         self.visibility.pop(kf_id, None)
 
+    def drop(self, kf_id: int, successor: int) -> None:
+        """A keyframe leaves the map (merged into ``successor``): out of the window; if it was
+        the last mapped one, the newest window keyframe (else ``successor``) takes its place."""
+        if kf_id in self.window:
+            self.window.remove(kf_id)
+        self.forget(kf_id)
+        if self.last == kf_id:
+            self.last = self.window[0] if self.window else successor
+
     # ----------------------------------------------------------- selection
     def decide(self, visible_uids: torch.Tensor, pose: np.ndarray, median_depth: float,
                poses: Dict[int, np.ndarray]) -> KeyframeDecision:

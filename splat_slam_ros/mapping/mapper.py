@@ -567,12 +567,7 @@ class Mapper:
             self._exp_opt.param_groups = [g for g in self._exp_opt.param_groups
                                           if g["params"][0] is not kf.exposure]
             self._exp_opt.state.pop(kf.exposure, None)
-        w = self.window
-        if kf_id in w.window:
-            w.window.remove(kf_id)
-        w.forget(kf_id)
-        if w.last == kf_id:
-            w.last = w.window[0] if w.window else into
+        self.window.drop(kf_id, into)
         del self.keyframes[kf_id]
         self.counts["merged_keyframes"] += 1
         return n_removed, n_moved
