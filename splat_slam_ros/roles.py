@@ -285,7 +285,8 @@ class LoopRole:
                                        if (a, o) not in unsaved),
                      checked=sorted([int(a), int(o)] for a, o in self.loop.checked
                                     if (a, o) not in unsaved),
-                     n_loops=int(self.loop.n_loops) - len(unsaved))
+                     n_loops=int(self.loop.n_loops) - len(unsaved),
+                     merged=self.loop.merged_list())
         return m
 
     def _loop_edges_staged(self) -> dict:
@@ -316,6 +317,7 @@ class LoopRole:
         self.loop.loop_pairs |= {(int(a), int(o)) for a, o in meta.get("loop_pairs", [])}
         self.loop.checked |= {(int(a), int(o)) for a, o in meta.get("checked", [])}
         self.loop.n_loops = int(meta.get("n_loops", len(self.loop.loop_pairs)))
+        self.loop.restore_merged(meta.get("merged", []))
 
     def on_keyframe(self, kf: KeyframeData) -> Outbox:
         batch = self.batcher.add(kf, lambda k: k in self.kf_ids)

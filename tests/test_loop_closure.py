@@ -192,7 +192,7 @@ def test_revisits_merge_into_older_keyframes_and_follow_them():
     """Two passes around the same loop: the second pass's keyframes, once settled, merge
     into the first pass's (the BA graph stays at about one pass), every keyframe keeps a
     pose in the trajectory, and merged ones follow their anchor through later updates."""
-    from splat_slam_ros.tracking.keyframe_merge import connected_without
+    from splat_slam_ros.tracking.keyframe_merge import components
     from splat_slam_ros.tracking.loop_closure import LoopCloser
     data = loop_keyframes()
     gt = np.stack([d[1] for d in data])
@@ -208,7 +208,7 @@ def test_revisits_merge_into_older_keyframes_and_follow_them():
     assert len(lc.merged) >= N_KF // 2, sorted(lc.merged)
     assert len(lc.kfs) + len(lc.merged) == 2 * N_KF
     assert all(m.anchor < k and m.anchor in lc.kfs for k, m in lc.merged.items())
-    assert connected_without(lc.graph.pairs(), lc.kfs.ids, -1)
+    assert components(lc.graph.pairs(), lc.kfs.ids) == 1
     assert not any(k in p for k in lc.merged for p in lc.graph.pairs())
     follower_events = [e for e in events if e.disparities is None]
     assert follower_events and all(set(e.kf_ids) <= set(lc.merged) for e in follower_events)
@@ -230,11 +230,18 @@ def test_revisits_merge_into_older_keyframes_and_follow_them():
         assert np.allclose(last[k], P[k], atol=1e-9)
 
 
-def test_connected_without_and_merge_rules():
-    from splat_slam_ros.tracking.keyframe_merge import connected_without, merge_candidates
+def test_splits_and_merge_rules():
+    from splat_slam_ros.tracking.keyframe_merge import merge_candidates, splits
     chain = [(0, 1), (1, 2), (2, 3), (3, 1)]
-    assert connected_without(chain, [0, 1, 2, 3], 3)
-    assert not connected_without(chain, [0, 1, 2, 3], 1)       # 0 would be cut off
+    assert not splits(chain, [0, 1, 2, 3], 3)
+    assert splits(chain, [0, 1, 2, 3], 1)                       # 0 would be cut off
+    # a graph already in two pieces (a tracking gap no edge bridged): each piece's own
+    # cut vertices are still found, and a removable keyframe is still removable
+    two = chain + [(5, 6), (6, 7), (7, 5), (7, 8)]
+    assert not splits(two, [0, 1, 2, 3, 5, 6, 7, 8], 3)
+    assert not splits(two, [0, 1, 2, 3, 5, 6, 7, 8], 6)
+    assert splits(two, [0, 1, 2, 3, 5, 6, 7, 8], 7)             # 8 would be cut off
+    assert not splits(two, [0, 1, 2, 3, 4, 5, 6, 7, 8], 4)     # an isolated keyframe
     poses = torch.eye(4, dtype=torch.float64).repeat(5, 1, 1)
     poses[4, 0, 3] = 0.5                                        # 4 is far from the others
     disps = torch.ones(5, 6, 8)
@@ -245,3 +252,12 @@ def test_connected_without_and_merge_rules():
     assert [(k, o) for k, o, _ in merge_candidates(range(5), poses, disps, intr, kinds, 1, 1.0)] \
         == [(3, 0)]
     assert merge_candidates(range(5), poses, disps, intr, kinds, 1, 0.0) == []
+    # the measured edge ties 3 to the older map (here to the far keyframe 1); it merges into
+    # the older keyframe nearest by induced flow, which no edge joins to it (0 and 2 tie: 0)
+    poses[1, 0, 3] = 0.5
+    kinds = {(3, 1): "loop", (2, 1): "odometry", (1, 0): "odometry"}
+    assert [(k, o) for k, o, _ in merge_candidates(range(5), poses, disps, intr, kinds, 1, 1.0)] \
+        == [(3, 0)]
+    # nothing but temporal edges: no keyframe is tied to the older map, none merges
+    kinds = {(3, 2): "odometry", (2, 1): "odometry", (1, 0): "odometry"}
+    assert merge_candidates(range(5), poses, disps, intr, kinds, 1, 1.0) == []

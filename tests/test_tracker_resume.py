@@ -116,6 +116,32 @@ def test_loop_role_keeps_its_accepted_loop_edges_across_a_restart(tmp_path):
     assert b.finalized and set(b.loop.loop_pairs) >= pairs
 
 
+def test_loop_role_keeps_its_merged_keyframes_across_a_restart(tmp_path):
+    """Keyframes the loop closer merged into older views stay merged after a restart (the
+    BA graph stays bounded), following the same anchors with the same relative poses."""
+    import torch
+
+    from splat_slam_ros.roles import LoopRole
+    from test_loop_closure import N_KF, drifted, keyframe, loop_cfg, loop_keyframes
+    data = loop_keyframes()
+    gt = np.stack([d[1] for d in data])
+    est = np.concatenate([gt, drifted(gt, rot_deg=0.05, trans=0.001)])
+    cfg = loop_cfg(global_ba_every=8, loop_closure=False)
+    a = LoopRole(cfg, store=KeyframeStore(tmp_path / "loop"))
+    for k in range(2 * N_KF):
+        a.on_keyframe(keyframe(k, est[k], data * 2))
+    merged = {k: (m.anchor, m.rel.clone()) for k, m in a.loop.merged.items()}
+    assert merged, "nothing merged"
+    kept = list(a.loop.kfs.ids)
+    del a                                                  # "kill -9"
+    b = LoopRole(cfg, store=KeyframeStore(tmp_path / "loop"))
+    assert list(b.loop.kfs.ids) == kept
+    assert {k: m.anchor for k, m in b.loop.merged.items()} == {k: v[0] for k, v in merged.items()}
+    for k, (_, rel) in merged.items():
+        assert torch.allclose(b.loop.merged[k].rel.cpu(), rel.cpu(), atol=1e-6)
+    assert not any(k in p for k in merged for p in b.loop.graph.pairs())
+
+
 def _revisit_run(cull_deg: float):
     from splat_slam_ros.config import MappingConfig, SlamConfig
     from splat_slam_ros.roles import MapperRole

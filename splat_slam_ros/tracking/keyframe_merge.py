@@ -9,12 +9,17 @@ when:
 
 1. ``k`` is settled: older than the newest ``settle`` keyframes (the loop window and the
    temporal radius, which the tracker's local BA and the loop BA still move);
-2. a *measured* non-temporal flow edge (a spatial or loop edge, not only the estimate) joins
-   ``k`` and ``o``, with ``o`` older than ``k`` and kept;
-3. the flow the current estimate induces between them (mean of both directions, BA px) is
-   below ``thresh`` (by default the tracker's keyframe threshold: ``k`` is a keyframe the
-   tracker would not have made had it tracked against ``o``);
-4. the graph without ``k`` stays connected (one gauge for global BA).
+2. ``k``'s pose is tied to the older map by a *measured* non-temporal flow edge (a spatial
+   or loop edge to an older keyframe, not only the estimate), so the estimate places it
+   where the older keyframes are;
+3. ``o`` is the older kept keyframe (not a temporal neighbour) to which the current estimate induces the smallest
+   flow (mean of both directions, BA px), and that flow is below ``thresh`` (by default
+   the tracker's keyframe threshold: ``k`` is a keyframe the tracker would not have made
+   had it tracked against ``o``). ``o`` need not be the keyframe of the edge in rule 2:
+   loop detection and global BA measure at most a couple of edges per keyframe, rarely
+   to the very nearest older one (in the soak, 64 of 269 keyframes that had an older
+   one within the threshold also had an edge to it);
+4. removing ``k`` does not cut its part of the graph in two (one gauge for global BA).
 
 A merged keyframe leaves the BA graph (its edges and variables go) and follows ``o`` rigidly:
 ``T_k = T_o T_rel`` with ``T_rel = T_o^-1 T_k`` frozen at the merge (camera-to-world poses).
@@ -41,46 +46,61 @@ class MergedKeyframe:
     timestamp: float
 
 
-def connected_without(pairs: Iterable[Tuple[int, int]], nodes: Iterable[int], drop: int) -> bool:
-    """Whether ``nodes`` minus ``drop`` form one connected component over ``pairs``."""
-    keep = set(nodes) - {drop}
-    if len(keep) <= 1:
-        return True
+def components(pairs: Iterable[Tuple[int, int]], nodes: Iterable[int]) -> int:
+    """The number of connected components of ``nodes`` over ``pairs``."""
+    nodes = set(nodes)
     adj: Dict[int, Set[int]] = defaultdict(set)
     for a, b in pairs:
-        if a in keep and b in keep:
+        if a in nodes and b in nodes:
             adj[a].add(b)
             adj[b].add(a)
-    start = next(iter(keep))
-    seen, todo = {start}, [start]
-    while todo:
-        for n in adj[todo.pop()]:
-            if n not in seen:
-                seen.add(n)
-                todo.append(n)
-    return len(seen) == len(keep)
+    seen: Set[int] = set()
+    n = 0
+    for start in nodes:
+        if start in seen:
+            continue
+        n += 1
+        seen.add(start)
+        todo = [start]
+        while todo:
+            for m in adj[todo.pop()]:
+                if m not in seen:
+                    seen.add(m)
+                    todo.append(m)
+    return n
+
+
+def splits(pairs: Sequence[Tuple[int, int]], nodes: Sequence[int], drop: int) -> bool:
+    """Whether removing ``drop`` cuts its component of the graph in two (rule 4: each
+    component keeps one gauge; a graph that is already in pieces, e.g. after a tracking
+    gap no edge bridged, still lets its pieces merge within themselves)."""
+    return components(pairs, set(nodes) - {drop}) > components(pairs, nodes) - (
+        0 if any(drop in p for p in pairs) else 1)
 
 
 def merge_candidates(ids: Sequence[int], poses: torch.Tensor, disps: torch.Tensor, intr,
-                     kinds: Dict[Tuple[int, int], str], settle: int, thresh: float
-                     ) -> List[Tuple[int, int, float]]:
-    """(k, o, induced distance) for every settled ``k`` joined to an older ``o`` by a
-    measured non-temporal edge with a mean induced flow below ``thresh`` (rules 1-3 above;
-    the closest ``o`` per ``k``). ``poses``/``disps`` are rows of ``ids``."""
+                     kinds: Dict[Tuple[int, int], str], settle: int, thresh: float,
+                     min_gap: int = 1, stride: int = 4) -> List[Tuple[int, int, float]]:
+    """(k, o, induced distance) for every settled ``k`` with a measured non-temporal edge to
+    an older keyframe, ``o`` the keyframe of ``ids`` at least ``min_gap`` ids older (a
+    revisit, not the temporal neighbour) nearest to it by induced flow, when that is below
+    ``thresh`` (rules 1-3 above). ``poses``/``disps`` are rows of ``ids``; the flow is
+    measured on a ``stride``-subsampled grid."""
     ids = list(ids)
     if thresh <= 0 or len(ids) <= settle:
         return []
     pos = {k: n for n, k in enumerate(ids)}
     settled = set(ids[:len(ids) - settle])
-    pairs = sorted({(max(a, b), min(a, b)) for (a, b), kind in kinds.items()
-                    if kind not in TEMPORAL_KINDS and a in settled and b in pos
-                    and max(a, b) in settled})
+    tied = sorted({max(a, b) for (a, b), kind in kinds.items()
+                   if kind not in TEMPORAL_KINDS and a in pos and b in pos
+                   and max(a, b) in settled})
+    pairs = [(k, o) for k in tied for o in ids if o <= k - min_gap]
     if not pairs:
         return []
     ii = torch.tensor([pos[k] for k, _ in pairs], device=disps.device)
     jj = torch.tensor([pos[o] for _, o in pairs], device=disps.device)
-    dist = 0.5 * (induced_flow_distance(poses, disps, intr, ii, jj)
-                  + induced_flow_distance(poses, disps, intr, jj, ii))
+    dist = 0.5 * (induced_flow_distance(poses, disps, intr, ii, jj, stride=stride)
+                  + induced_flow_distance(poses, disps, intr, jj, ii, stride=stride))
     best: Dict[int, Tuple[int, float]] = {}
     for (k, o), d in zip(pairs, dist.tolist()):
         if d < thresh and (k not in best or d < best[k][1]):

@@ -41,7 +41,7 @@ from splat_slam_ros.tracking.dense_ba import bundle_adjust, reproject
 from splat_slam_ros.tracking.factor_graph import FactorGraph, proximity_pairs
 from splat_slam_ros.tracking.flow_frontend import flow_input, make_flow_predictor
 from splat_slam_ros.tracking.global_ba import normalized_global_ba, spatial_pairs
-from splat_slam_ros.tracking.keyframe_merge import (MergedKeyframe, connected_without,
+from splat_slam_ros.tracking.keyframe_merge import (MergedKeyframe, splits,
                                                      merge_candidates)
 from splat_slam_ros.tracking.keyframe_set import KeyframeSet, KeyframeState
 from splat_slam_ros.tracking.motion_filter import MotionFilter, flow_scale
@@ -202,27 +202,42 @@ class LoopCloser:
         settle = max(tc.loop_window, tc.global_ba_radius + 1)
         P, D = self.kfs.stack(ids)
         cands = merge_candidates(ids, P, D, self.intr, self.graph.kind, settle,
-                                 tc.merge_flow * self.px_scale)
+                                 tc.merge_flow * self.px_scale, min_gap=tc.global_ba_radius + 1)
         done = []
         for k, o, _ in cands:
             if k not in self.kfs or o not in self.kfs or \
-                    not connected_without(self.graph.pairs(), self.kfs.ids, k):
+                    splits(self.graph.pairs(), self.kfs.ids, k):
                 continue
-            st = self.kfs[k]
-            rel = se3_inverse(self.kfs[o].pose) @ st.pose      # frozen T_o^-1 T_k
+            rel = se3_inverse(self.kfs[o].pose) @ self.kfs[k].pose      # frozen T_o^-1 T_k
             for m in self.merged.values():              # followers of k now follow o
                 if m.anchor == k:
                     m.anchor, m.rel = o, rel @ m.rel
-            self.merged[k] = MergedKeyframe(o, rel, st.timestamp)
-            self.graph.remove_node(k)
-            self.kfs.remove(k)
-            self.loop_pairs = {p for p in self.loop_pairs if k not in p}
-            self.checked = {p for p in self.checked if k not in p}
+            self._detach(k, o, rel, self.kfs[k].timestamp)
             done.append(k)
         if done:
             log.info("merged %d redundant keyframe(s) %s; %d kept, %d merged", len(done), done,
                      len(self.kfs), len(self.merged))
         return done
+
+    def _detach(self, k: int, anchor: int, rel: torch.Tensor, timestamp: float) -> None:
+        """Keyframe ``k`` leaves the BA graph and follows ``anchor`` (T_k = T_anchor rel)."""
+        self.merged[k] = MergedKeyframe(anchor, rel, timestamp)
+        self.graph.remove_node(k)
+        self.kfs.remove(k)
+        self.loop_pairs = {p for p in self.loop_pairs if k not in p}
+        self.checked = {p for p in self.checked if k not in p}
+
+    def merged_list(self) -> List[List]:
+        """[kf_id, anchor, timestamp] of every merged keyframe (a checkpoint's part)."""
+        return [[int(k), int(m.anchor), float(m.timestamp)] for k, m in sorted(self.merged.items())]
+
+    def restore_merged(self, entries: Sequence[Sequence]) -> None:
+        """Merge again, after a restart, the keyframes of :meth:`merged_list`; their stored
+        poses (kept current by the follower updates) give the frozen relative pose."""
+        for k, anchor, ts in sorted((int(a), int(b), float(c)) for a, b, c in entries):
+            if k in self.kfs and anchor in self.kfs:
+                self._detach(k, anchor, se3_inverse(self.kfs[anchor].pose) @ self.kfs[k].pose,
+                             ts)
 
     def _optimize(self, ids: Sequence[int], iters: int, fixed: int, normalize: bool):
         ii, jj, tgt, wgt, pairs = self.graph.gather(ids)
