@@ -59,6 +59,7 @@ mapping:
   densify_every: 50
   prune_min_age: 25
   revisit_cull_deg: 10.0
+  densify_max_per_view: 1.5
 """
 
 

@@ -215,6 +215,13 @@ class MappingConfig:
     # depth and this many degrees of viewing direction, and a mapped keyframe that an update
     # moves onto another one's view is merged into the older (0 = off; bounds long runs in one room)
     revisit_cull_deg: float = 0.0
+    # ... and, in that mode, a keyframe whose view the map already covers (this fraction of
+    # its pixels rendered with accumulated opacity > 0.5) is not mapped either, whatever its
+    # (drifting) pose says
+    revisit_coverage: float = 0.95
+    # densification stops for a keyframe's Gaussians at this x the number a keyframe anchors
+    # when mapped (pixels / downsample; 0 = no limit): a bounded map when views conflict
+    densify_max_per_view: float = 0.0
     seed: int = 0
     # map_mesh.ply: TSDF fusion of rendered depth + colour at the keyframe poses (mapping/mesh.py)
     mesh: bool = True                    # write map_mesh.ply with the other outputs / on save

@@ -727,9 +727,12 @@ class MapperRole:
             self.intr = kf.intrinsics
             self.mapper = Mapper(self.cfg, kf.intrinsics)
         twin = self._revisit(pd)
-        if twin is not None:                # a revisit: consumed, not mapped (bounded map)
+        cov = self.mapper.coverage(pd.pose) if self.cfg.mapping.revisit_cull_deg > 0 else 0.0
+        if twin is not None or cov >= self.cfg.mapping.revisit_coverage:
+            # a revisit: consumed, not mapped (bounded map)
             st = dict(self.mapper.stats(), kf_id=int(kf.kf_id), mapped=False,
-                      reason=f"revisit of {twin}")
+                      reason=f"revisit of {twin}" if twin is not None else
+                      f"map covers {cov:.0%} of its view")
         else:
             st = self.mapper.add_keyframe(kf.kf_id, kf.image, pd.pose, pd.depth, pd.valid,
                                           timestamp=kf.timestamp)

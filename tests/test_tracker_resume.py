@@ -170,6 +170,72 @@ def test_mapper_role_does_not_map_revisits_when_asked():
     assert len(on.mapper.keyframes) == 4
 
 
+def test_revisit_mode_does_not_map_a_view_the_map_already_covers():
+    """A keyframe whose pose is too far from every mapped one for the pose test (drift, or
+    a step forward) but whose view the map already covers is consumed, not mapped."""
+    from splat_slam_ros.config import MappingConfig, SlamConfig
+    from splat_slam_ros.roles import MapperRole
+    from splat_slam_ros.types import KeyframeData, ProxyDepth
+    from test_tracker import render_room
+
+    def run(cull_deg):
+        cfg = SlamConfig()
+        cfg.mapping = MappingConfig.fast(iters_first=5, iters_per_keyframe=1,
+                                         revisit_cull_deg=cull_deg)
+        role = MapperRole(cfg)
+        for k, z in enumerate([0.0, 0.6]):                 # a step forward into the room
+            T = np.eye(4)
+            T[2, 3] = z
+            img, depth = render_room(T, INTR)
+            role.on_keyframe(KeyframeData(k, k, float(k), T, img, INTR,
+                                          np.ones((30, 40), np.float32),
+                                          np.ones((30, 40), np.float32)))
+            role.on_proxy_depth(ProxyDepth(k, depth, np.ones_like(depth, np.uint8), T,
+                                           timestamp=k))
+        return role
+
+    off, on = run(0.0), run(10.0)
+    assert off.offered == {0: True, 1: True}              # the window rules map it
+    assert on.offered == {0: True, 1: False}
+    T = np.eye(4)
+    T[2, 3] = 0.6
+    depth = render_room(T, INTR)[1]
+    assert on._revisit(ProxyDepth(1, depth, np.ones_like(depth, np.uint8), T)) is None  # pose
+    assert on.mapper.coverage(T) >= on.cfg.mapping.revisit_coverage
+
+
+def test_densification_stops_at_the_view_budget():
+    """``mapping.densify_max_per_view``: a keyframe's Gaussians stop growing by clone/split
+    at that multiple of what a mapped keyframe anchors; the highest gradients go first."""
+    from splat_slam_ros.config import MappingConfig, SlamConfig
+    from splat_slam_ros.mapping.mapper import Mapper
+    from test_tracker import render_room
+
+    def densified(cap):
+        cfg = SlamConfig()
+        cfg.mapping = MappingConfig.fast(iters_first=3, densify_every=10 ** 6,
+                                         densify_grad_thresh=1e-12, densify_max_per_view=cap)
+        m = Mapper(cfg, INTR)
+        img, depth = render_room(np.eye(4), INTR)
+        m.add_keyframe(0, img, np.eye(4), depth)
+        n0 = len(m.map)
+        grad = (m.map.grad_accum / m.map.grad_count.clamp_min(1)).clone()
+        uid = m.map.uid.clone()
+        m._densify()
+        return m, n0, grad, uid
+
+    free, n0, _, _ = densified(0.0)
+    assert len(free.map) > 1.5 * n0                        # everything selected: ~doubles
+    budget = int(1.2 * INTR.width * INTR.height / MappingConfig.fast().downsample_first)
+    capped, n0c, grad, uid = densified(1.2)
+    assert n0c == n0 and n0 < budget < len(free.map)
+    assert len(capped.map) == budget
+    # the ones densified were the highest-gradient ones (a split parent leaves the map)
+    top = set(uid[torch.argsort(grad, descending=True)[:budget - n0]].tolist())
+    split = set(uid.tolist()) - set(capped.map.uid.tolist())
+    assert split and split <= top
+
+
 def test_mapper_role_merges_a_keyframe_that_an_update_shows_to_be_a_revisit(tmp_path):
     """A revisit keyframe arrives with a drifted pose (mapped as a new place); the update that
     corrects it puts it on an older mapped keyframe: it is merged, its Gaussians stay and follow

@@ -137,6 +137,13 @@ class Mapper:
         rgb = (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
         return rgb, out.depth.float().cpu().numpy()
 
+    @torch.no_grad()
+    def coverage(self, pose) -> float:
+        """Fraction of the image the map covers at ``pose`` (accumulated opacity > 0.5)."""
+        if len(self.map) == 0:
+            return 0.0
+        return float((self._raster(self._check_pose(pose)).alpha > 0.5).float().mean())
+
     @staticmethod
     def _expose(rgb: torch.Tensor, kf: MappedKeyframe) -> torch.Tensor:
         return rgb * kf.exposure[0].exp() + kf.exposure[1]      # a_k C_k + b_k (Eq. 8)
@@ -438,6 +445,8 @@ class Mapper:
         scales = g.scales()
         smax = scales.max(1).values
         limit = self.mcfg.percent_dense * self.scene_extent()
+        if self.mcfg.densify_max_per_view > 0:
+            sel = self._within_view_budget(sel, grad)
         clone = (sel & (smax <= limit)).nonzero()[:, 0]
         split = (sel & (smax > limit)).nonzero()[:, 0]
         t = g.tensors()
@@ -461,6 +470,23 @@ class Mapper:
         self.counts["cloned"] += len(clone)
         self.counts["split"] += len(split)
         return len(clone), len(split)
+
+    def _within_view_budget(self, sel: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
+        """``sel`` limited, per anchor keyframe, to the highest-gradient Gaussians that keep
+        its count within ``densify_max_per_view`` x the Gaussians a keyframe anchors when
+        mapped (a clone or a split adds one)."""
+        g, m = self.map, self.mcfg
+        out = torch.zeros_like(sel)
+        for k in torch.unique(g.kf_id[sel]).tolist():
+            kf = self.keyframes.get(int(k))
+            ds = m.downsample_first if kf is not None and kf.index == 0 else m.downsample
+            room = int(m.densify_max_per_view * self.H * self.W / max(ds, 1)) - \
+                int((g.kf_id == k).sum())
+            if room <= 0:
+                continue
+            idx = (sel & (g.kf_id == k)).nonzero()[:, 0]
+            out[idx[torch.argsort(grad[idx], descending=True)[:room]]] = True
+        return out
 
     @torch.no_grad()
     def _prune(self) -> int:
