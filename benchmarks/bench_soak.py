@@ -11,10 +11,13 @@ in a row (``splat-slam-launch --loop-bag N``, each pass shifted in time): the ca
 revisiting the same room.
 
 While the graph runs, the benchmark samples every ``--sample-every`` seconds: the RSS of every
-node process (/proc/<pid>/status VmRSS), the tracker's keyframes (its checkpoint manifest), and
-the mapper's Gaussians and mapped keyframes (/splat/map/status). At the end it checks:
-- RSS plateau: every node's RSS at the end within 10 % of its RSS at the middle of the run;
-- bounded map: Gaussians at the end within 10 % of the middle, mapped keyframes within 10 %
+node process (/proc/<pid>/status VmRSS, and its private part RssAnon and shared-memory part
+RssShmem), the tracker's keyframes (its checkpoint manifest), and the mapper's Gaussians and
+mapped keyframes (/splat/map/status). Levels are medians over the samples within 5 % of the
+frames played around the start (5 %) and the middle (50 %), and over the last 10 % (the end):
+one sample can land on a transient burst. At the end it checks:
+- RSS plateau: every node's RSS level at the end within 10 % of its level at the middle;
+- bounded map: the Gaussians' level at the end within 10 % of the middle, mapped keyframes within 10 %
   (or 3 keyframes) of the middle (the benchmark's config sets mapping.revisit_cull_deg: a
   keyframe that revisits a mapped view is consumed but not mapped, new keyframes wait for a
   loop-corrected pose, and a mapped keyframe an update shows to be a revisit is merged);
@@ -122,10 +125,13 @@ def pingpong_bag(data_dir: Path, size) -> Path:
 
 
 # --------------------------------------------------------------------------- sampling
-def _rss_mb(pid: int) -> Optional[float]:
+def _rss_mb(pid: int, field: str = "VmRSS") -> Optional[float]:
+    """A /proc/<pid>/status memory field in MB: VmRSS (all resident memory), RssAnon (the
+    process's private heap and stacks), RssShmem (resident pages of shared memory: the DDS
+    shared-memory segments it maps)."""
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
+            if line.startswith(field + ":"):
                 return int(line.split()[1]) / 1024.0
     except (OSError, ValueError, IndexError):
         return None
@@ -227,6 +233,8 @@ def run_soak(bag: Path, cfg_path: Path, out: Path, passes: int, rate: float,
                     pass
                 s = {"t": round(time.monotonic() - t0, 2), "frames": int(prog.get("frames", 0)),
                      "rss_mb": {n: _rss_mb(p) for n, p in pids.items()},
+                     "anon_mb": {n: _rss_mb(p, "RssAnon") for n, p in pids.items()},
+                     "shmem_mb": {n: _rss_mb(p, "RssShmem") for n, p in pids.items()},
                      "tracker_keyframes": tracker_keyframes(out), **status.last,
                      "load": os.getloadavg()[0]}
                 samples.append(s)
@@ -242,22 +250,50 @@ def run_soak(bag: Path, cfg_path: Path, out: Path, passes: int, rate: float,
             "samples": samples}
 
 
-def _at(samples: List[dict], frac: float) -> dict:
-    """The sample at ``frac`` of the frames played (before finalisation)."""
+WINDOW = 0.05       # levels are medians over +-5 % of the frames played (the end: the last 10 %)
+
+
+def _playing(samples: List[dict]) -> List[dict]:
+    """The samples taken while frames were played (up to the first one after the last frame:
+    finalisation comes after)."""
     playing = [s for s in samples if s["frames"] > 0]
     last = max(s["frames"] for s in playing)
-    return next(s for s in playing if s["frames"] >= frac * last)
+    n = next(i for i, s in enumerate(playing) if s["frames"] >= last)
+    return playing[:n + 1]
+
+
+def _level(samples: List[dict], frac: float, key) -> Optional[float]:
+    """Median of ``key(sample)`` over the samples within WINDOW of ``frac`` of the frames
+    played (``frac`` 1.0: the last 2 x WINDOW). A single sample can land on a transient burst
+    (a global BA's recomputations move a node's RSS by ~150 MB for a few seconds), so the
+    checks compare levels, not samples."""
+    last = samples[-1]["frames"]
+    lo, hi = (1.0 - 2 * WINDOW, 1.0) if frac >= 1.0 else (frac - WINDOW, frac + WINDOW)
+    vals = [key(s) for s in samples if lo * last <= s["frames"] <= hi * last]
+    vals = [v for v in vals if v is not None]
+    return float(np.median(vals)) if vals else None
 
 
 def summarise(res: dict, out: Path) -> dict:
     m = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").is_file() else {}
-    smp = [s for s in res["samples"] if s["frames"] > 0]
-    if not smp:
+    if not any(s["frames"] > 0 for s in res["samples"]):
         raise SoakError("no sample taken while frames were played")
-    start, mid, end = _at(smp, 0.05), _at(smp, 0.5), _at(smp, 1.0)
+    smp = _playing(res["samples"])
+    fracs = (0.05, 0.5, 1.0)
     nodes = sorted({n for s in smp for n in s["rss_mb"]})
-    rss = {n: [s["rss_mb"].get(n) for s in (start, mid, end)] for n in nodes}
+
+    def levels(key):
+        return [_level(smp, f, key) for f in fracs]
+
+    rss = {n: levels(lambda s, n=n: s["rss_mb"].get(n)) for n in nodes}
+    anon = {n: levels(lambda s, n=n: (s.get("anon_mb") or {}).get(n)) for n in nodes}
+    peak = {n: [max((s["rss_mb"].get(n) or 0) for s in smp if s["frames"] <= 0.5 * smp[-1]["frames"]),
+                max((s["rss_mb"].get(n) or 0) for s in smp if s["frames"] > 0.5 * smp[-1]["frames"])]
+            for n in nodes}
     growth = {n: (v[2] / v[1] - 1.0) if v[1] and v[2] else None for n, v in rss.items()}
+    start, mid, end = ({k: round(_level(smp, f, lambda s, k=k: s[k]))
+                        for k in ("gaussians", "keyframes_mapped", "tracker_keyframes")}
+                       for f in fracs)
     checks = {"rss_plateau": all(g is not None and g <= 0.10 for g in growth.values()),
               "gaussians_bounded": bool(mid["gaussians"]) and
               end["gaussians"] <= 1.10 * mid["gaussians"],
@@ -287,6 +323,9 @@ def summarise(res: dict, out: Path) -> dict:
                                      for n, v in rss.items()},
             "rss_growth_last_half": {n: None if g is None else round(g, 4)
                                      for n, g in growth.items()},
+            "anon_mb_start_mid_end": {n: [None if x is None else round(x, 1) for x in v]
+                                      for n, v in anon.items()},
+            "rss_peak_mb_first_last_half": {n: [round(x, 1) for x in v] for n, v in peak.items()},
             "tracker_keyframes": [start["tracker_keyframes"], mid["tracker_keyframes"],
                                   end["tracker_keyframes"], m.get("keyframes")],
             "mapped_keyframes": [start["keyframes_mapped"], mid["keyframes_mapped"],
@@ -300,12 +339,17 @@ def table(r: dict) -> str:
     lines = [f"frames {r['frames']} (dropped by the realtime queue {r['frames_dropped_realtime']}, "
              f"not delivered {r['frames_not_delivered']}, posed {r['frames_posed']}), "
              f"wall {r['wall_s']:.0f} s, load {r['load_mean']}",
-             "| node | RSS start MB | RSS middle MB | RSS end MB | growth, last half |",
-             "|---|---|---|---|---|"]
+             "| node | RSS start MB | RSS middle MB | RSS end MB | growth, last half | "
+             "private (RssAnon) start / middle / end MB | peak first / last half MB |",
+             "|---|---|---|---|---|---|---|"]
     for n, v in r["rss_mb_start_mid_end"].items():
         g = r["rss_growth_last_half"][n]
+        a = r["anon_mb_start_mid_end"].get(n) or [None] * 3
+        p = r["rss_peak_mb_first_last_half"].get(n) or [None] * 2
         lines.append(f"| {n} | {v[0]} | {v[1]} | {v[2]} | "
-                     f"{'-' if g is None else f'{100 * g:+.1f} %'} |")
+                     f"{'-' if g is None else f'{100 * g:+.1f} %'} | "
+                     f"{' / '.join('-' if x is None else f'{x:.0f}' for x in a)} | "
+                     f"{' / '.join('-' if x is None else f'{x:.0f}' for x in p)} |")
     lines += ["| count | start | middle | end |", "|---|---|---|---|",
               "| tracker keyframes | " + " | ".join(str(x) for x in r["tracker_keyframes"][:3]) + " |",
               "| mapped keyframes | " + " | ".join(str(x) for x in r["mapped_keyframes"]) + " |",

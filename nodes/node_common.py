@@ -23,7 +23,7 @@ import traceback
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional
 
-from splat_slam_ros.heap import release_free_memory
+from splat_slam_ros.heap import bound_heap, release_free_memory
 from splat_slam_ros.ros_env import RosEnvError, apply_ros_environment
 
 # --------------------------------------------------------------------------- names
@@ -58,7 +58,9 @@ TRIM_EVERY_S = 1.0        # free heap pages go back to the OS at most this often
 
 
 def init_process() -> None:
-    """Project DDS environment, before rclpy is imported (every node's first call)."""
+    """Project DDS environment, before rclpy is imported (every node's first call); the
+    allocator settings of a long-running process (:func:`splat_slam_ros.heap.bound_heap`)."""
+    bound_heap()
     try:
         apply_ros_environment()
     except RosEnvError as e:

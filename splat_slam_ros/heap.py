@@ -21,3 +21,23 @@ def release_free_memory() -> bool:
         return False
     fn(0)
     return True
+
+
+M_MMAP_THRESHOLD = -3          # glibc mallopt parameters (malloc.h)
+M_ARENA_MAX = -8
+
+
+def bound_heap(mmap_threshold: int = 1 << 20, arenas: int = 2) -> bool:
+    """Allocator settings for long-running processes (glibc ``mallopt``).
+
+    glibc serves an allocation above the mmap threshold with its own mapping, unmapped on
+    free; but the threshold rises to the size of every such block freed (up to 32 MiB), so
+    after the first large tensors are freed, later ones come from the heap, where blocks of
+    changing sizes fragment it and RSS creeps up over a long run. A fixed threshold (setting
+    it turns the adjustment off) keeps large blocks out of the heap; fewer arenas keep the
+    threads (executor, worker, BLAS) from each holding their own fragmented heap. Returns
+    False where the C library has no ``mallopt``."""
+    fn = getattr(_LIBC, "mallopt", None)
+    if fn is None:
+        return False
+    return bool(fn(M_MMAP_THRESHOLD, int(mmap_threshold))) & bool(fn(M_ARENA_MAX, int(arenas)))

@@ -471,7 +471,9 @@ class DepthRole:
             if k > known_max:
                 self.pending[int(k)] = (ev.poses[i], None if ev.disparities is None
                                         else ev.disparities[i])
-        changed = self.est.apply_update(ev, defer) if self.est is not None else []
+        # the loop closer's poses-only updates move the keyframes it merged (rigid followers)
+        follow = src == "loop" and ev.disparities is None
+        changed = self.est.apply_update(ev, defer, follow) if self.est is not None else []
         self.seq[src] = int(ev.seq)
         out = Outbox(proxy_depths=[self._send(new, True) for _old, new in changed])
         _persist_events(self.store, [ev], self.meta())

@@ -24,3 +24,32 @@ def test_freed_fragmented_heap_is_given_back():
     after = rss_mb()
     assert after < before - 10, (before, after)
     assert float(sum(k.sum() for k in keep)) == 100 * 30000          # what is in use stays
+
+
+CHURN = """
+import sys, torch
+from splat_slam_ros.heap import bound_heap
+if sys.argv[1] == "1":
+    assert bound_heap() is True
+big = torch.ones(1000000)      # 4 MB, mmapped and freed: glibc raises its mmap threshold
+del big
+blocks, keep = [], []
+for i in range(50):            # 2 MB blocks between small ones that stay, then freed
+    blocks.append(torch.ones(500000))
+    keep.append(torch.ones(1000))
+del blocks
+with open("/proc/self/status") as f:
+    print(int(next(l for l in f if l.startswith("VmRSS")).split()[1]) // 1024)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc mallopt: Linux only")
+def test_bounded_heap_keeps_large_freed_blocks_out_of_the_heap():
+    """bound_heap (every node's start-up): large blocks stay mmapped and go back to the OS
+    when freed, without waiting for a trim; glibc's default lets them into the heap once
+    the first one was freed, where they stay resident."""
+    import subprocess
+    rss = {flag: int(subprocess.run([sys.executable, "-c", CHURN, flag], check=True,
+                                    capture_output=True, text=True).stdout.split()[-1])
+           for flag in ("0", "1")}
+    assert rss["1"] < rss["0"] - 60, rss               # 50 x 2 MB freed

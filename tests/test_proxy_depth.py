@@ -420,3 +420,46 @@ def test_depth_role_defers_queued_updates_and_flushes_before_anything_else():
     out = role.on_final("tracker", {"last_seq": TRACKER_SEQ_START + 2})
     assert {p.kf_id for p in out.proxy_depths} >= {3} and out.final is not None
     assert out.final["digest"]["3"] == rev[3] + 2 and role.meta()["dirty"] == []
+
+
+def test_merged_keyframes_follow_rigidly_without_recomputation():
+    """The loop closer's poses-only updates move the keyframes it merged: their proxy depth
+    is sent again at the new pose, unchanged and not recomputed; they stop serving as views
+    (their kept keyframe has that view) and are not recomputed when a neighbour moves."""
+    from splat_slam_ros.roles import DepthRole
+    from splat_slam_ros.types import LOOP_SEQ_START
+    cfg = SlamConfig()
+    cfg.set("depth.mv_neighbors", 2)
+    role = DepthRole(cfg, loop_closure=True)
+    poses, depth = scene(10)
+    for i in range(10):
+        role.on_keyframe(keyframe(i, 1.0 / depth[i], poses[i]))
+    est = role.est
+    before = {k: est.get(k) for k in range(10)}
+    rev = dict(role.revision)
+    moved = poses[5].copy()
+    moved[:3, 3] += [0.3, 0.0, 0.0]
+    n0 = est.timings["n"]
+    out = role.on_update(UpdateEvent(LOOP_SEQ_START + 1, "global_ba", [5], moved[None]))
+    assert [(p.kf_id, p.revision) for p in out.proxy_depths] == [(5, rev[5] + 1)]
+    assert est.timings["n"] == n0                                   # nothing recomputed
+    np.testing.assert_array_equal(out.proxy_depths[0].depth, before[5].depth)
+    np.testing.assert_array_equal(out.proxy_depths[0].pose, moved)
+    assert est.followers == {5} and all(5 not in est.neighbours(k) for k in range(10))
+    assert est._kfs[5].grey is None and est._kfs[5].guide is None     # inputs released
+    # a neighbour moves: it and the keyframes that use it as a view are recomputed, the
+    # follower is not; a disparity update that lists the follower leaves it alone
+    p4 = poses[4].copy()
+    p4[:3, 3] += [0.1, 0.0, 0.0]
+    d = (1.0 / depth[[4, 5]]).astype(np.float32) * 1.1
+    out = role.on_update(UpdateEvent(LOOP_SEQ_START + 2, "loop_closure", [4, 5],
+                                     np.stack([p4, moved]), d))
+    got = {p.kf_id for p in out.proxy_depths}
+    assert 4 in got and 5 not in got
+    np.testing.assert_array_equal(est.get(5).depth, before[5].depth)
+    # the same poses-only update from the tracker (not a merge) recomputes as before
+    role2 = DepthRole(cfg, loop_closure=True)
+    for i in range(10):
+        role2.on_keyframe(keyframe(i, 1.0 / depth[i], poses[i]))
+    out = role2.on_update(UpdateEvent(TRACKER_SEQ_START + 1, "local_ba", [5], moved[None]))
+    assert {p.kf_id for p in out.proxy_depths} == {4, 5, 6} and not role2.est.followers

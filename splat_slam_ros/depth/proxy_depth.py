@@ -36,7 +36,7 @@ small holes, both interpolations of multi-view depth), 2 mono.
 from __future__ import annotations
 
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import cv2
@@ -528,6 +528,7 @@ class ProxyDepthEstimator:
         self._kfs: "OrderedDict[int, _KfState]" = OrderedDict()
         self._refreshed: List[Tuple[ProxyDepthResult, ProxyDepthResult]] = []
         self.dirty: set = set()        # moved by deferred updates, not recomputed yet
+        self.followers: set = set()    # merged by the loop closer: they follow a kept keyframe
         self.last_seq = 0
         self._flush_seq = 0
         self.mono = mono_model
@@ -568,7 +569,7 @@ class ProxyDepthEstimator:
 
     def neighbours(self, kf_id: int) -> List[int]:
         """The other keyframes used for ``kf_id`` in Eq. 5 (nearest kf ids, older first on ties)."""
-        others = [k for k in self._kfs if k != kf_id]
+        others = [k for k in self._kfs if k != kf_id and k not in self.followers]
         others.sort(key=lambda k: (abs(k - kf_id), k))
         return sorted(others[: max(0, int(self.dc.mv_neighbors))])
 
@@ -590,6 +591,7 @@ class ProxyDepthEstimator:
         # earlier keyframes computed with fewer views than configured gain the new ones
         want = max(0, int(self.dc.mv_neighbors))
         stale = [k for k, st in self._kfs.items() if k not in ids and st.result is not None
+                 and k not in self.followers
                  and st.n_views < min(want, len(self._kfs) - 1)
                  and any(n in ids for n in self.neighbours(k))]
         if stale:
@@ -607,7 +609,7 @@ class ProxyDepthEstimator:
         out, self._refreshed = self._refreshed, []
         return out
 
-    def apply_update(self, ev: UpdateEvent, defer: bool = False
+    def apply_update(self, ev: UpdateEvent, defer: bool = False, follow: bool = False
                      ) -> List[Tuple[ProxyDepthResult, ProxyDepthResult]]:
         """Apply a BA / loop-closure / global-BA update.
 
@@ -615,7 +617,9 @@ class ProxyDepthEstimator:
         that uses one of them as a view. Returns (old, new) for each keyframe whose pose,
         depth or source changed (what the mapper's deformation needs). ``defer``: only store
         the new poses / disparities (a newer update is already waiting; :meth:`flush` or the
-        next update without ``defer`` recomputes everything moved since).
+        next update without ``defer`` recomputes everything moved since). ``follow``: the
+        keyframes are ones the loop closer merged, moving rigidly with a kept keyframe (its
+        poses-only updates; see :meth:`_follow`).
         """
         self.last_seq = max(self.last_seq, int(ev.seq))
         self._flush_seq = int(ev.seq)           # the results carry the newest update's seq
@@ -624,9 +628,11 @@ class ProxyDepthEstimator:
             raise ProxyDepthError(f"update {ev.seq}: {len(ev.kf_ids)} kf_ids but "
                                   f"{len(poses)} poses")
         disps = None if ev.disparities is None else np.asarray(ev.disparities, np.float32)
+        if follow:
+            return self._follow(ev, poses) + ([] if defer else self.flush())
         for i, k in enumerate(ev.kf_ids):
             st = self._kfs.get(int(k))
-            if st is None:
+            if st is None or int(k) in self.followers:
                 continue
             moved = not np.array_equal(st.pose, poses[i])
             if moved:
@@ -642,14 +648,40 @@ class ProxyDepthEstimator:
                 self.dirty.add(int(k))
         return [] if defer else self.flush()
 
+    def _follow(self, ev: UpdateEvent, poses: np.ndarray
+                ) -> List[Tuple[ProxyDepthResult, ProxyDepthResult]]:
+        """A poses-only update moves keyframes the loop closer merged into older views: each
+        follows its kept keyframe rigidly, so its proxy depth (camera frame) stays and only
+        its pose changes; it is not recomputed, it no longer serves as another keyframe's
+        view (the kept one has that view), and its images and disparity are released. The
+        depth stage's work and memory then follow the distinct views, not the keyframe
+        count."""
+        out = []
+        for i, k in enumerate(ev.kf_ids):
+            k = int(k)
+            st = self._kfs.get(k)
+            if st is None:
+                continue
+            self.followers.add(k)
+            st.pose = poses[i].copy()
+            if k in self.dirty or st.result is None:    # recomputed by the next flush
+                continue
+            st.guide = st.grey = st.mono = None
+            self.dense.drop(k)
+            old = st.result
+            if not np.array_equal(old.pose, st.pose):
+                st.result = replace(old, pose=st.pose.copy(), update_seq=int(ev.seq))
+                out.append((old, st.result))
+        return out
+
     def flush(self) -> List[Tuple[ProxyDepthResult, ProxyDepthResult]]:
         """Recompute what the updates since the last flush moved (see :meth:`apply_update`)."""
         cset = {k for k in self.dirty if k in self._kfs}
         self.dirty.clear()
         if not cset:
             return []
-        recompute = [k for k in self._kfs
-                     if k in cset or any(n in cset for n in self.neighbours(k))]
+        recompute = [k for k in self._kfs if k in cset or (
+            k not in self.followers and any(n in cset for n in self.neighbours(k)))]
         olds = {k: self._kfs[k].result for k in recompute}
         new = self._compute(recompute, seq=self._flush_seq)
         out = []
