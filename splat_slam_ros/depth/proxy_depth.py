@@ -653,7 +653,7 @@ class ProxyDepthEstimator:
         """A poses-only update moves keyframes the loop closer merged into older views: each
         follows its kept keyframe rigidly, so its proxy depth (camera frame) stays and only
         its pose changes; it is not recomputed, it no longer serves as another keyframe's
-        view (the kept one has that view), and its images and disparity are released. The
+        view (the kept one has that view), and its images are released. The
         depth stage's work and memory then follow the distinct views, not the keyframe
         count."""
         out = []

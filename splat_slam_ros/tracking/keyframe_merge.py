@@ -12,13 +12,13 @@ when:
 2. ``k``'s pose is tied to the older map by a *measured* non-temporal flow edge (a spatial
    or loop edge to an older keyframe, not only the estimate), so the estimate places it
    where the older keyframes are;
-3. ``o`` is the older kept keyframe (not a temporal neighbour) to which the current estimate induces the smallest
-   flow (mean of both directions, BA px), and that flow is below ``thresh`` (by default
-   the tracker's keyframe threshold: ``k`` is a keyframe the tracker would not have made
-   had it tracked against ``o``). ``o`` need not be the keyframe of the edge in rule 2:
-   loop detection and global BA measure at most a couple of edges per keyframe, rarely
-   to the very nearest older one (in the soak, 64 of 269 keyframes that had an older
-   one within the threshold also had an edge to it);
+3. ``o`` is the older kept keyframe (not a temporal neighbour) to which the current
+   estimate induces the smallest flow (mean of both directions, BA px), and that flow is
+   below ``thresh`` (by default the tracker's keyframe threshold: ``k`` is a keyframe the
+   tracker would not have made had it tracked against ``o``). ``o`` need not be the
+   keyframe of the edge in rule 2: loop detection and global BA measure at most a couple
+   of edges per keyframe, rarely to the very nearest older one (in the soak, 64 of 269
+   keyframes that had an older one within the threshold also had an edge to it);
 4. removing ``k`` does not cut its part of the graph in two (one gauge for global BA).
 
 A merged keyframe leaves the BA graph (its edges and variables go) and follows ``o`` rigidly:
