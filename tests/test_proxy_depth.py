@@ -10,7 +10,8 @@ from splat_slam_ros.depth.mono_depth import MonoDepthModel
 from splat_slam_ros.depth.proxy_depth import (SOURCE_EMPTY, SOURCE_MONO, SOURCE_MULTIVIEW,
                                         ProxyDepthEstimator, compose_proxy_depth,
                                         consistency_count, fill_small_holes, fit_scale_shift,
-                                        multiview_filter, upsample_disparity)
+                                        multiview_filter)
+from splat_slam_ros.depth.upsample import corner_preference, upsample_disparity
 from splat_slam_ros.types import TRACKER_SEQ_START, Intrinsics, KeyframeData, UpdateEvent
 
 # ----------------------------------------------------------------- the scene
@@ -189,7 +190,6 @@ def test_upsample_exact_on_planes_no_bleeding_at_edges():
 def test_guided_upsampling_puts_the_edge_on_the_image_edge():
     """A depth edge at x = 130 (inside the BA cell 123.5..131.5): unguided, the step lands
     half-way between BA centres (x = 128); colour-guided, on the image edge."""
-    from splat_slam_ros.depth.proxy_depth import corner_preference
     H, W = 240, 320
     xs = np.arange(W)
     true_disp = np.where(xs < 130, 0.5, 0.2)[None, :].repeat(H, 0).astype(np.float32)
