@@ -289,8 +289,9 @@ def summarise(res: dict, out: Path) -> dict:
 
     rss = {n: levels(lambda s, n=n: s["rss_mb"].get(n)) for n in nodes}
     anon = {n: levels(lambda s, n=n: (s.get("anon_mb") or {}).get(n)) for n in nodes}
-    peak = {n: [max((s["rss_mb"].get(n) or 0) for s in smp if s["frames"] <= 0.5 * smp[-1]["frames"]),
-                max((s["rss_mb"].get(n) or 0) for s in smp if s["frames"] > 0.5 * smp[-1]["frames"])]
+    half = 0.5 * smp[-1]["frames"]
+    peak = {n: [max((s["rss_mb"].get(n) or 0) for s in smp if s["frames"] <= half),
+                max((s["rss_mb"].get(n) or 0) for s in smp if s["frames"] > half)]
             for n in nodes}
     growth = {n: (v[2] / v[1] - 1.0) if v[1] and v[2] else None for n, v in rss.items()}
     start, mid, end = ({k: round(_level(smp, f, lambda s, k=k: s[k]))

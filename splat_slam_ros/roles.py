@@ -729,7 +729,9 @@ class MapperRole:
             self.intr = kf.intrinsics
             self.mapper = Mapper(self.cfg, kf.intrinsics)
         twin = self._revisit(pd)
-        cov = self.mapper.coverage(pd.pose) if self.cfg.mapping.revisit_cull_deg > 0 else 0.0
+        cov = 0.0                           # a render, only when the pose test found no twin
+        if twin is None and self.cfg.mapping.revisit_cull_deg > 0:
+            cov = self.mapper.coverage(pd.pose)
         if twin is not None or cov >= self.cfg.mapping.revisit_coverage:
             # a revisit: consumed, not mapped (bounded map)
             st = dict(self.mapper.stats(), kf_id=int(kf.kf_id), mapped=False,

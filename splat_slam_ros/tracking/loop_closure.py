@@ -41,8 +41,7 @@ from splat_slam_ros.tracking.dense_ba import bundle_adjust, reproject
 from splat_slam_ros.tracking.factor_graph import FactorGraph, proximity_pairs
 from splat_slam_ros.tracking.flow_frontend import flow_input, make_flow_predictor
 from splat_slam_ros.tracking.global_ba import normalized_global_ba, spatial_pairs
-from splat_slam_ros.tracking.keyframe_merge import (MergedKeyframe, splits,
-                                                     merge_candidates)
+from splat_slam_ros.tracking.keyframe_merge import MergedKeyframe, merge_candidates, splits
 from splat_slam_ros.tracking.keyframe_set import KeyframeSet, KeyframeState
 from splat_slam_ros.tracking.motion_filter import MotionFilter, flow_scale
 from splat_slam_ros.types import LOOP_SEQ_START, Intrinsics, KeyframeData, UpdateEvent
