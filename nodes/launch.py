@@ -564,10 +564,11 @@ def main(argv: Optional[List[str]] = None) -> int:
             m = L.write_metrics(end)
             L.stop_children()
             m["nodes"] = L.node_stats()
-            from splat_slam_ros.pipeline import _write_json, not_initialized_reason
+            from splat_slam_ros.pipeline import _write_json, no_result_reason
             m["warnings"] = L.out.lines
-            if not m.get("keyframes"):                  # never a success without a keyframe
-                m["error"] = not_initialized_reason(L.cfg, int(m.get("frames") or 0))
+            reason = no_result_reason(L.cfg, m)     # never a success without keyframes or map
+            if reason:
+                m["error"] = reason
                 rc = 3
             _write_json(L.out_dir / "metrics.json", m)
             L.summary(m)

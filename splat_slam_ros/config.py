@@ -55,6 +55,17 @@ class TrackingConfig:
     # flow front end (classical stand-in for the paper's learned flow, see flow_frontend.py)
     flow_method: str = "dis_medium"      # OpenCV DIS preset: dis_ultrafast | dis_fast | dis_medium
     flow_downsample: int = 2             # DIS runs at tracking image / this (must divide ba_downsample)
+    # threads computing DIS flows: 2 = a pair's forward and backward halves (and the batch of
+    # next-keyframe flows) in parallel on two cores, same results; 1 = all in the tracking thread
+    flow_workers: int = 2
+    # DIS settings over the preset (-1 = the preset's). The defaults compute the flow at the
+    # DIS input's own resolution (finest scale 0; the medium preset stops one level coarser)
+    # from non-overlapping 8x8 patches without the variational smoothing: independent
+    # per-patch estimates, at the cost of the medium preset and 2-10x lower ATE (README
+    # "Tracking", flow settings)
+    flow_finest_scale: int = 0
+    flow_patch_stride: int = 8
+    flow_refine_iters: int = 0
     fb_consistency_px: float = 1.0       # forward-backward error scale for confidences (tracking px)
     photo_sigma: float = 30.0            # photometric residual scale for confidences (grey levels)
     texture_grad: float = 1.0            # gradient (grey/px) at which a cell counts as textured

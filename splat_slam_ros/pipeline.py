@@ -25,7 +25,8 @@ from splat_slam_ros.report import WarningRecorder, write_report
 
 
 class NotInitializedError(RuntimeError):
-    """The tracker made no keyframe: there is no trajectory and no map to write."""
+    """The run has nothing to use: the tracker made no keyframe (no trajectory, no map), or
+    a full run's map stayed empty (:func:`no_result_reason`)."""
 
 
 @dataclass
@@ -50,6 +51,24 @@ def not_initialized_reason(cfg: SlamConfig, frames: int) -> str:
             f"reference BA px, initialisation a parallax of tracking.init_parallax="
             f"{tc.init_parallax:g}). Lower them (e.g. {hint}) or give a sequence with more "
             f"motion")
+
+
+def empty_map_reason(cfg: SlamConfig, keyframes: int) -> str:
+    return (f"the map is empty: the tracker made {keyframes} keyframes, but their proxy depth "
+            f"had no pixel that depth.mv_min_views={cfg.depth.mv_min_views} other keyframes "
+            f"confirm (too few keyframes or too little parallax between them). Give a longer "
+            f"sequence with more camera motion, or a mono depth model (depth.mono_model) to "
+            f"fill the proxy depth")
+
+
+def no_result_reason(cfg: SlamConfig, metrics: dict) -> Optional[str]:
+    """Why a run produced nothing to use (no keyframe, or a full run whose map has no
+    Gaussian), or None: such a run ends with an error, never as a success."""
+    if not metrics.get("keyframes"):
+        return not_initialized_reason(cfg, int(metrics.get("frames") or 0))
+    if metrics.get("gaussians", 1) == 0:
+        return empty_map_reason(cfg, int(metrics["keyframes"]))
+    return None
 
 
 def _write_json(path: Path, data: dict) -> None:
@@ -138,7 +157,7 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
     mode: "full" (tracking + depth + mapping), "tracking" (--tracking-only),
     "gt_mapping" (--gt-poses --gt-depth: the mapper alone on ground truth).
     Raises :class:`NotInitializedError` (after writing metrics.json) when the tracker made no
-    keyframe.
+    keyframe, or a full run's map has no Gaussian (:func:`no_result_reason`).
     """
     out.mkdir(parents=True, exist_ok=True)
     (out / "renders").mkdir(exist_ok=True)
@@ -165,6 +184,9 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
             t0 = time.perf_counter()
             evaluate_map_depth(dataset, out, cfg, metrics)
             metrics["depth_eval_s"] = round(time.perf_counter() - t0, 3)
+            reason = no_result_reason(cfg, metrics)
+            if reason:
+                metrics["error"] = reason
     metrics["warnings"] = warnings.close()
     _write_json(out / "metrics.json", metrics)
     write_report(out, cfg)                               # report.html, report.png, config.yaml

@@ -4,6 +4,7 @@ batches, replays, finalisation), and splat-slam-run end to end with an accuracy 
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from dataclasses import replace
@@ -236,16 +237,55 @@ def test_splat_slam_run_end_to_end(synth_seq, tmp_path):
     assert set(m["timings_s"]) >= {"tracking", "loop_closure", "depth", "mapping"}
 
 
+def _static_copy(seq, dst, n: int = 6):
+    """The first frame of ``seq`` shown ``n`` times at 10 Hz (a camera that does not move)."""
+    dst.mkdir()
+    for name in ("rgb", "depth", "intrinsics.yaml"):
+        src = seq / name
+        (shutil.copytree if src.is_dir() else shutil.copy)(src, dst / name)
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        rows = [ln for ln in (seq / name).read_text().splitlines() if not ln.startswith("#")]
+        first = rows[0].split(" ", 1)[1]
+        (dst / name).write_text("".join(f"{0.1 * i:.6f} {first}\n" for i in range(n)))
+    return dst
+
+
 def test_splat_slam_run_without_motion_fails_clearly(synth_seq, tmp_path):
     out = tmp_path / "run"
-    r = subprocess.run([sys.executable, "-m", "splat_slam_ros.cli.run", str(synth_seq),
-                        "--out", str(out), "--max-frames", "3", "--no-progress"],
+    r = subprocess.run([sys.executable, "-m", "splat_slam_ros.cli.run",
+                        str(_static_copy(synth_seq, tmp_path / "static")),
+                        "--out", str(out), "--no-progress"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 3, (r.returncode, r.stderr[-2000:])
     assert "never initialised" in r.stderr and "tracking.motion_filter_thresh" in r.stderr
     assert "Traceback" not in r.stderr
     assert "error" in json.loads((out / "metrics.json").read_text())
     assert not (out / "trajectory_full.txt").exists()
+
+
+def test_splat_slam_run_with_an_empty_map_fails_clearly(synth_seq, tmp_path):
+    """Three frames: the tracker initialises from two keyframes, but no proxy-depth pixel has
+    the two confirming views, so the map stays empty - an error, not a success."""
+    out = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "splat_slam_ros.cli.run", str(synth_seq),
+                        "--out", str(out), "--max-frames", "3", "--no-progress"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 3, (r.returncode, r.stderr[-2000:])
+    assert "the map is empty" in r.stderr and "depth.mv_min_views" in r.stderr
+    assert "Traceback" not in r.stderr
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["keyframes"] >= 2 and m["gaussians"] == 0 and "map is empty" in m["error"]
+
+
+def test_no_result_reason_covers_both_failures_and_only_them():
+    """The rule splat-slam-run and splat-slam-launch share (exit status 3)."""
+    from splat_slam_ros.config import SlamConfig
+    from splat_slam_ros.pipeline import no_result_reason
+    cfg = SlamConfig()
+    assert "never initialised over 40 frames" in no_result_reason(cfg, {"frames": 40})
+    assert "map is empty" in no_result_reason(cfg, {"keyframes": 3, "gaussians": 0})
+    assert no_result_reason(cfg, {"keyframes": 3, "gaussians": 120}) is None
+    assert no_result_reason(cfg, {"keyframes": 3}) is None          # tracking only: no map
 
 
 def test_not_initialised_hint_lowers_the_values_in_use():

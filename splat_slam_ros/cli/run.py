@@ -18,8 +18,9 @@ metrics.json (ATE when the input has ground truth, PSNR/SSIM/depth L1 on keyfram
 renders/ (rendered keyframes), config.yaml (the configuration used), groundtruth.txt,
 report.html + report.png (the run report; splat-slam-report rebuilds them).
 
-exit status: 0 done, 2 a user error (bad input, config), 3 the tracker never initialised (no
-keyframe: too little camera motion for the thresholds; the message says which to lower).
+exit status: 0 done, 2 a user error (bad input, config), 3 no result: the tracker never
+initialised (no keyframe: too little camera motion for the thresholds; the message says which
+to lower), or the map stayed empty (too few keyframes with parallax for the proxy depth).
 
 examples:
   splat-slam-run data/fr1_xyz --out runs/fr1 --config config/tum.yaml

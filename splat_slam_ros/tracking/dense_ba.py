@@ -338,6 +338,47 @@ def pose_only_refine(T_ref: torch.Tensor, disp_ref: torch.Tensor, T_cur: torch.T
                                   weight[None], iters, huber, lm, ep)
 
 
+def _pose_only_system(pw, d, tgt, w0, T, k4, huber, dmin):
+    """Normal equations of the motion-only problem for a batch of frames (the target-pose
+    block of Eq. 1): world points ``pw`` (N, M, 3) (homogeneous, scale ``d`` (N, M)),
+    targets / weights (N, M, 2), frame poses ``T`` (N, 4, 4) float64 with the perturbation on
+    the right. Returns H (N, 6, 6) and g (N, 6) float64, cost, weight sum and valid count (N,)."""
+    dt = pw.dtype
+    fx, fy, cx, cy = k4
+    X = (pw - T[:, None, :3, 3].to(dt) * d[..., None]) @ T[:, :3, :3].to(dt)  # R^T (p - t d)
+    z = X[..., 2]
+    valid = z > dmin
+    iz = 1.0 / z.clamp_min(1e-6)
+    xz, yz = X[..., 0] * iz, X[..., 1] * iz
+    r = tgt - torch.stack([fx * xz + cx, fy * yz + cy], -1)
+    wgt = w0 * valid[..., None]
+    if huber is not None and huber > 0:
+        rn = r.norm(dim=-1, keepdim=True)
+        wgt = wgt * torch.where(rn > huber, huber / rn.clamp_min(1e-12), torch.ones_like(rn))
+    r = torch.where(valid[..., None], r, torch.zeros_like(r))
+    wr = wgt * r
+    cost = (wr * r).sum((1, 2))
+    wsum = wgt.sum((1, 2))
+    n_valid = (wgt.sum(-1) > 0).sum(1)
+    # d(pixel)/d(dx), dx = (t, w) on the right: X' = X - (w x X + t d)
+    di = d * iz
+    zero = torch.zeros_like(di)
+    Ju = fx * torch.stack([-di, zero, xz * di, xz * yz, -(1 + xz * xz), yz], -1)
+    Jv = fy * torch.stack([zero, -di, yz * di, 1 + yz * yz, -xz * yz, -xz], -1)
+    H = (Ju * wgt[..., :1]).transpose(1, 2) @ Ju + (Jv * wgt[..., 1:]).transpose(1, 2) @ Jv
+    g = (Ju.transpose(1, 2) @ wr[..., :1] + Jv.transpose(1, 2) @ wr[..., 1:])[..., 0]
+    return H.to(torch.float64), g.to(torch.float64), cost, wsum, n_valid
+
+
+def _lift(T_refs: torch.Tensor, disp_refs: torch.Tensor, q: torch.Tensor, dt):
+    """World points (homogeneous: R q + t d, scale d) of keyframes (..., 4, 4) with
+    disparities (..., h, w): ((..., P, 3), (..., P))."""
+    dk = disp_refs.reshape(*disp_refs.shape[:-2], -1)
+    R = T_refs[..., :3, :3].to(dt)
+    t = T_refs[..., :3, 3].to(dt)
+    return (torch.einsum("...ab,bp->...pa", R, q) + t[..., None, :] * dk[..., None]), dk
+
+
 def pose_only_refine_multi(T_refs: torch.Tensor, disp_refs: torch.Tensor, T_cur: torch.Tensor,
                            intr, targets: torch.Tensor, weights: torch.Tensor, iters: int = 5,
                            huber: Optional[float] = None, lm: float = 1e-4, ep: float = 1e-3
@@ -353,49 +394,23 @@ def pose_only_refine_multi(T_refs: torch.Tensor, disp_refs: torch.Tensor, T_cur:
     dev, dt = disp_refs.device, disp_refs.dtype
     K, h, w = disp_refs.shape
     k4 = intr_tensor(intr, dt, dev)
-    fx, fy, cx, cy = k4
-    q = _rays(h, w, k4)                                                      # (3, P)
     keep = weights.reshape(-1, 2).sum(-1) > 0
-    d = disp_refs.reshape(-1)[keep]
-    R = T_refs[:, :3, :3].to(dt)
-    t = T_refs[:, :3, 3].to(dt)
-    dk = disp_refs.reshape(K, -1)
-    # world points (homogeneous: R q + t d, d) of the weighted cells, once per call
-    pw = (torch.einsum("kab,bp->kpa", R, q) + t[:, None, :] * dk[..., None]).reshape(-1, 3)[keep]
-    tgt = targets.reshape(-1, 2)[keep].to(dt)
-    w0 = weights.reshape(-1, 2)[keep].to(dt)
+    pw, dk = _lift(T_refs, disp_refs, _rays(h, w, k4), dt)
+    pw, d = pw.reshape(-1, 3)[keep][None], dk.reshape(-1)[keep][None]
+    tgt = targets.reshape(-1, 2)[keep].to(dt)[None]
+    w0 = weights.reshape(-1, 2)[keep].to(dt)[None]
     T = T_cur.to(torch.float64).clone()
     dmin = 1e-3 * d.clamp_min(1e-6)
     info = None
     for _ in range(iters):
-        X = (pw - T[:3, 3].to(dt) * d[:, None]) @ T[:3, :3].to(dt)          # R^T (p - t d)
-        z = X[:, 2]
-        valid = z > dmin
-        iz = 1.0 / z.clamp_min(1e-6)
-        xz, yz = X[:, 0] * iz, X[:, 1] * iz
-        r = tgt - torch.stack([fx * xz + cx, fy * yz + cy], -1)
-        wgt = w0 * valid[:, None]
-        if huber is not None and huber > 0:
-            rn = r.norm(dim=-1, keepdim=True)
-            wgt = wgt * torch.where(rn > huber, huber / rn.clamp_min(1e-12), torch.ones_like(rn))
-        r = torch.where(valid[:, None], r, torch.zeros_like(r))
-        wr = wgt * r
-        cost = float((wr * r).sum())
-        wsum = float(wgt.sum())
-        info = BAInfo(cost, (cost / max(wsum, 1e-12)) ** 0.5, int((wgt.sum(-1) > 0).sum()))
+        H, g, cost, wsum, n_valid = _pose_only_system(pw, d, tgt, w0, T[None], k4, huber, dmin)
+        cost, wsum = float(cost[0]), float(wsum[0])
+        info = BAInfo(cost, (cost / max(wsum, 1e-12)) ** 0.5, int(n_valid[0]))
         if wsum <= 0:
             break
-        # d(pixel)/d(dx), dx = (t, w) on the right: X' = X - (w x X + t d)
-        di = d * iz
-        zero = torch.zeros_like(di)
-        Ju = fx * torch.stack([-di, zero, xz * di, xz * yz, -(1 + xz * xz), yz], -1)
-        Jv = fy * torch.stack([zero, -di, yz * di, 1 + yz * yz, -xz * yz, -xz], -1)
-        H = (Ju * wgt[:, :1]).T @ Ju + (Jv * wgt[:, 1:]).T @ Jv
-        g = Ju.T @ wr[:, 0] + Jv.T @ wr[:, 1]
-        H = H.to(torch.float64)
-        H = H + torch.diag(lm * torch.diagonal(H) + ep)
+        H = H[0] + torch.diag(lm * torch.diagonal(H[0]) + ep)
         try:
-            dx = torch.linalg.solve(H, g.to(torch.float64))
+            dx = torch.linalg.solve(H, g[0])
         except RuntimeError:
             break
         if not torch.isfinite(dx).all():
@@ -404,3 +419,43 @@ def pose_only_refine_multi(T_refs: torch.Tensor, disp_refs: torch.Tensor, T_cur:
         if float(dx.norm()) < 1e-6:
             break
     return T, info
+
+
+def pose_only_refine_batch(T_refs: torch.Tensor, disp_refs: torch.Tensor, T_cur: torch.Tensor,
+                           intr, targets: torch.Tensor, weights: torch.Tensor,
+                           iters: torch.Tensor, huber: Optional[float] = None, lm: float = 1e-4,
+                           ep: float = 1e-3, max_cells: int = 1 << 16) -> torch.Tensor:
+    """:func:`pose_only_refine_multi` for N frames at once (the trajectory filler): keyframe
+    poses (N, K, 4, 4), disparities (N, K, h, w), frame poses (N, 4, 4), flows / weights
+    (N, K, h, w, 2) (an edge a frame lacks has zero weight) and iterations per frame (N,).
+    Same steps and stopping rules per frame; vectorised over frames, ``max_cells`` cells
+    (frames x K x h x w) per batch. Returns the refined poses (N, 4, 4) float64."""
+    N, K, h, w = disp_refs.shape
+    dev, dt = disp_refs.device, disp_refs.dtype
+    k4 = intr_tensor(intr, dt, dev)
+    q = _rays(h, w, k4)
+    T = T_cur.to(torch.float64).clone()
+    iters = torch.as_tensor(iters, device=dev).reshape(N)
+    step = max(1, max_cells // max(K * h * w, 1))
+    for s in range(0, N, step):
+        sl = slice(s, min(N, s + step))
+        pw, dk = _lift(T_refs[sl], disp_refs[sl], q, dt)
+        n = pw.shape[0]
+        pw, d = pw.reshape(n, -1, 3), dk.reshape(n, -1)
+        tgt, w0 = targets[sl].reshape(n, -1, 2).to(dt), weights[sl].reshape(n, -1, 2).to(dt)
+        dmin = 1e-3 * d.clamp_min(1e-6)
+        Tc, limit = T[sl], iters[sl]
+        active = torch.ones(n, dtype=torch.bool, device=dev)
+        for it in range(int(limit.max()) if n else 0):
+            idx = (active & (limit > it)).nonzero()[:, 0]
+            if len(idx) == 0:
+                break
+            H, g, _, wsum, _ = _pose_only_system(pw[idx], d[idx], tgt[idx], w0[idx], Tc[idx],
+                                                 k4, huber, dmin[idx])
+            H = H + torch.diag_embed(lm * torch.diagonal(H, dim1=-2, dim2=-1) + ep)
+            dx, bad = torch.linalg.solve_ex(H, g)
+            ok = (wsum > 0) & (bad == 0) & torch.isfinite(dx).all(-1)
+            Tc[idx[ok]] = Tc[idx[ok]] @ se3_exp(dx[ok])
+            active[idx[~ok | (dx.norm(dim=-1) < 1e-6)]] = False
+        T[sl] = Tc
+    return T

@@ -14,8 +14,10 @@ selects the learned predictor of ``droid_flow.py`` in :func:`make_flow_predictor
 """
 from __future__ import annotations
 
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Optional, Protocol, Tuple, runtime_checkable
+from typing import Any, List, Optional, Protocol, Sequence, Tuple, runtime_checkable
 
 import cv2
 import numpy as np
@@ -204,11 +206,17 @@ class DISFlowPredictor:
     texture factor per axis and a penalty on the flow spread inside the cell
     (a cell across a depth edge cannot be explained by one disparity).
     Thresholds are in tracking-image pixels / grey levels.
+
+    With ``workers`` = 2 the two halves of a pair (forward and backward DIS, then their
+    confidences) and batches of forward flows run on two threads: OpenCV releases the GIL,
+    each thread has its own DIS instance, and the results are those of one thread.
     """
 
     def __init__(self, ba_downsample: int = 8, method: str = "dis_medium",
                  flow_downsample: int = 2, fb_px: float = 1.0, photo_sigma: float = 30.0,
-                 texture_grad: float = 1.0, spread_px: float = 1.5, min_weight: float = 0.0):
+                 texture_grad: float = 1.0, spread_px: float = 1.5, min_weight: float = 0.0,
+                 workers: int = 1, finest_scale: int = -1, patch_stride: int = -1,
+                 refine_iters: int = -1):
         if method not in _PRESETS:
             raise FrontendError(f"unknown tracking.flow_method '{method}' "
                                 f"(use one of {', '.join(_PRESETS)})")
@@ -217,8 +225,23 @@ class DISFlowPredictor:
                                 f"ba_downsample={ba_downsample}")
         self.ba_downsample = ba_downsample
         self.fds = flow_downsample
+        if workers < 1:
+            raise FrontendError(f"tracking.flow_workers must be >= 1, got {workers}")
         self.k = ba_downsample // flow_downsample
-        self.dis = cv2.DISOpticalFlow_create(_PRESETS[method])
+        self.preset = _PRESETS[method]
+        # over the preset (-1 = the preset's value)
+        self.dis_settings = {"FinestScale": finest_scale, "PatchStride": patch_stride,
+                             "VariationalRefinementIterations": refine_iters}
+        for key, v, lo in (("flow_finest_scale", finest_scale, 0),
+                           ("flow_patch_stride", patch_stride, 1),
+                           ("flow_refine_iters", refine_iters, 0)):
+            if v != -1 and v < lo:
+                raise FrontendError(f"tracking.{key} must be -1 (the preset's) or >= {lo}, "
+                                    f"got {v}")
+        self._local = threading.local()             # one DIS instance per thread
+        self._grids = {}
+        self._pool = ThreadPoolExecutor(workers - 1, thread_name_prefix="dis") \
+            if workers > 1 else None
         self.fb_px = fb_px
         self.photo_sigma = photo_sigma
         self.texture_grad = texture_grad
@@ -251,25 +274,36 @@ class DISFlowPredictor:
         """DIS flow a -> b (flow-resolution pixels). With ``init`` (the expected
         flow), ``b`` is first warped by it and only the residual flow is estimated
         (large, predictable displacements: far keyframes, loop candidates)."""
+        dis = getattr(self._local, "dis", None)
+        if dis is None:
+            dis = self._local.dis = cv2.DISOpticalFlow_create(self.preset)
+            for name, v in self.dis_settings.items():
+                if v >= 0:
+                    getattr(dis, "set" + name)(int(v))
         if init is None:
-            return self.dis.calc(a, b, None)
-        H, W = a.shape
-        gx, gy = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+            return dis.calc(a, b, None)
+        gx, gy = self._grid(*a.shape)
         bw = cv2.remap(b, gx + init[..., 0], gy + init[..., 1], cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_REPLICATE)
-        res = self.dis.calc(a, bw, None)
+        res = dis.calc(a, bw, None)
         # f(x) = r(x) + init(x + r(x))
         init_at = cv2.remap(init, gx + res[..., 0], gy + res[..., 1], cv2.INTER_LINEAR,
                             borderMode=cv2.BORDER_REPLICATE)
         return res + init_at
 
     def _grid(self, H: int, W: int):
-        key = (H, W)
-        if getattr(self, "_grid_key", None) != key:
-            gx, gy = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
-            self._grid_cache = (gx, gy)
-            self._grid_key = key
-        return self._grid_cache
+        g = self._grids.get((H, W))
+        if g is None:           # (read-only; a race only builds the same grid twice)
+            g = self._grids[(H, W)] = tuple(np.meshgrid(np.arange(W, dtype=np.float32),
+                                                        np.arange(H, dtype=np.float32)))
+        return g
+
+    def _both(self, fa, fb):
+        """(fa(), fb()), fb on the helper thread when there is one."""
+        if self._pool is None:
+            return fa(), fb()
+        fut = self._pool.submit(fb)
+        return fa(), fut.result()
 
     def _confidence(self, A: PreparedImage, B: PreparedImage, f_ab: np.ndarray,
                     f_ba: Optional[np.ndarray]) -> np.ndarray:
@@ -302,7 +336,7 @@ class DISFlowPredictor:
         conf[np.abs(bx) > 1e3] = 0.0
         return conf
 
-    def _pool(self, A: PreparedImage, f: np.ndarray, c: np.ndarray):
+    def _pool_cells(self, A: PreparedImage, f: np.ndarray, c: np.ndarray):
         """Confidence-weighted mean flow per BA cell and the cell weight."""
         k = self.k
         H, W = c.shape
@@ -356,12 +390,10 @@ class DISFlowPredictor:
         init_b = self._upsample_init(init_ji, B.gray.shape)
         if init_f is not None and init_b is None:
             init_b = self._invert(init_f)
-        f_ij = self._dense(A.gray, B.gray, init_f)
-        f_ji = self._dense(B.gray, A.gray, init_b)
-        c_ij = self._confidence(A, B, f_ij, f_ji)
-        c_ji = self._confidence(B, A, f_ji, f_ij)
-        a = self._pool(A, f_ij, c_ij)
-        b = self._pool(B, f_ji, c_ji)
+        f_ij, f_ji = self._both(lambda: self._dense(A.gray, B.gray, init_f),
+                                lambda: self._dense(B.gray, A.gray, init_b))
+        a, b = self._both(lambda: self._pool_cells(A, f_ij, self._confidence(A, B, f_ij, f_ji)),
+                          lambda: self._pool_cells(B, f_ji, self._confidence(B, A, f_ji, f_ij)))
         return a[0], a[1], b[0], b[1]
 
     def predict_forward(self, img_i, img_j, init_ij: Optional[torch.Tensor] = None):
@@ -370,7 +402,20 @@ class DISFlowPredictor:
         estimate (``init_ij``, BA pixels) and only adds a constraint."""
         A, B = self._as_prepared(img_i), self._as_prepared(img_j)
         f_ij = self._dense(A.gray, B.gray, self._upsample_init(init_ij, A.gray.shape))
-        return self._pool(A, f_ij, self._confidence(A, B, f_ij, None))
+        return self._pool_cells(A, f_ij, self._confidence(A, B, f_ij, None))
+
+    def predict_forward_many(self, img_i, imgs: Sequence, inits: Sequence
+                             ) -> List[Tuple[torch.Tensor, torch.Tensor]]:
+        """:meth:`predict_forward` from one image into several (``inits[k]`` for
+        ``imgs[k]``); the second half of the list runs on the helper thread."""
+        A = self._as_prepared(img_i)
+        n = len(imgs)
+        half = n // 2 if self._pool is not None else n
+
+        def run(ks):
+            return [self.predict_forward(A, imgs[k], inits[k]) for k in ks]
+        first, second = self._both(lambda: run(range(half)), lambda: run(range(half, n)))
+        return first + second
 
     def predict(self, img_i, img_j) -> Tuple[torch.Tensor, torch.Tensor]:
         f_ij, w_ij, _, _ = self.predict_pair(img_i, img_j)
@@ -387,7 +432,10 @@ def make_flow_predictor(tcfg):
                             fb_px=tcfg.fb_consistency_px,
                             photo_sigma=getattr(tcfg, "photo_sigma", 30.0),
                             texture_grad=getattr(tcfg, "texture_grad", 1.0),
-                            spread_px=getattr(tcfg, "flow_spread_px", 1.5))
+                            spread_px=getattr(tcfg, "flow_spread_px", 1.5),
+                            workers=tcfg.flow_workers, finest_scale=tcfg.flow_finest_scale,
+                            patch_stride=tcfg.flow_patch_stride,
+                            refine_iters=tcfg.flow_refine_iters)
 
 
 def compose_flows(f_ab: torch.Tensor, f_bc: torch.Tensor) -> torch.Tensor:

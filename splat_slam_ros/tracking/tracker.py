@@ -626,6 +626,7 @@ class Tracker:
         aligned against both neighbouring keyframes (trajectory_filler)."""
         t0 = time.perf_counter()
         ks = self.kfs[kid]
+        todo = []                   # (record, prepared image, induced flow or None)
         for rec, prep in self._pending:
             if rec.ref_kf not in self.kfs or rec.index == ks.frame_index:
                 continue
@@ -633,9 +634,15 @@ class Tracker:
             if rec.rel_pose is not None:
                 T = self.kfs[rec.ref_kf].pose @ torch.as_tensor(
                     rec.rel_pose, dtype=torch.float64, device=self.device)
-                init = self._induced(ks.pose, ks.disp, T)
-            if init is not None and hasattr(self.flow, "predict_forward"):   # one DIS call
-                f, w = (x.to(self.device) for x in self.flow.predict_forward(ks.prep, prep, init))
+                init = self._induced(ks.pose, ks.disp, T).cpu()
+            todo.append((rec, prep, init))
+        fwd = [t for t in todo if t[2] is not None] \
+            if hasattr(self.flow, "predict_forward_many") else []      # one DIS call each
+        flows = dict(zip((id(t[0]) for t in fwd), self.flow.predict_forward_many(
+            ks.prep, [t[1] for t in fwd], [t[2] for t in fwd]))) if fwd else {}
+        for rec, prep, init in todo:
+            if id(rec) in flows:
+                f, w = (x.to(self.device) for x in flows[id(rec)])
             else:
                 f, w, _, _ = self._flows(ks.prep, prep, init)
             if self.motion.check(f, w).valid_frac < self.tc.lost_min_valid:

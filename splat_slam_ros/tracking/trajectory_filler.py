@@ -17,8 +17,8 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 import torch
 
-from splat_slam_ros.tracking.dense_ba import pose_only_refine, pose_only_refine_multi
 from splat_slam_ros.geometry import pixel_grid, se3_exp, se3_inverse, se3_log
+from splat_slam_ros.tracking.dense_ba import pose_only_refine_batch
 
 
 @dataclass
@@ -61,7 +61,9 @@ def fill_trajectory(records: List[FrameRecord], kf_poses: Dict[int, torch.Tensor
                     kf_disps: Dict[int, torch.Tensor], intr, iters: int = 3,
                     huber: Optional[float] = None) -> Tuple[np.ndarray, np.ndarray]:
     """Timestamps (N,) and camera-to-world poses (N, 4, 4) of every recorded frame
-    that can be placed (frames before the first keyframe pose exist are skipped)."""
+    that can be placed (frames before the first keyframe pose exist are skipped).
+    The non-keyframes' motion-only alignments are solved together
+    (:func:`pose_only_refine_batch`)."""
     known = sorted(k for k in kf_poses)
     if not known:
         return np.zeros(0), np.zeros((0, 4, 4))
@@ -70,43 +72,56 @@ def fill_trajectory(records: List[FrameRecord], kf_poses: Dict[int, torch.Tensor
     order = np.argsort(kf_ts)
     kf_ts = kf_ts[order]
     stack = torch.stack([kf_poses[known[o]].to(torch.float64).cpu() for o in order])
-    ts_out, poses_out = [], []
-    grid = None
+    pose = {k: kf_poses[k].to(torch.float64).cpu() for k in known}
+    disp = {k: kf_disps[k].float().cpu() for k in known if k in kf_disps}
+    ts_out, poses_out, fit = [], [], []
     for r in records:
+        ts_out.append(r.timestamp)
         if r.kf_id is not None:
             if r.kf_id in kf_poses:
-                ts_out.append(r.timestamp)
-                poses_out.append(kf_poses[r.kf_id].to(torch.float64).cpu().numpy())
+                poses_out.append(pose[r.kf_id])
+            else:
+                ts_out.pop()
             continue
-        T = None
-        usable = (not r.lost and r.ref_kf is not None and r.ref_kf in kf_poses
-                  and r.ref_kf in kf_disps and r.flow is not None)
-        if usable:
-            Tref = kf_poses[r.ref_kf].to(torch.float64).cpu()
-            disp = kf_disps[r.ref_kf].float().cpu()
-            if r.rel_pose is not None:
-                rel = torch.as_tensor(r.rel_pose, dtype=torch.float64).clone()
-                s_now = float(disp.mean())
-                if s_now > 0 and r.ref_scale > 0:
-                    rel[:3, 3] *= r.ref_scale / s_now      # follow a disparity rescale
-                T = Tref @ rel
-            else:
-                T = interpolate_from_keyframes(r.timestamp, kf_ts, stack)
-            if grid is None or grid.shape[:2] != disp.shape:
-                grid = pixel_grid(*disp.shape)
-            n_it = iters + (0 if r.rel_pose is not None else 3)
-            if r.flow2 is not None and r.ref2_kf in kf_poses and r.ref2_kf in kf_disps:
-                # both neighbouring keyframes (Eq. 1 target block, two edges)
-                T2 = kf_poses[r.ref2_kf].to(torch.float64).cpu()
-                T, info = pose_only_refine_multi(
-                    torch.stack([Tref, T2]), torch.stack([disp, kf_disps[r.ref2_kf].float().cpu()]),
-                    T, intr, torch.stack([grid + r.flow.float(), grid + r.flow2.float()]),
-                    torch.stack([r.weight.float(), r.weight2.float()]), iters=n_it, huber=huber)
-            else:
-                T, info = pose_only_refine(Tref, disp, T, intr, grid + r.flow.float(),
-                                           r.weight.float(), iters=n_it, huber=huber)
-        if T is None:
+        if r.lost or r.ref_kf not in pose or r.ref_kf not in disp or r.flow is None:
+            poses_out.append(interpolate_from_keyframes(r.timestamp, kf_ts, stack))
+            continue
+        if r.rel_pose is not None:
+            rel = torch.as_tensor(r.rel_pose, dtype=torch.float64).clone()
+            s_now = float(disp[r.ref_kf].mean())
+            if s_now > 0 and r.ref_scale > 0:
+                rel[:3, 3] *= r.ref_scale / s_now      # follow a disparity rescale
+            T = pose[r.ref_kf] @ rel
+        else:
             T = interpolate_from_keyframes(r.timestamp, kf_ts, stack)
-        ts_out.append(r.timestamp)
-        poses_out.append(T.numpy())
-    return np.asarray(ts_out, dtype=np.float64), np.asarray(poses_out, dtype=np.float64)
+        fit.append((len(poses_out), r))
+        poses_out.append(T)
+    if fit:
+        poses_out = _refine(fit, poses_out, pose, disp, intr, iters, huber)
+    return (np.asarray(ts_out, dtype=np.float64),
+            torch.stack(poses_out).numpy().astype(np.float64) if poses_out
+            else np.zeros((0, 4, 4)))
+
+
+def _refine(fit, poses_out, pose, disp, intr, iters, huber):
+    """Pose-only alignment (Eq. 1 target block) of the frames in ``fit`` against their
+    reference keyframe and, where it has one, the next keyframe (two edges)."""
+    refs, disps, flows, wts, n_it = [], [], [], [], []
+    for _i, r in fit:
+        two = r.flow2 is not None and r.ref2_kf in pose and r.ref2_kf in disp
+        k2 = r.ref2_kf if two else r.ref_kf
+        refs.append(torch.stack([pose[r.ref_kf], pose[k2]]))
+        disps.append(torch.stack([disp[r.ref_kf], disp[k2]]))
+        flows.append(torch.stack([r.flow, r.flow2 if two else r.flow]))
+        w2 = r.weight2 if two else torch.zeros_like(r.weight)      # a missing edge weighs 0
+        wts.append(torch.stack([r.weight, w2]))
+        n_it.append(iters + (0 if r.rel_pose is not None else 3))
+    D = torch.stack(disps)
+    grid = pixel_grid(*D.shape[-2:])
+    T = pose_only_refine_batch(torch.stack(refs), D, torch.stack([poses_out[i] for i, _ in fit]),
+                               intr, grid + torch.stack(flows).float(), torch.stack(wts).float(),
+                               torch.tensor(n_it), huber=huber)
+    out = list(poses_out)
+    for (i, _r), Ti in zip(fit, T):
+        out[i] = Ti
+    return out
