@@ -51,14 +51,15 @@ mapping:
 INPROC = r'''
 import json, sys, time
 from pathlib import Path
+from splat_slam_ros.heap import bound_heap, peak_rss_mb
+bound_heap()                                   # as splat-slam-run
 from splat_slam_ros.config import load_config
 from splat_slam_ros.io.datasets import open_dataset
 from splat_slam_ros.pipeline import run
 bag, out, cfg = sys.argv[1], Path(sys.argv[2]), (sys.argv[3] or None)
 r = run(open_dataset(bag), load_config(cfg), out, mode="full", progress=False)
-import resource
 print("RESULT " + json.dumps({"fps": r.metrics["fps"], "wall_s": r.wall_s,
-      "maxrss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}), flush=True)
+      "maxrss": peak_rss_mb() * 2**20}), flush=True)      # VmHWM: not the parent's ru_maxrss
 '''
 
 

@@ -20,7 +20,8 @@ Each case runs in its own process, so frames/s = input frames / wall time of the
 including Python start-up, imports and image decoding. CPU time (user + sys of that process)
 is reported too: it is what the run costs when the machine is not shared. The 1-minute load
 average before/after each case is recorded (other work on the same cores slows the
-wall-clock numbers); peak RSS is the child's ``ru_maxrss``.
+wall-clock numbers); peak RSS is the child's own peak (``VmHWM``; its ``ru_maxrss`` would
+include this parent's RSS, which Linux carries over across fork + exec).
 
     .venv/bin/python benchmarks/bench_tracking.py [--cases fr2desk_real,fr1xyz_real,...]
         [--data-dir DIR] [--config FILE] [--set KEY=VALUE ...] [--profile]
@@ -144,8 +145,11 @@ def ensure_sequence(data_dir: Path, c: dict) -> Path:
 
 # ------------------------------------------------------------------ child run
 def run_child(args) -> None:
-    """One tracking run (in its own process): writes metrics JSON to --json."""
+    """One tracking run (in its own process, with the allocator settings of
+    ``splat-slam-run``): writes metrics JSON to --json."""
     t0 = time.perf_counter()
+    from splat_slam_ros.heap import bound_heap, peak_rss_mb
+    bound_heap()
     from splat_slam_ros.config import load_config
     from splat_slam_ros.io.datasets import open_dataset
     from splat_slam_ros.evaluation import ate
@@ -183,7 +187,7 @@ def run_child(args) -> None:
                lost=res.n_lost, ate_full_cm=full["rmse_cm"], ate_full_max_cm=full["max_cm"],
                ate_kf_cm=kf["rmse_cm"], scale=full["scale"], tracking_wall_s=res.wall_s,
                import_s=t_import, in_process_s=time.perf_counter() - t0,
-               peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+               peak_rss_mb=peak_rss_mb(),            # VmHWM: not the parent's ru_maxrss
                timings={k: round(float(v), 3) for k, v in res.timings.items()},
                loop_events=sum(e.reason == "loop_closure" for e in res.events))
     if prof is not None:

@@ -41,3 +41,16 @@ def bound_heap(mmap_threshold: int = 1 << 20, arenas: int = 2) -> bool:
     if fn is None:
         return False
     return bool(fn(M_MMAP_THRESHOLD, int(mmap_threshold))) & bool(fn(M_ARENA_MAX, int(arenas)))
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory (MB) of this process since it started its program (``VmHWM``).
+
+    Unlike ``getrusage``'s ``ru_maxrss``, which Linux carries over from the parent across
+    fork + exec (a child started by a 350 MB benchmark process reports at least 350 MB),
+    this is the program's own peak."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    raise RuntimeError("/proc/self/status has no VmHWM line")

@@ -53,3 +53,19 @@ def test_bounded_heap_keeps_large_freed_blocks_out_of_the_heap():
                                     capture_output=True, text=True).stdout.split()[-1])
            for flag in ("0", "1")}
     assert rss["1"] < rss["0"] - 60, rss               # 50 x 2 MB freed
+
+
+def test_peak_rss_is_the_programs_own_not_the_parents():
+    """A child started by a big process reports its own peak (the benchmarks' RSS column):
+    getrusage's ru_maxrss can carry the parent's peak over across fork + exec."""
+    import subprocess
+    import sys
+    import numpy as np
+    from splat_slam_ros.heap import peak_rss_mb
+    big = np.ones(300 * 2**20 // 8)                       # 300 MB touched in the parent
+    assert peak_rss_mb() > 300
+    code = "from splat_slam_ros.heap import peak_rss_mb; print(peak_rss_mb())"
+    child = float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                 check=True).stdout)
+    assert 1 < child < 100, child
+    del big

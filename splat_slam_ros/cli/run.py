@@ -60,6 +60,8 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
 
     def body() -> int:
+        from splat_slam_ros.heap import bound_heap
+        bound_heap()            # a long-running process: large blocks back to the OS on free
         from splat_slam_ros.config import load_config
         from splat_slam_ros.io.datasets import open_dataset
         from splat_slam_ros.pipeline import NotInitializedError, run

@@ -103,25 +103,32 @@ def fill_trajectory(records: List[FrameRecord], kf_poses: Dict[int, torch.Tensor
             else np.zeros((0, 4, 4)))
 
 
-def _refine(fit, poses_out, pose, disp, intr, iters, huber):
+def _refine(fit, poses_out, pose, disp, intr, iters, huber, max_cells: int = 1 << 16):
     """Pose-only alignment (Eq. 1 target block) of the frames in ``fit`` against their
-    reference keyframe and, where it has one, the next keyframe (two edges)."""
-    refs, disps, flows, wts, n_it = [], [], [], [], []
-    for _i, r in fit:
-        two = r.flow2 is not None and r.ref2_kf in pose and r.ref2_kf in disp
-        k2 = r.ref2_kf if two else r.ref_kf
-        refs.append(torch.stack([pose[r.ref_kf], pose[k2]]))
-        disps.append(torch.stack([disp[r.ref_kf], disp[k2]]))
-        flows.append(torch.stack([r.flow, r.flow2 if two else r.flow]))
-        w2 = r.weight2 if two else torch.zeros_like(r.weight)      # a missing edge weighs 0
-        wts.append(torch.stack([r.weight, w2]))
-        n_it.append(iters + (0 if r.rel_pose is not None else 3))
-    D = torch.stack(disps)
-    grid = pixel_grid(*D.shape[-2:])
-    T = pose_only_refine_batch(torch.stack(refs), D, torch.stack([poses_out[i] for i, _ in fit]),
-                               intr, grid + torch.stack(flows).float(), torch.stack(wts).float(),
-                               torch.tensor(n_it), huber=huber)
+    reference keyframe and, where it has one, the next keyframe (two edges); solved in
+    batches of ``max_cells`` BA cells, so the flows are stacked a batch at a time."""
     out = list(poses_out)
-    for (i, _r), Ti in zip(fit, T):
-        out[i] = Ti
+    if not fit:
+        return out
+    h, w = fit[0][1].flow.shape[:2]
+    grid = pixel_grid(h, w)
+    step = max(1, max_cells // (2 * h * w))
+    for s in range(0, len(fit), step):
+        batch = fit[s:s + step]
+        refs, disps, flows, wts, n_it = [], [], [], [], []
+        for _i, r in batch:
+            two = r.flow2 is not None and r.ref2_kf in pose and r.ref2_kf in disp
+            k2 = r.ref2_kf if two else r.ref_kf
+            refs.append(torch.stack([pose[r.ref_kf], pose[k2]]))
+            disps.append(torch.stack([disp[r.ref_kf], disp[k2]]))
+            flows.append(torch.stack([r.flow, r.flow2 if two else r.flow]).float())
+            w2 = r.weight2 if two else torch.zeros_like(r.weight)  # a missing edge weighs 0
+            wts.append(torch.stack([r.weight, w2]).float())
+            n_it.append(iters + (0 if r.rel_pose is not None else 3))
+        T = pose_only_refine_batch(torch.stack(refs), torch.stack(disps),
+                                   torch.stack([out[i] for i, _ in batch]), intr,
+                                   grid + torch.stack(flows), torch.stack(wts),
+                                   torch.tensor(n_it), huber=huber, max_cells=max_cells)
+        for (i, _r), Ti in zip(batch, T):
+            out[i] = Ti
     return out
