@@ -9,7 +9,8 @@ import torch
 
 from splat_slam_ros.tracking.dense_ba import (_edge_terms, ba_cost, ba_step, bundle_adjust,
                                      disparity_normal_equations, induced_flow_distance,
-                                     pose_only_refine, pose_only_refine_multi, reproject)
+                                     pose_only_refine, pose_only_refine_batch,
+                                     pose_only_refine_multi, reproject)
 from splat_slam_ros.geometry import pixel_grid, project_homogeneous, se3_exp, se3_inverse
 
 H, W = 24, 32
@@ -193,6 +194,34 @@ def test_pose_only_refine_multi_two_keyframes_and_ba_residual():
     cost = ba_cost(P, disps[[0, 2]], INTR, torch.tensor([0, 1]), torch.tensor([2, 2]), tgt, wgt,
                    huber=0.5)
     assert info1.cost == pytest.approx(cost, rel=1e-4)
+
+
+def test_pose_only_refine_batch_is_the_per_frame_refinement():
+    """The trajectory filler's batched solve gives each frame what pose_only_refine_multi
+    gives it alone: frames with two edges, one edge (the other weighted 0), different
+    iteration counts, split over several batches."""
+    poses, disps = scene(5, seed=4)
+    g = torch.Generator().manual_seed(2)
+    refs, dsp, T0s, tgts, wgts, its, want = [], [], [], [], [], [], []
+    for f in range(1, 4):                          # frame f between keyframes f-1 and f+1
+        k = torch.tensor([f - 1, f + 1])
+        tgt, _ = reproject(poses, disps, INTR, k, torch.tensor([f, f]))
+        tgt = tgt + 0.05 * torch.randn(tgt.shape, generator=g)
+        wgt = torch.rand(2, H, W, 2, generator=g)
+        if f == 2:
+            wgt[1] = 0.0                           # one edge only
+        T0 = se3_exp(0.02 * torch.randn(6, dtype=torch.float64, generator=g)) @ poses[f]
+        n_it = 3 + f
+        want.append(pose_only_refine_multi(poses[k], disps[k], T0, INTR, tgt, wgt, iters=n_it,
+                                           huber=0.5)[0])
+        refs.append(poses[k]); dsp.append(disps[k]); T0s.append(T0)
+        tgts.append(tgt); wgts.append(wgt); its.append(n_it)
+    T = pose_only_refine_batch(torch.stack(refs), torch.stack(dsp), torch.stack(T0s), INTR,
+                               torch.stack(tgts), torch.stack(wgts), torch.tensor(its),
+                               huber=0.5, max_cells=2 * 2 * H * W)    # batches of 2 frames
+    for f in range(3):
+        assert torch.allclose(T[f], want[f], atol=1e-6), f
+        assert not torch.allclose(T[f], T0s[f], atol=1e-3)          # it did move
 
 
 def test_se3_exp_one_is_se3_exp():

@@ -181,6 +181,60 @@ def test_dis_predictor_matches_true_flow_and_is_a_flow_predictor():
     assert float(conf.float().mean()) > 0.3
 
 
+def test_default_dis_settings_apply_and_measure_the_true_flow():
+    """The default flow settings (finest scale 0, stride 8, no variational refinement) are set
+    on the DIS instance and measure the true flow at least as well as the bare preset."""
+    from splat_slam_ros.config import TrackingConfig
+    from splat_slam_ros.tracking.flow_frontend import make_flow_predictor
+    frames, _ = sequence()
+    gt = true_flow(frames[10], frames[16], 4)
+    errs = {}
+    for name, over in (("default", {}), ("preset", dict(flow_finest_scale=-1,
+                                                        flow_patch_stride=-1,
+                                                        flow_refine_iters=-1))):
+        tc = TrackingConfig(ba_downsample=4, flow_workers=1, **over)
+        pred = make_flow_predictor(tc)
+        f, w = pred.predict(pred.prepare(frames[10].image), pred.prepare(frames[16].image))
+        conf = w.mean(-1) > 0.3
+        errs[name] = float((f - gt).norm(dim=-1)[conf].median())
+        dis = pred._local.dis                                 # the calling thread's instance
+        if name == "default":
+            assert (dis.getFinestScale(), dis.getPatchStride(),
+                    dis.getVariationalRefinementIterations()) == (0, 8, 0)
+        else:
+            assert (dis.getFinestScale(), dis.getPatchStride()) == (1, 3)   # medium preset
+    assert errs["default"] < 0.15 and errs["default"] <= errs["preset"] * 1.2, errs
+
+
+def test_bad_dis_settings_are_user_errors():
+    from splat_slam_ros.tracking.flow_frontend import DISFlowPredictor, FrontendError
+    for kw in (dict(patch_stride=0), dict(finest_scale=-2), dict(refine_iters=-3),
+               dict(workers=0)):
+        with pytest.raises(FrontendError, match="tracking.flow_"):
+            DISFlowPredictor(**kw)
+
+
+def test_two_flow_threads_give_the_one_thread_results():
+    """flow_workers=2 runs the halves of a pair and a batch of forward flows on two threads;
+    the flows and weights are bit-identical to one thread's."""
+    from splat_slam_ros.tracking.flow_frontend import DISFlowPredictor
+    frames, _ = sequence()
+    one, two = DISFlowPredictor(ba_downsample=4, workers=1), DISFlowPredictor(ba_downsample=4,
+                                                                              workers=2)
+    imgs = [one.prepare(frames[k].image) for k in (10, 12, 14, 16, 18)]
+    init = torch.full((30, 40, 2), 0.5)
+    for a, b in zip(one.predict_pair(imgs[0], imgs[3], init_ij=init),
+                    two.predict_pair(imgs[0], imgs[3], init_ij=init)):
+        assert torch.equal(a, b)
+    many1 = one.predict_forward_many(imgs[0], imgs[1:], [init] * 4)
+    many2 = two.predict_forward_many(imgs[0], imgs[1:], [init] * 4)
+    assert len(many2) == 4 and two._pool is not None and one._pool is None
+    for (f1, w1), (f2, w2), img in zip(many1, many2, imgs[1:]):
+        assert torch.equal(f1, f2) and torch.equal(w1, w2)
+        f3, w3 = one.predict_forward(imgs[0], img, init)          # the batch = one at a time
+        assert torch.equal(f1, f3) and torch.equal(w1, w3)
+
+
 def test_preprocessor_undistorts_with_a_map_built_once():
     from splat_slam_ros.tracking.flow_frontend import ImagePreprocessor
     K = Intrinsics(458.654, 457.296, 367.215, 248.375, 752, 480, "plumb_bob",
