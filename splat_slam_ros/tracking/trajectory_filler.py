@@ -76,13 +76,12 @@ def fill_trajectory(records: List[FrameRecord], kf_poses: Dict[int, torch.Tensor
     disp = {k: kf_disps[k].float().cpu() for k in known if k in kf_disps}
     ts_out, poses_out, fit = [], [], []
     for r in records:
-        ts_out.append(r.timestamp)
         if r.kf_id is not None:
             if r.kf_id in kf_poses:
+                ts_out.append(r.timestamp)
                 poses_out.append(pose[r.kf_id])
-            else:
-                ts_out.pop()
             continue
+        ts_out.append(r.timestamp)
         if r.lost or r.ref_kf not in pose or r.ref_kf not in disp or r.flow is None:
             poses_out.append(interpolate_from_keyframes(r.timestamp, kf_ts, stack))
             continue
