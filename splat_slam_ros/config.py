@@ -48,8 +48,8 @@ class TrackingConfig:
     # (aspect kept, sides multiples of 16) to at most max_pixels pixels, but never smaller
     # than the mapping image; 0 = the input size, -1 = the mapping size. Keyframes are handed
     # on at the mapping size (image + intrinsics) with the disparity at this size's BA grid.
-    # 110592 (640x480 -> 384x288): with the default flow settings about the same ATE on
-    # fr2/desk (0.176 cm) for ~25 % more tracking CPU (README "Tracking"): opt-in.
+    # 110592 (640x480 -> 384x288): with the new flow settings little better (fr2/desk 0.176 cm
+    # either way, measured with stride 8) for ~25 % more tracking CPU (README "Tracking"): opt-in.
     max_pixels: int = -1
     ba_downsample: int = 8               # BA resolution = tracking image / this (paper: 1/8)
     # flow front end (classical stand-in for the paper's learned flow, see flow_frontend.py)
