@@ -32,6 +32,8 @@ import sys
 import time
 from pathlib import Path
 
+from splat_slam_ros.heap import proc_memory_mb
+
 REPO = Path(__file__).resolve().parents[1]
 TRAJ = REPO.parent / "shared" / "data" / "trajectories"
 SEQUENCES = {   # name: (trajectory file, extra splat-slam-synth options)
@@ -73,16 +75,6 @@ def ensure_bag(seq: Path) -> Path:
     return bag
 
 
-def _vm_hwm_mb(pid: int) -> float:
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    return 0.0
-
-
 def timed(cmd, log: Path, env) -> dict:
     """Run ``cmd``; wall time of the whole command, CPU seconds (it and its children, wait4)
     and the peak RSS of the command's own process (VmHWM, polled: wait4's ru_maxrss would be
@@ -97,7 +89,7 @@ def timed(cmd, log: Path, env) -> dict:
 
         def poll():
             while not done.wait(0.5):
-                hwm[0] = max(hwm[0], _vm_hwm_mb(p.pid))
+                hwm[0] = max(hwm[0], proc_memory_mb(p.pid).get("VmHWM", 0.0))
         th = threading.Thread(target=poll, daemon=True)
         th.start()
         _, status, ru = os.wait4(p.pid, 0)

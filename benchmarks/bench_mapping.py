@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import sys
 import tempfile
 import time
@@ -34,6 +33,7 @@ DATA = REPO.parent / "shared" / "data"
 RESULTS = REPO / "benchmarks" / "results" / "mapping.json"
 
 from splat_slam_ros.config import load_config  # noqa: E402
+from splat_slam_ros.heap import peak_rss_mb  # noqa: E402
 from splat_slam_ros.io.datasets import open_dataset  # noqa: E402
 from splat_slam_ros.mapping.map_sequence import map_sequence  # noqa: E402
 from splat_slam_ros.types import Frame, Intrinsics  # noqa: E402
@@ -52,10 +52,6 @@ def resized(frames, K: Intrinsics, scale: float):
         d = cv2.resize(f.gt_depth, (K2.width, K2.height), interpolation=cv2.INTER_NEAREST)
         out.append(Frame(f.index, f.timestamp, img, K2, f.gt_pose, d))
     return out, K2
-
-
-def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def run_one(name: str, ds, cfg, scale: float, keyframe_every: int, refine):

@@ -44,6 +44,8 @@ from typing import Dict, List, Optional
 import cv2
 import numpy as np
 
+from splat_slam_ros.heap import proc_memory_mb
+
 REPO = Path(__file__).resolve().parents[1]
 TRAJ = REPO.parent / "shared" / "data" / "trajectories" / "freiburg1_xyz-groundtruth.txt"
 SOURCE = "fr1xyz_300_real"
@@ -130,14 +132,8 @@ def pingpong_bag(data_dir: Path, size) -> Path:
 def _rss_mb(pid: int, field: str = "VmRSS") -> Optional[float]:
     """A /proc/<pid>/status memory field in MB: VmRSS (all resident memory), RssAnon (the
     process's private heap and stacks), RssShmem (resident pages of shared memory: the DDS
-    shared-memory segments it maps)."""
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith(field + ":"):
-                return int(line.split()[1]) / 1024.0
-    except (OSError, ValueError, IndexError):
-        return None
-    return None
+    shared-memory segments it maps); None when the process is gone."""
+    return proc_memory_mb(pid).get(field)
 
 
 def _node_pids(launch_pid: int) -> Dict[str, int]:

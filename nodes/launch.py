@@ -45,6 +45,8 @@ import time
 from pathlib import Path
 from typing import Dict, List, Optional
 
+from splat_slam_ros.heap import proc_memory_mb
+
 NODE_MODULES = {
     "tracker": "splat_slam_nodes.tracker_node",
     "depth": "splat_slam_nodes.depth_node",
@@ -108,8 +110,8 @@ class Child:
         """Peak RSS (VmHWM) and CPU time (utime + stime) of the current process (/proc)."""
         if not self.alive():
             return
-        st = _proc_status(self.proc.pid)
-        self.peak_rss = max(self.peak_rss, st.get("VmHWM", 0))
+        hwm_mb = proc_memory_mb(self.proc.pid).get("VmHWM", 0.0)
+        self.peak_rss = max(self.peak_rss, int(hwm_mb * 2**20))
         self.cpu_s_last = max(self.cpu_s_last, _proc_cpu(self.proc.pid))
 
     def cpu_s(self) -> float:
@@ -126,18 +128,6 @@ class Child:
                 os.kill(self.proc.pid, sig)
             except ProcessLookupError:
                 pass
-
-
-def _proc_status(pid: int) -> Dict[str, int]:
-    out = {}
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            k, _, v = line.partition(":")
-            if k in ("VmHWM", "VmRSS"):
-                out[k] = int(v.split()[0]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return out
 
 
 def _proc_cpu(pid: int) -> float:

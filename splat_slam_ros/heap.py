@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ctypes
 import sys
+from typing import Dict
 
 _LIBC = ctypes.CDLL(None) if sys.platform.startswith("linux") else None
 
@@ -43,14 +44,29 @@ def bound_heap(mmap_threshold: int = 1 << 20, arenas: int = 2) -> bool:
     return bool(fn(M_MMAP_THRESHOLD, int(mmap_threshold))) & bool(fn(M_ARENA_MAX, int(arenas)))
 
 
+def proc_memory_mb(pid="self") -> Dict[str, float]:
+    """The memory fields (kB lines: VmRSS, VmHWM, RssAnon, RssShmem, ...) of
+    ``/proc/<pid>/status`` in MB; empty when the process is gone (or there is no /proc)."""
+    out = {}
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                key, _, val = line.partition(":")
+                parts = val.split()
+                if len(parts) == 2 and parts[1] == "kB":
+                    out[key] = int(parts[0]) / 1024.0
+    except (OSError, ValueError):
+        return {}
+    return out
+
+
 def peak_rss_mb() -> float:
     """Peak resident memory (MB) of this process since it started its program (``VmHWM``).
 
     Unlike ``getrusage``'s ``ru_maxrss``, which Linux carries over from the parent across
     fork + exec (a child started by a 350 MB benchmark process reports at least 350 MB),
     this is the program's own peak."""
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0
-    raise RuntimeError("/proc/self/status has no VmHWM line")
+    hwm = proc_memory_mb().get("VmHWM")
+    if hwm is None:
+        raise RuntimeError("/proc/self/status has no VmHWM line")
+    return hwm
