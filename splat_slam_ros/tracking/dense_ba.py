@@ -424,38 +424,31 @@ def pose_only_refine_multi(T_refs: torch.Tensor, disp_refs: torch.Tensor, T_cur:
 def pose_only_refine_batch(T_refs: torch.Tensor, disp_refs: torch.Tensor, T_cur: torch.Tensor,
                            intr, targets: torch.Tensor, weights: torch.Tensor,
                            iters: torch.Tensor, huber: Optional[float] = None, lm: float = 1e-4,
-                           ep: float = 1e-3, max_cells: int = 1 << 16) -> torch.Tensor:
-    """:func:`pose_only_refine_multi` for N frames at once (the trajectory filler): keyframe
-    poses (N, K, 4, 4), disparities (N, K, h, w), frame poses (N, 4, 4), flows / weights
-    (N, K, h, w, 2) (an edge a frame lacks has zero weight) and iterations per frame (N,).
-    Same steps and stopping rules per frame; vectorised over frames, ``max_cells`` cells
-    (frames x K x h x w) per batch. Returns the refined poses (N, 4, 4) float64."""
+                           ep: float = 1e-3) -> torch.Tensor:
+    """:func:`pose_only_refine_multi` for N frames at once (the trajectory filler, which
+    sizes the batches): keyframe poses (N, K, 4, 4), disparities (N, K, h, w), frame poses
+    (N, 4, 4), flows / weights (N, K, h, w, 2) (an edge a frame lacks has zero weight) and
+    iterations per frame (N,). Same steps and stopping rules per frame, vectorised over
+    frames. Returns the refined poses (N, 4, 4) float64."""
     N, K, h, w = disp_refs.shape
     dev, dt = disp_refs.device, disp_refs.dtype
     k4 = intr_tensor(intr, dt, dev)
-    q = _rays(h, w, k4)
+    pw, dk = _lift(T_refs, disp_refs, _rays(h, w, k4), dt)
+    pw, d = pw.reshape(N, -1, 3), dk.reshape(N, -1)
+    tgt, w0 = targets.reshape(N, -1, 2).to(dt), weights.reshape(N, -1, 2).to(dt)
+    dmin = 1e-3 * d.clamp_min(1e-6)
     T = T_cur.to(torch.float64).clone()
-    iters = torch.as_tensor(iters, device=dev).reshape(N)
-    step = max(1, max_cells // max(K * h * w, 1))
-    for s in range(0, N, step):
-        sl = slice(s, min(N, s + step))
-        pw, dk = _lift(T_refs[sl], disp_refs[sl], q, dt)
-        n = pw.shape[0]
-        pw, d = pw.reshape(n, -1, 3), dk.reshape(n, -1)
-        tgt, w0 = targets[sl].reshape(n, -1, 2).to(dt), weights[sl].reshape(n, -1, 2).to(dt)
-        dmin = 1e-3 * d.clamp_min(1e-6)
-        Tc, limit = T[sl], iters[sl]
-        active = torch.ones(n, dtype=torch.bool, device=dev)
-        for it in range(int(limit.max()) if n else 0):
-            idx = (active & (limit > it)).nonzero()[:, 0]
-            if len(idx) == 0:
-                break
-            H, g, _, wsum, _ = _pose_only_system(pw[idx], d[idx], tgt[idx], w0[idx], Tc[idx],
-                                                 k4, huber, dmin[idx])
-            H = H + torch.diag_embed(lm * torch.diagonal(H, dim1=-2, dim2=-1) + ep)
-            dx, bad = torch.linalg.solve_ex(H, g)
-            ok = (wsum > 0) & (bad == 0) & torch.isfinite(dx).all(-1)
-            Tc[idx[ok]] = Tc[idx[ok]] @ se3_exp(dx[ok])
-            active[idx[~ok | (dx.norm(dim=-1) < 1e-6)]] = False
-        T[sl] = Tc
+    limit = torch.as_tensor(iters, device=dev).reshape(N)
+    active = torch.ones(N, dtype=torch.bool, device=dev)
+    for it in range(int(limit.max()) if N else 0):
+        idx = (active & (limit > it)).nonzero()[:, 0]
+        if len(idx) == 0:
+            break
+        H, g, _, wsum, _ = _pose_only_system(pw[idx], d[idx], tgt[idx], w0[idx], T[idx], k4,
+                                             huber, dmin[idx])
+        H = H + torch.diag_embed(lm * torch.diagonal(H, dim1=-2, dim2=-1) + ep)
+        dx, bad = torch.linalg.solve_ex(H, g)
+        ok = (wsum > 0) & (bad == 0) & torch.isfinite(dx).all(-1)
+        T[idx[ok]] = T[idx[ok]] @ se3_exp(dx[ok])
+        active[idx[~ok | (dx.norm(dim=-1) < 1e-6)]] = False
     return T

@@ -634,7 +634,7 @@ class Tracker:
             if rec.rel_pose is not None:
                 T = self.kfs[rec.ref_kf].pose @ torch.as_tensor(
                     rec.rel_pose, dtype=torch.float64, device=self.device)
-                init = self._induced(ks.pose, ks.disp, T).cpu()
+                init = self._induced(ks.pose, ks.disp, T)
             todo.append((rec, prep, init))
         fwd = [t for t in todo if t[2] is not None] \
             if hasattr(self.flow, "predict_forward_many") else []      # one DIS call each

@@ -96,19 +96,17 @@ def fill_trajectory(records: List[FrameRecord], kf_poses: Dict[int, torch.Tensor
         fit.append((len(poses_out), r))
         poses_out.append(T)
     if fit:
-        poses_out = _refine(fit, poses_out, pose, disp, intr, iters, huber)
+        _refine(fit, poses_out, pose, disp, intr, iters, huber)
     return (np.asarray(ts_out, dtype=np.float64),
             torch.stack(poses_out).numpy().astype(np.float64) if poses_out
             else np.zeros((0, 4, 4)))
 
 
 def _refine(fit, poses_out, pose, disp, intr, iters, huber, max_cells: int = 1 << 16):
-    """Pose-only alignment (Eq. 1 target block) of the frames in ``fit`` against their
-    reference keyframe and, where it has one, the next keyframe (two edges); solved in
-    batches of ``max_cells`` BA cells, so the flows are stacked a batch at a time."""
-    out = list(poses_out)
-    if not fit:
-        return out
+    """Pose-only alignment (Eq. 1 target block) of the frames in ``fit`` (index into
+    ``poses_out``, record) against their reference keyframe and, where it has one, the next
+    keyframe (two edges); ``poses_out`` is updated in place. Solved in batches of
+    ``max_cells`` BA cells, so the flows are stacked a batch at a time."""
     h, w = fit[0][1].flow.shape[:2]
     grid = pixel_grid(h, w)
     step = max(1, max_cells // (2 * h * w))
@@ -125,9 +123,8 @@ def _refine(fit, poses_out, pose, disp, intr, iters, huber, max_cells: int = 1 <
             wts.append(torch.stack([r.weight, w2]).float())
             n_it.append(iters + (0 if r.rel_pose is not None else 3))
         T = pose_only_refine_batch(torch.stack(refs), torch.stack(disps),
-                                   torch.stack([out[i] for i, _ in batch]), intr,
+                                   torch.stack([poses_out[i] for i, _ in batch]), intr,
                                    grid + torch.stack(flows), torch.stack(wts),
-                                   torch.tensor(n_it), huber=huber, max_cells=max_cells)
+                                   torch.tensor(n_it), huber=huber)
         for (i, _r), Ti in zip(batch, T):
-            out[i] = Ti
-    return out
+            poses_out[i] = Ti
