@@ -34,6 +34,7 @@ import numpy as np
 from splat_slam_ros.types import Intrinsics, IntrinsicsError
 
 from .node_common import TOPICS, events_qos, graph_event, init_process
+from .tool_runner import is_shutdown_race
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
@@ -342,7 +343,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     except KeyboardInterrupt:
         return 130
     except Exception as e:
-        if type(e).__name__ == "ExternalShutdownException":
+        if type(e).__name__ == "ExternalShutdownException" or is_shutdown_race(e):
             return 130
         raise
     finally:

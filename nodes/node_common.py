@@ -26,6 +26,8 @@ from typing import Any, Callable, Dict, List, Optional
 from splat_slam_ros.heap import bound_heap, release_free_memory
 from splat_slam_ros.ros_env import RosEnvError, apply_ros_environment
 
+from .tool_runner import is_shutdown_race
+
 # --------------------------------------------------------------------------- names
 NS = "/splat"
 TOPICS = {
@@ -325,6 +327,9 @@ class SplatNode:
             rclpy.spin(self.node)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
+        except RuntimeError as e:
+            if not is_shutdown_race(e):
+                raise
         finally:
             self.worker.stop()
             rc = self.worker.fatal_rc

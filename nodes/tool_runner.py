@@ -7,6 +7,13 @@ import sys
 from typing import Callable, List, Optional, Tuple, Type
 
 
+def is_shutdown_race(e: BaseException) -> bool:
+    """A SIGINT / SIGTERM's shutdown that landed between an executor's context check and its
+    wait-set creation: rclpy raises RCLError (a RuntimeError) there; that is a requested stop."""
+    import rclpy
+    return isinstance(e, RuntimeError) and not rclpy.ok()
+
+
 def run_rclpy_tool(body: Callable[[], int], user_errors: Tuple[Type[BaseException], ...],
                    rclpy_args: Optional[List[str]] = None, interrupted: int = 130) -> int:
     """``rclpy.init(rclpy_args)``, ``body()``; returns its status, 2 for ``user_errors`` and
@@ -21,5 +28,9 @@ def run_rclpy_tool(body: Callable[[], int], user_errors: Tuple[Type[BaseExceptio
         return 2
     except (KeyboardInterrupt, ExternalShutdownException):
         return interrupted
+    except RuntimeError as e:
+        if is_shutdown_race(e):
+            return interrupted
+        raise
     finally:
         rclpy.try_shutdown()
