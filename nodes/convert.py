@@ -302,8 +302,9 @@ def proxy_depth_to_msg(pd: ProxyDepth, frame_id: str = "map"):
         raise ConversionError(f"proxy depth must be H x W, got shape {d.shape}")
     if s.shape != d.shape:
         raise ConversionError(f"proxy depth source mask shape {s.shape} != depth shape {d.shape}")
-    if s.size and (s.min() < 0 or s.max() > 2):
-        raise ConversionError("proxy depth source mask values must be 0 (empty), 1 (multi-view) or 2 (mono)")
+    if s.size and (s.min() < 0 or s.max() > ProxyDepth.SOURCE_BA):
+        raise ConversionError("proxy depth source mask values must be 0 (empty), 1 (multi-view), "
+                              "2 (mono) or 3 (BA depth in a hole)")
     m = ProxyDepthMsg()
     m.header.stamp = to_stamp(pd.timestamp)
     m.header.frame_id = frame_id

@@ -156,6 +156,7 @@ class DepthConfig:
     mv_min_views: int = 2                # n_c
     mv_max_depth_ratio: float = 3.0      # reject depth > ratio x median
     fill_small_holes: int = 0            # max hole size (px) filled when no mono model
+    fill_holes_from_ba: bool = True      # no mono model: multi-view holes take the BA depth
     device: str = "auto"                 # "cpu", "cuda" or "auto" (torch part of proxy depth)
     mv_neighbors: int = 8                # other keyframes used by Eq. 5 (nearest by kf id)
     upsample_disc: float = 0.1           # upsampling: a 2x2 BA cell spanning more than this
@@ -189,6 +190,7 @@ class MappingConfig:
                                          # (realtime: steps are dropped, never keyframes)
     window_size: int = 8
     rgb_weight: float = 0.8              # lambda in Eq. 8
+    ba_depth_weight: float = 0.3         # depth-loss weight of BA-filled holes (source 3), 0..1
     isotropy_weight: float = 10.0        # lambda_reg in Eq. 8
     downsample: int = 32                 # theta
     downsample_first: int = 16

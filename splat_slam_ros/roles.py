@@ -615,7 +615,8 @@ class MapperRole:
         if self.mapper is not None and k in self.mapper.keyframes:
             # Map deformation (§3.2): the keyframe's Gaussians follow its new pose and depth
             t0 = time.perf_counter()
-            self.mapper.apply_update(k, pd.pose, pd.depth, pd.valid)
+            self.mapper.apply_update(k, pd.pose, pd.depth,
+                                     pd.depth_weight(self.cfg.mapping.ba_depth_weight))
             self.taken[k] = int(pd.revision)
             self.dirty.add(k)
             self._merge_revisit(k, pd)
@@ -738,7 +739,8 @@ class MapperRole:
                       reason=f"revisit of {twin}" if twin is not None else
                       f"map covers {cov:.0%} of its view")
         else:
-            st = self.mapper.add_keyframe(kf.kf_id, kf.image, pd.pose, pd.depth, pd.valid,
+            st = self.mapper.add_keyframe(kf.kf_id, kf.image, pd.pose, pd.depth,
+                                          pd.depth_weight(self.cfg.mapping.ba_depth_weight),
                                           timestamp=kf.timestamp)
         self.timings["mapping"] += time.perf_counter() - t0
         mapped = bool(st.get("mapped"))

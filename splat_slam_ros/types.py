@@ -184,7 +184,7 @@ class ProxyDepth:
     """
     kf_id: int
     depth: np.ndarray           # H x W float32 metres, 0 = none
-    source: np.ndarray          # H x W uint8: SOURCE_EMPTY=0, SOURCE_MULTIVIEW=1, SOURCE_MONO=2
+    source: np.ndarray          # H x W uint8: SOURCE_* below
     pose: np.ndarray            # 4x4 camera-to-world the depth was computed with
     update_seq: int = 0         # PoseGraphUpdate.seq it reflects, 0 for a new keyframe
     is_update: bool = False     # replaces an earlier depth of the same keyframe
@@ -194,7 +194,19 @@ class ProxyDepth:
     SOURCE_EMPTY = 0
     SOURCE_MULTIVIEW = 1
     SOURCE_MONO = 2
+    SOURCE_BA = 3               # BA-grid depth in a multi-view hole (no mono model)
+    SOURCES = (SOURCE_EMPTY, SOURCE_MULTIVIEW, SOURCE_MONO, SOURCE_BA)
 
     @property
     def valid(self) -> np.ndarray:
         return np.asarray(self.source) > 0
+
+    def depth_weight(self, ba_weight: float) -> np.ndarray:
+        """The mapper's per-pixel depth-loss weight: 1 where the depth is multi-view or mono,
+        ``ba_weight`` where it is the BA depth filling a hole, 0 where there is none (a bool
+        mask when no pixel is BA-filled or ``ba_weight`` is 1)."""
+        s = np.asarray(self.source)
+        ba = s == self.SOURCE_BA
+        if ba_weight == 1.0 or not ba.any():
+            return s > 0
+        return np.where(ba, np.float32(ba_weight), (s > 0).astype(np.float32))

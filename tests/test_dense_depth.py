@@ -134,6 +134,7 @@ def _estimate(dense_views, noise=0.15):
     cfg.depth.device = "cpu"
     cfg.depth.dense_views = dense_views
     cfg.depth.upsample_guided = False
+    cfg.depth.fill_holes_from_ba = False       # the dense layer's own coverage
     est = ProxyDepthEstimator(cfg, INTR)
     tex = _texture()
     rng = np.random.default_rng(1)

@@ -135,7 +135,9 @@ def test_mapper_snapshot_round_trip(tmp_path):
         imgs[k] = img
         pose = np.eye(4)
         pose[0, 3] = 0.3 * k
-        mp.add_keyframe(k, img, pose, np.full((H, W), 2.0, np.float32), force=True)
+        w = None if k == 0 else np.where(np.arange(W) < W // 2, 1.0, 0.3) * np.ones((H, 1))
+        mp.add_keyframe(k, img, pose, np.full((H, W), 2.0, np.float32), w, force=True)
+    assert mp.keyframes[0].weight is None and mp.keyframes[1].weight is not None
     arrays, meta = mapper_state(mp)
     st = KeyframeStore(tmp_path / "m")
     st.put("map", meta={"map": meta}, **arrays)
@@ -147,6 +149,9 @@ def test_mapper_snapshot_round_trip(tmp_path):
     for k in mp.keyframes:
         np.testing.assert_array_equal(mp2.keyframes[k].valid.numpy(), mp.keyframes[k].valid.numpy())
         np.testing.assert_array_equal(mp2.keyframes[k].depth.numpy(), mp.keyframes[k].depth.numpy())
+    assert mp2.keyframes[0].weight is None      # depth-loss weights (BA-filled holes) kept
+    np.testing.assert_allclose(mp2.keyframes[1].weight.numpy(), mp.keyframes[1].weight.numpy(),
+                               atol=1e-3)
     assert len(mp2.map) == len(mp.map) and sorted(mp2.keyframes) == sorted(mp.keyframes)
     assert mp2.window.window == mp.window.window and mp2.iteration == mp.iteration
     pose = mp.keyframes[1].pose

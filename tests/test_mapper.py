@@ -261,6 +261,40 @@ def test_add_keyframe_decides_window_membership(scene):
         mp.add_keyframe(3, img2, np.eye(3), d2)
 
 
+def test_depth_weights_scale_the_depth_loss_and_follow_updates(scene):
+    from splat_slam_ros.types import ProxyDepth
+    mp = Mapper(small_cfg(iters_first=1, iters_per_keyframe=1), K)
+    p0 = pose_at()
+    img, d = render_view(scene, p0)
+    src = np.where(d > 0, ProxyDepth.SOURCE_MULTIVIEW, ProxyDepth.SOURCE_EMPTY).astype(np.uint8)
+    src[:, : W // 2][d[:, : W // 2] > 0] = ProxyDepth.SOURCE_BA    # left half: BA-filled holes
+    pd = ProxyDepth(0, d, src, p0)
+    assert pd.depth_weight(1.0).dtype == bool                       # weight 1: a plain mask
+    w = pd.depth_weight(0.25)
+    assert set(np.unique(w)) <= {0.0, 0.25, 1.0} and (w[src == ProxyDepth.SOURCE_BA] == 0.25).all()
+    mp.add_keyframe(0, img, p0, d * 1.1, w)                     # 10 % off: a depth loss
+    kf = mp.keyframes[0]
+    assert (kf.valid.numpy() == (src > 0)).all()                # BA pixels have depth
+    with torch.no_grad():
+        out = mp._raster(p0)
+        lw = mp._view_loss(kf, out)
+        kf.weight = None
+        l1 = mp._view_loss(kf, out)
+        kf.weight = torch.from_numpy(w.astype(np.float32) * 0)
+        l0 = mp._view_loss(kf, out)
+    assert l0 < lw < l1
+    left, right = (src[:, : W // 2] > 0).sum(), (src[:, W // 2:] > 0).sum()
+    frac = (0.25 * left + right) / (left + right)                # depth error is ~uniform
+    assert float((lw - l0) / (l1 - l0)) == pytest.approx(frac, rel=0.2)
+    # an update with a plain mask drops the weights; 0 weight is no depth
+    mp.apply_update(0, p0, d, d > 0)
+    assert kf.weight is None
+    mp.apply_update(0, p0, d, np.where(d > 0, 0.0, 1.0))
+    assert not kf.valid.any()
+    with pytest.raises(MapError, match="ba_depth_weight"):
+        Mapper(small_cfg(ba_depth_weight=1.5), K)
+
+
 def test_negative_focal_length_is_rejected_clearly():
     with pytest.raises(MapError, match="positive focal"):
         Mapper(small_cfg(), Intrinsics(100, -100, 10, 10, 20, 20))

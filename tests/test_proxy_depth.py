@@ -7,7 +7,8 @@ import torch
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.geometry import so3_exp
 from splat_slam_ros.depth.mono_depth import MonoDepthModel
-from splat_slam_ros.depth.proxy_depth import (SOURCE_EMPTY, SOURCE_MONO, SOURCE_MULTIVIEW,
+from splat_slam_ros.depth.proxy_depth import (SOURCE_BA, SOURCE_EMPTY, SOURCE_MONO,
+                                        SOURCE_MULTIVIEW,
                                         ProxyDepthEstimator, compose_proxy_depth,
                                         consistency_count, fill_small_holes, fit_scale_shift,
                                         multiview_filter)
@@ -238,6 +239,19 @@ def test_compose_mono_fill_depth_and_disparity_space():
     # without mono: holes stay holes
     d3, s3, _, _ = compose_proxy_depth(true, valid, None)
     assert (s3[:, 200:] == SOURCE_EMPTY).all() and (d3[:, 200:] == 0).all()
+    # ... unless a BA depth is given: it fills them, except beyond 3x the median depth
+    ba = true * 1.1
+    ba[:, 300:] = 100.0
+    d4, s4, _, _ = compose_proxy_depth(true, valid, None, ba_depth=ba)
+    assert (s4[:, :200] == SOURCE_MULTIVIEW).all() and (d4[:, :200] == true[:, :200].numpy()).all()
+    assert (s4[:, 200:300] == SOURCE_BA).all()
+    np.testing.assert_allclose(d4[:, 200:300], ba[:, 200:300].numpy())
+    assert (s4[:, 300:] == SOURCE_EMPTY).all() and (d4[:, 300:] == 0).all()
+    # a mono model takes precedence (the paper's fill); nothing consistent: nothing filled
+    _, s5, _, _ = compose_proxy_depth(true, valid, mono, "depth", ba_depth=ba)
+    assert not (s5 == SOURCE_BA).any()
+    _, s6, _, _ = compose_proxy_depth(true, torch.zeros_like(valid), None, ba_depth=ba)
+    assert (s6 == SOURCE_EMPTY).all()
 
 
 def test_fill_small_holes_only_planar_enclosed_small():
@@ -287,7 +301,7 @@ def run_estimator(n=8, mono=None, **depth_cfg):
 
 
 def test_estimator_multiview_only_and_with_mono():
-    est, poses, _, out = run_estimator(8)
+    est, poses, _, out = run_estimator(8, fill_holes_from_ba=False)
     assert out[5].n_views == 5 and est.get(5).n_views == 7     # refreshed by kf 6, 7
     r = est.get(5)
     true = raycast(poses[5], ivec(TRACK), 240, 320)
@@ -313,6 +327,20 @@ def test_estimator_multiview_only_and_with_mono():
     for src in (SOURCE_MULTIVIEW, SOURCE_MONO):       # (the tail: edges at 1/8 resolution)
         assert np.median(err[r2.source == src]) < 0.01
         assert np.percentile(err[r2.source == src], 90) < 0.02
+    assert not (r2.source == SOURCE_BA).any()
+
+
+def test_estimator_fills_multiview_holes_with_the_ba_depth_by_default():
+    est, poses, _, out = run_estimator(8)
+    holes, _, _, _ = run_estimator(8, fill_holes_from_ba=False)
+    r, r0 = est.get(5), holes.get(5)
+    true = raycast(poses[5], ivec(TRACK), 240, 320)
+    mv, ba = r.source == SOURCE_MULTIVIEW, r.source == SOURCE_BA
+    np.testing.assert_array_equal(mv, r0.source == SOURCE_MULTIVIEW)   # multi-view untouched
+    np.testing.assert_array_equal(r.depth[mv], r0.depth[mv])
+    assert (ba == (r0.source == SOURCE_EMPTY)).mean() > 0.99 and ba.mean() > 0.05
+    assert np.median(np.abs(r.depth[ba] - true[ba])) < 0.01       # the BA depth is exact here
+    assert out[0].valid.sum() == 0                # the first keyframe, no view yet: it waits
 
 
 def test_apply_update_returns_exactly_the_affected_keyframes():
@@ -345,7 +373,9 @@ def test_apply_update_returns_exactly_the_affected_keyframes():
     got = {new.kf_id: (old, new) for old, new in pairs}
     assert 8 in got and set(got) <= {7, 8, 9}
     old, new = got[8]
-    assert new.valid[40:120, 40:160].sum() < old.valid[40:120, 40:160].sum()
+    mv = lambda r: (r.source == SOURCE_MULTIVIEW)[40:120, 40:160]
+    assert mv(new).sum() < mv(old).sum()      # the filter drops the corrupted region ...
+    assert (new.source[40:120, 40:160][~mv(new)] == SOURCE_BA).all()   # ... the BA fills it
     # unknown keyframes are ignored
     assert est.apply_update(UpdateEvent(10, "final", [42], np.eye(4)[None])) == []
 

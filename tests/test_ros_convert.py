@@ -294,12 +294,13 @@ def test_pose_graph_update_errors():
 def test_proxy_depth_round_trip_and_errors():
     rng = np.random.default_rng(6)
     d = rng.random((12, 16), dtype=np.float32) * 4
-    s = rng.integers(0, 3, (12, 16)).astype(np.uint8)
+    s = rng.integers(0, 4, (12, 16)).astype(np.uint8)
     T = random_pose(rng)
     pd = CoreProxyDepth(4, d, s, T, update_seq=9, is_update=True, timestamp=2.25, revision=7)
     m = wire(C.proxy_depth_to_msg(pd))
     assert isinstance(m, ProxyDepth) and (m.width, m.height) == (16, 12)
     assert ProxyDepth.SOURCE_MULTIVIEW == CoreProxyDepth.SOURCE_MULTIVIEW == 1
+    assert ProxyDepth.SOURCE_BA == CoreProxyDepth.SOURCE_BA == 3 and (s == 3).any()
     p = C.msg_to_proxy_depth(m)
     assert (p.kf_id, p.update_seq, p.is_update, p.timestamp, p.revision) == (4, 9, True, 2.25, 7)
     np.testing.assert_array_equal(p.depth, d)
@@ -308,7 +309,7 @@ def test_proxy_depth_round_trip_and_errors():
     m2 = wire(C.proxy_depth_to_msg(p))
     assert bytes(m2.source) == bytes(m.source) and m2.update_seq == 9
     with pytest.raises(C.ConversionError, match="source mask values"):
-        C.proxy_depth_to_msg(replace(pd, source=s + 5))
+        C.proxy_depth_to_msg(replace(pd, source=s + 4))
     with pytest.raises(C.ConversionError, match="source mask shape"):
         C.proxy_depth_to_msg(replace(pd, source=s[:-1]))
     m.source = bytes(m.source)[:-2]

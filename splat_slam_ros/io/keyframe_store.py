@@ -307,11 +307,15 @@ def mapper_state(mapper) -> Tuple[Dict[str, np.ndarray], Dict[str, Any]]:
 
 
 def keyframe_depth(mapper, kf_id: int) -> Dict[str, np.ndarray]:
-    """The proxy depth (float32) and packed validity mask a mapped keyframe holds now."""
+    """The proxy depth (float32), packed validity mask and (when the keyframe's depth loss is
+    weighted) float16 weights a mapped keyframe holds now."""
     kf = mapper.keyframes[int(kf_id)]
-    return {"depth": kf.depth.detach().cpu().numpy().astype(np.float32),
-            "valid": np.packbits(kf.valid.cpu().numpy(), axis=-1),
-            "width": np.array(kf.valid.shape[-1], np.int64)}
+    out = {"depth": kf.depth.detach().cpu().numpy().astype(np.float32),
+           "valid": np.packbits(kf.valid.cpu().numpy(), axis=-1),
+           "width": np.array(kf.valid.shape[-1], np.int64)}
+    if kf.weight is not None:
+        out["weight"] = kf.weight.detach().cpu().numpy().astype(np.float16)
+    return out
 
 
 def restore_mapper(arrays: Dict[str, np.ndarray], meta: Dict[str, Any], cfg, intrinsics,

@@ -17,7 +17,6 @@ supplementary's final refinement (random single keyframes, no pruning/densificat
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 
@@ -27,6 +26,8 @@ import torch
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.mapping.deformation import deform_gaussians
 from splat_slam_ros.mapping.gaussian_map import GaussianMap
+from splat_slam_ros.mapping.keyframe_inputs import (MapError, MappedKeyframe,
+                                                    check_keyframe_inputs, check_pose)
 from splat_slam_ros.geometry import project, quat_to_matrix, se3_inverse, transform_points
 from splat_slam_ros.mapping.keyframe_views import history_entry, write_keyframe_views
 from splat_slam_ros.mapping.keyframe_window import KeyframeDecision, KeyframeWindow
@@ -35,22 +36,6 @@ from splat_slam_ros.mapping.ply_io import load_gaussians_ply, save_gaussians_ply
 from splat_slam_ros.mapping.rasterizer import rasterize
 from splat_slam_ros.runtime import resolve_device
 from splat_slam_ros.types import Intrinsics
-
-
-class MapError(ValueError):
-    """A user-facing mapping mistake (bad input shapes, missing poses/depth, bad file)."""
-
-
-@dataclass
-class MappedKeyframe:
-    kf_id: int
-    index: int                      # order of mapping (0 = first)
-    timestamp: float
-    pose: np.ndarray                # 4x4 camera-to-world (float64), current estimate
-    image: torch.Tensor             # (H, W, 3) uint8
-    depth: torch.Tensor             # (H, W) float32 proxy depth, 0 where invalid
-    valid: torch.Tensor             # (H, W) bool
-    exposure: torch.Tensor          # (2,) (log a, b): colour a * C + b (Eq. 8)
 
 
 class Mapper:
@@ -65,6 +50,8 @@ class Mapper:
                            "which converts negative-focal (ICL-NUIM) cameras")
         if m.window_size < 1 or m.downsample < 1 or m.downsample_first < 1:
             raise MapError("mapping.window_size and mapping.downsample* must be >= 1")
+        if not 0.0 <= m.ba_depth_weight <= 1.0:
+            raise MapError(f"mapping.ba_depth_weight must be in [0, 1], got {m.ba_depth_weight}")
         self.device = resolve_device(device or m.device, "mapping.device")
         self.K = intrinsics
         self.W, self.H = int(intrinsics.width), int(intrinsics.height)
@@ -142,47 +129,17 @@ class Mapper:
         """Fraction of the image the map covers at ``pose`` (accumulated opacity > 0.5)."""
         if len(self.map) == 0:
             return 0.0
-        return float((self._raster(self._check_pose(pose)).alpha > 0.5).float().mean())
+        return float((self._raster(check_pose(pose)).alpha > 0.5).float().mean())
 
     @staticmethod
     def _expose(rgb: torch.Tensor, kf: MappedKeyframe) -> torch.Tensor:
         return rgb * kf.exposure[0].exp() + kf.exposure[1]      # a_k C_k + b_k (Eq. 8)
 
     # ============================================================ keyframes
-    def _check_inputs(self, image, depth, valid):
-        image = np.asarray(image)
-        if image.ndim == 2:
-            image = np.repeat(image[..., None], 3, -1)
-        if image.shape != (self.H, self.W, 3):
-            raise MapError(f"keyframe image is {image.shape}, the mapper's intrinsics are for "
-                           f"{self.W}x{self.H}x3")
-        if image.dtype != np.uint8:
-            raise MapError(f"keyframe image must be uint8 RGB, got {image.dtype}")
-        depth = np.asarray(depth, dtype=np.float32)
-        if depth.shape != (self.H, self.W):
-            raise MapError(f"proxy depth is {depth.shape}, expected {(self.H, self.W)}")
-        ok = np.isfinite(depth) & (depth > 0)
-        if valid is not None:
-            valid = np.asarray(valid)
-            if valid.shape != depth.shape:
-                raise MapError(f"depth validity mask is {valid.shape}, expected {depth.shape}")
-            ok &= valid.astype(bool)
-        dev = self.device
-        return (torch.from_numpy(np.ascontiguousarray(image)).to(dev),
-                torch.from_numpy(np.where(ok, depth, 0).astype(np.float32)).to(dev),
-                torch.from_numpy(ok).to(dev))
-
-    @staticmethod
-    def _check_pose(pose) -> np.ndarray:
-        pose = np.asarray(pose, dtype=np.float64)
-        if pose.shape != (4, 4) or not np.isfinite(pose).all():
-            raise MapError(f"pose must be a finite 4x4 camera-to-world matrix, got {pose.shape}")
-        return pose
-
     @torch.no_grad()
     def decide(self, pose, depth, valid=None) -> KeyframeDecision:
         """Would a keyframe at ``pose`` be mapped? (covisibility / translation rules)."""
-        pose = self._check_pose(pose)
+        pose = check_pose(pose)
         if self.window.last is None or len(self.map) == 0:
             return KeyframeDecision(True, "first", 0.0, 0.0, 0.0)
         out = self._raster(pose)
@@ -201,14 +158,15 @@ class Mapper:
         """Offer a tracker keyframe to the map. Returns statistics of this step.
 
         image (H,W,3) uint8 RGB; pose 4x4 camera-to-world; depth (H,W) float32 metres (proxy
-        depth, 0 = missing); valid (H,W) bool or None. ``force`` maps it regardless of the
-        covisibility rules."""
+        depth, 0 = missing); valid (H,W) bool, or float depth-loss weights in [0, 1] (0 = no
+        depth), or None. ``force`` maps it regardless of the covisibility rules."""
         t0 = time.perf_counter()
         kf_id = int(kf_id)
         if kf_id in self.keyframes:
             raise MapError(f"keyframe {kf_id} is already mapped; use apply_update to change it")
-        pose = self._check_pose(pose)
-        img_t, depth_t, valid_t = self._check_inputs(image, depth, valid)
+        pose = check_pose(pose)
+        img_t, depth_t, valid_t, weight_t = check_keyframe_inputs(image, depth, valid, self.W,
+                                                                   self.H, self.device)
         first = len(self.keyframes) == 0
         if first:
             dec = KeyframeDecision(True, "first", 0.0, 0.0, 0.0)
@@ -232,7 +190,7 @@ class Mapper:
 
         kf = MappedKeyframe(kf_id, self._next_index,
                             float(kf_id if timestamp is None else timestamp), pose, img_t,
-                            depth_t, valid_t, torch.zeros(2, device=self.device))
+                            depth_t, valid_t, torch.zeros(2, device=self.device), weight_t)
         self._add_keyframe_record(kf)
         if self._scene_depth <= 0 and bool(valid_t.any()):   # the first keyframe with depth
             self._scene_depth = float(depth_t[valid_t].median())
@@ -319,7 +277,8 @@ class Mapper:
         gt = kf.image.to(torch.float32) / 255.0
         l_rgb = (self._expose(out.rgb, kf) - gt).abs().mean()
         n_pix = kf.depth.numel()
-        l_depth = ((out.depth - kf.depth).abs() * kf.valid).sum() / n_pix
+        w = kf.valid if kf.weight is None else kf.weight
+        l_depth = ((out.depth - kf.depth).abs() * w).sum() / n_pix
         return lam * l_rgb + (1 - lam) * l_depth
 
     def _isotropy(self) -> torch.Tensor:
@@ -545,11 +504,11 @@ class Mapper:
         kf = self.keyframes.get(int(kf_id))
         if kf is None:
             return 0
-        pose = self._check_pose(pose)
-        new_depth = new_valid = None
+        pose = check_pose(pose)
+        new_depth = new_valid = new_weight = None
         if depth is not None:
-            _, new_depth, new_valid = self._check_inputs(
-                np.zeros((self.H, self.W, 3), np.uint8), depth, valid)
+            _, new_depth, new_valid, new_weight = check_keyframe_inputs(
+                np.zeros((self.H, self.W, 3), np.uint8), depth, valid, self.W, self.H, self.device)
         sel = (self.map.kf_id == kf.kf_id).nonzero()[:, 0]
         if len(sel):
             g = self.map
@@ -559,7 +518,7 @@ class Mapper:
             g.set_rows(sel, means=d.means, quats=d.quats, log_scales=d.log_scales)
         kf.pose = pose
         if new_depth is not None:
-            kf.depth, kf.valid = new_depth, new_valid
+            kf.depth, kf.valid, kf.weight = new_depth, new_valid, new_weight
         self.n_deformations += 1
         self.n_deformed_gaussians += int(len(sel))
         return int(len(sel))
@@ -698,7 +657,8 @@ class Mapper:
         """Restore :meth:`state_dict` output into this (fresh) mapper. ``image_of(kf_id)``
         returns the keyframe's H x W x 3 uint8 image, ``depth_of(kf_id)`` a dict with the
         proxy ``depth`` (float32), its validity mask bit-packed along rows (``valid``,
-        ``np.packbits(mask, axis=-1)``) and the image ``width``."""
+        ``np.packbits(mask, axis=-1)``), the image ``width`` and, when the keyframe's depth
+        loss is weighted, its ``weight`` (float16)."""
         if self.keyframes or len(self.map):
             raise MapError("load_state_dict needs a fresh mapper (no keyframes, no Gaussians)")
         dev = self.device
@@ -711,12 +671,14 @@ class Mapper:
             d = depth_of(int(k))
             W = int(d["width"])
             valid = np.unpackbits(np.asarray(d["valid"]), axis=-1)[..., :W].astype(bool)
+            weight = d.get("weight")
             self._add_keyframe_record(MappedKeyframe(
                 int(k), int(arrays["kf_index"][i]), float(arrays["kf_timestamp"][i]),
                 np.asarray(arrays["kf_pose"][i], np.float64), torch.from_numpy(img).to(dev),
                 torch.from_numpy(np.asarray(d["depth"], np.float32)).to(dev),
                 torch.from_numpy(valid.copy()).to(dev),
-                torch.from_numpy(np.asarray(arrays["kf_exposure"][i], np.float32)).to(dev)))
+                torch.from_numpy(np.asarray(arrays["kf_exposure"][i], np.float32)).to(dev),
+                None if weight is None else torch.from_numpy(np.asarray(weight, np.float32)).to(dev)))
         win = self.window
         win.window = [int(x) for x in meta.get("window", [])]
         win.last = meta.get("last")
