@@ -195,7 +195,6 @@ class ProxyDepth:
     SOURCE_MULTIVIEW = 1
     SOURCE_MONO = 2
     SOURCE_BA = 3               # BA-grid depth in a multi-view hole (no mono model)
-    SOURCES = (SOURCE_EMPTY, SOURCE_MULTIVIEW, SOURCE_MONO, SOURCE_BA)
 
     @property
     def valid(self) -> np.ndarray:
