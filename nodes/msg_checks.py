@@ -83,4 +83,7 @@ def check_proxy_depth(msg):
     _id(msg.revision, f"{what} revision")
     _pose(msg.pose, what)
     _side(msg.width, msg.height, what)
+    src = msg.source
+    if len(src) and int(np.frombuffer(memoryview(src).cast("B"), np.uint8).max()) > msg.SOURCE_BA:
+        raise ConversionError(f"{what}: source values must be 0..{msg.SOURCE_BA} (SOURCE_*)")
     return msg

@@ -89,3 +89,8 @@ def test_message_checks_refuse_implausible_messages():
     with pytest.raises(ConversionError, match="out of range"):
         C.check_proxy_depth(ProxyDepth(kf_id=2**32 - 1, width=8, height=6))
     C.check_proxy_depth(ProxyDepth(kf_id=1, width=8, height=6))
+    ok = ProxyDepth(kf_id=1, width=2, height=2, source=array.array("B", [0, 1, 2, 3]))
+    C.check_proxy_depth(ok)
+    with pytest.raises(ConversionError, match="source values must be 0..3"):
+        C.check_proxy_depth(ProxyDepth(kf_id=1, width=2, height=2,
+                                       source=array.array("B", [0, 1, 7, 3])))
