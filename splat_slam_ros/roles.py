@@ -89,14 +89,14 @@ def _newest_seq(seq: int, events) -> int:
     return max([int(seq)] + [int(e.seq) for e in events])
 
 
-MIN_DEPTH_FRACTION = 0.01   # a proxy depth with fewer valid pixels is held by the mapper
+MIN_DEPTH_FRACTION = 0.01   # a proxy depth anchoring fewer pixels is held by the mapper
 
 
-def _valid_fraction(pd: ProxyDepth) -> float:
+def _anchoring_fraction(pd: ProxyDepth, ba_weight: float) -> float:
+    """Share of pixels whose depth anchors new Gaussians: full-weight depth (the mapper
+    seeds none from down-weighted BA depth in multi-view holes)."""
     d = np.asarray(pd.depth)
-    ok = np.isfinite(d) & (d > 0)
-    if pd.valid is not None:
-        ok &= np.asarray(pd.valid, bool)
+    ok = np.isfinite(d) & (d > 0) & (np.asarray(pd.depth_weight(ba_weight)) >= 1)
     return float(ok.mean()) if ok.size else 0.0
 
 
@@ -658,8 +658,8 @@ class MapperRole:
             if k not in self.pending_depth:
                 continue
             pd = self.pending_depth[k]
-            if self.digest is None and (_valid_fraction(pd) < MIN_DEPTH_FRACTION or
-                                        self._unsettled(k)):
+            thin = _anchoring_fraction(pd, self.cfg.mapping.ba_depth_weight) < MIN_DEPTH_FRACTION
+            if self.digest is None and (thin or self._unsettled(k)):
                 if k not in self.held:
                     self.held.add(k)
                     out.acks.append(_ack(self.pending_kf[k]))

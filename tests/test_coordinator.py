@@ -135,8 +135,13 @@ def test_mapper_role_holds_a_keyframe_without_depth_until_a_revision_has_some():
     role.on_keyframe(k0)
     out = role.on_proxy_depth(empty)
     assert out.mapped == [] and out.acks == [(0, 0, 0.0)] and role.held == {0}   # lockstep goes on
+    # BA depth filling the holes anchors nothing: a depth of (almost) only that is held too
+    ba_only = np.full_like(depth, ProxyDepth.SOURCE_BA, dtype=np.uint8)
+    ba_only.flat[:10] = ProxyDepth.SOURCE_MULTIVIEW
+    assert role.on_proxy_depth(replace(empty, depth=depth, source=ba_only, revision=1,
+                                       is_update=True)).mapped == [] and role.held == {0}
     out = role.on_proxy_depth(replace(empty, depth=depth, source=np.ones_like(depth, np.uint8),
-                                      revision=1, is_update=True))
+                                      revision=2, is_update=True))
     assert [m["kf_id"] for m in out.mapped] == [0] and out.acks == [] and role.held == set()
     assert role.mapper.scene_extent() == pytest.approx(float(np.median(depth)), rel=0.05)
     # at the end a keyframe still without depth is mapped with what there is
