@@ -1,8 +1,9 @@
 """Differentiable 3D Gaussian rasterizer (paper §3.2, "Rendering").
 
-Three layers, as in gsplat: this functional API; autograd wrappers (``kernel.RasterizeCpp``;
-the torch path uses plain autograd); kernels (``csrc/raster.cpp``, with ``reference.py`` as
-its pure-torch ground truth). Projection (``projection.py``) is shared torch code.
+Three layers, as in gsplat: this functional API; autograd wrappers (``kernel.RasterizeCpp``,
+``kernel.ProjectCpp``; the torch path uses plain autograd); kernels (``csrc/``, with
+``reference.py`` and ``projection.py`` as their pure-torch ground truth). The C++ backend
+projects in C++ too, unless ``viewmat`` needs a gradient (the torch projection gives that).
 
 Backends: ``"cpp"`` (CPU, tile-based C++/OpenMP kernel, hand-written backward), ``"torch"``
 (pure torch, any device, slow), ``"gsplat"`` (CUDA, needs ``pip install gsplat``), ``"auto"``.
@@ -15,7 +16,8 @@ from typing import Optional, Sequence, Union
 
 import torch
 
-from splat_slam_ros.mapping.rasterizer.kernel import RasterizerBuildError, RasterizerError, RasterizeCpp, load_extension
+from splat_slam_ros.mapping.rasterizer.kernel import (ProjectCpp, RasterizerBuildError, RasterizerError,
+                                                     RasterizeCpp, load_extension)
 from splat_slam_ros.mapping.rasterizer.projection import Projected, project_gaussians
 from splat_slam_ros.mapping.rasterizer.reference import rasterize_reference
 
@@ -122,11 +124,10 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
         return _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat,
                                  (fx, fy, cx, cy), width, height, near, bg, tile_size)
 
-    proj: Projected = project_gaussians(means, quats, scales, viewmat, fx, fy, cx, cy, width,
-                                        height, near)
+    if which == "cpp" and dev.type != "cpu":
+        raise RasterizerInputError(f"rasterize: backend 'cpp' needs CPU tensors, got {dev}")
+    proj = _project(which, means, quats, scales, viewmat, fx, fy, cx, cy, width, height, near)
     if which == "cpp":
-        if dev.type != "cpu":
-            raise RasterizerInputError(f"rasterize: backend 'cpp' needs CPU tensors, got {dev}")
         f32 = lambda t: t.float().contiguous()  # noqa: E731
         rgb, depth, alpha, visible = RasterizeCpp.apply(
             f32(proj.means2d), f32(proj.conics), f32(colors), f32(opacities), f32(proj.depths),
@@ -138,6 +139,21 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
             bg, tile_size=tile_size)
     return RasterOutput(rgb=rgb, depth=depth, alpha=alpha, visible=visible, radii=proj.radii,
                         means2d=proj.means2d)
+
+
+def _project(which, means, quats, scales, viewmat, fx, fy, cx, cy, width, height,
+             near) -> Projected:
+    """The C++ projection for the C++ kernel when ``viewmat`` needs no gradient, else the
+    torch one (``projection.project_gaussians``, the same rules)."""
+    if which != "cpp" or viewmat.requires_grad:
+        return project_gaussians(means, quats, scales, viewmat, fx, fy, cx, cy, width, height,
+                                 near)
+    dt = means.dtype
+    m2d, conics, depths, ranges, radii, valid = ProjectCpp.apply(
+        means.contiguous(), quats.to(dt).contiguous(), scales.to(dt).contiguous(),
+        viewmat.to(dt).contiguous(), fx, fy, cx, cy, width, height, float(near))
+    return Projected(means2d=m2d, conics=conics, depths=depths, ranges=ranges, radii=radii,
+                     valid=valid)
 
 
 def _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat, intr, width, height,

@@ -27,7 +27,7 @@ except ImportError:  # pragma: no cover - Windows: no inter-process build lock
 
 CSRC = Path(__file__).resolve().parent / "csrc"
 SOURCES = ("raster.cpp",)              # compiled
-HASHED = ("raster.cpp", "raster_kernels.h")  # part of the cache key
+HASHED = ("raster.cpp", "raster_kernels.h", "project_kernels.h")  # part of the cache key
 _lock = threading.Lock()
 _module = None
 _failure: "RasterizerBuildError | None" = None
@@ -221,3 +221,30 @@ class RasterizeCpp(torch.autograd.Function):
             t_final, g_rgb, g_depth, g_alpha, width, height, tile_size)
         d_bg = (g_rgb * t_final[..., None]).sum((0, 1)) if ctx.bg_needs_grad else None
         return d_m2d, d_conic, d_col, d_op, d_depth, None, d_bg, None, None, None
+
+
+class ProjectCpp(torch.autograd.Function):
+    """EWA projection (``projection.project_gaussians``, same rules) in C++: differentiable
+    w.r.t. means, quats and scales (CPU, float32 or float64; viewmat without gradient)."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, viewmat, fx, fy, cx, cy, width, height, near):
+        means2d, conics, depths, ranges, radii, valid = load_extension().project_forward(
+            means, quats, scales, viewmat, fx, fy, cx, cy, width, height, near)
+        ctx.save_for_backward(means, quats, scales, viewmat)
+        ctx.cam = (fx, fy, cx, cy, width, height, near)
+        valid = valid.bool()
+        ctx.mark_non_differentiable(ranges, radii, valid)
+        return means2d, conics, depths, ranges, radii, valid
+
+    @staticmethod
+    def backward(ctx, g_m2d, g_con, g_dep, _g_ranges, _g_radii, _g_valid):
+        means, quats, scales, viewmat = ctx.saved_tensors
+
+        def grad(g, n, k):
+            return means.new_zeros((n, k) if k else (n,)) if g is None else g.contiguous()
+        n = means.shape[0]
+        d_means, d_quats, d_scales = load_extension().project_backward(
+            means, quats, scales, viewmat, *ctx.cam, grad(g_m2d, n, 2), grad(g_con, n, 3),
+            grad(g_dep, n, 0))
+        return d_means, d_quats, d_scales, None, None, None, None, None, None, None, None

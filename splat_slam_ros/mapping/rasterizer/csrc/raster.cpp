@@ -3,6 +3,7 @@
 // Gaussians (float32, contiguous, CPU) and the footprints (int32).
 #include <torch/extension.h>
 
+#include "project_kernels.h"
 #include "raster_kernels.h"
 
 namespace {
@@ -120,10 +121,81 @@ std::vector<torch::Tensor> rasterize_backward(
           grads.select(1, 5), grads.select(1, 9)};
 }
 
+// ------------------------------------------------------------------ projection
+void check_projection(const torch::Tensor& means, const torch::Tensor& quats,
+                      const torch::Tensor& scales, const torch::Tensor& viewmat) {
+  const int64_t n = means.size(0);
+  TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "means must be (N, 3)");
+  TORCH_CHECK(quats.dim() == 2 && quats.size(0) == n && quats.size(1) == 4, "quats (N, 4)");
+  TORCH_CHECK(scales.dim() == 2 && scales.size(0) == n && scales.size(1) == 3, "scales (N, 3)");
+  TORCH_CHECK(viewmat.dim() == 2 && viewmat.size(0) == 4 && viewmat.size(1) == 4,
+              "viewmat (4, 4)");
+  for (const auto* t : {&means, &quats, &scales, &viewmat}) {
+    TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == means.scalar_type() &&
+                    t->is_contiguous(),
+                "contiguous CPU tensors of one floating dtype expected");
+  }
+}
+
+// Returns means2d (N,2), conics (N,3), depths (N,), ranges (N,4) int32, radii (N,) int32,
+// valid (N,) uint8.
+std::vector<torch::Tensor> project_fwd(torch::Tensor means, torch::Tensor quats,
+                                       torch::Tensor scales, torch::Tensor viewmat, double fx,
+                                       double fy, double cx, double cy, int64_t width,
+                                       int64_t height, double near) {
+  check_projection(means, quats, scales, viewmat);
+  const int64_t n = means.size(0);
+  auto opt = means.options();
+  torch::Tensor means2d = torch::empty({n, 2}, opt), conics = torch::empty({n, 3}, opt);
+  torch::Tensor depths = torch::empty({n}, opt);
+  auto i32 = torch::TensorOptions().dtype(torch::kInt32);
+  torch::Tensor ranges = torch::empty({n, 4}, i32), radii = torch::empty({n}, i32);
+  torch::Tensor valid = torch::empty({n}, torch::TensorOptions().dtype(torch::kUInt8));
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_fwd", [&] {
+    const Camera<scalar_t> cam = make_camera<scalar_t>(viewmat.data_ptr<scalar_t>(), fx, fy,
+                                                       cx, cy, width, height, near);
+    project_forward<scalar_t>(n, cam, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
+                              scales.data_ptr<scalar_t>(), means2d.data_ptr<scalar_t>(),
+                              conics.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
+                              ranges.data_ptr<int32_t>(), radii.data_ptr<int32_t>(),
+                              valid.data_ptr<uint8_t>());
+  });
+  return {means2d, conics, depths, ranges, radii, valid};
+}
+
+// Returns grads w.r.t. means (N,3), quats (N,4), scales (N,3).
+std::vector<torch::Tensor> project_bwd(torch::Tensor means, torch::Tensor quats,
+                                       torch::Tensor scales, torch::Tensor viewmat, double fx,
+                                       double fy, double cx, double cy, int64_t width,
+                                       int64_t height, double near, torch::Tensor g_m2d,
+                                       torch::Tensor g_con, torch::Tensor g_dep) {
+  check_projection(means, quats, scales, viewmat);
+  const int64_t n = means.size(0);
+  for (const auto* t : {&g_m2d, &g_con, &g_dep}) {
+    TORCH_CHECK(t->scalar_type() == means.scalar_type() && t->is_contiguous() &&
+                    t->size(0) == n,
+                "projection gradients must match the means");
+  }
+  torch::Tensor d_means = torch::empty_like(means), d_quats = torch::empty_like(quats);
+  torch::Tensor d_scales = torch::empty_like(scales);
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_bwd", [&] {
+    const Camera<scalar_t> cam = make_camera<scalar_t>(viewmat.data_ptr<scalar_t>(), fx, fy,
+                                                       cx, cy, width, height, near);
+    project_backward<scalar_t>(n, cam, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
+                               scales.data_ptr<scalar_t>(), g_m2d.data_ptr<scalar_t>(),
+                               g_con.data_ptr<scalar_t>(), g_dep.data_ptr<scalar_t>(),
+                               d_means.data_ptr<scalar_t>(), d_quats.data_ptr<scalar_t>(),
+                               d_scales.data_ptr<scalar_t>());
+  });
+  return {d_means, d_quats, d_scales};
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.doc() = "splat_slam_ros CPU Gaussian rasterizer (tile-based, OpenMP)";
   m.def("forward", &rasterize_forward, "rasterize forward");
   m.def("backward", &rasterize_backward, "rasterize backward");
+  m.def("project_forward", &project_fwd, "EWA projection forward");
+  m.def("project_backward", &project_bwd, "EWA projection backward");
 }
