@@ -185,6 +185,10 @@ class MappingConfig:
     budget_s_per_keyframe: float = 4.0   # wall seconds one keyframe's steps may take (0 = none)
     budget_s_first: float = 15.0         # ... the first keyframe's
     min_iters_per_keyframe: int = 3      # steps run even past the budget
+    # a keyframe's budget_s_per_keyframe shrinks to this x the stream time since the last
+    # mapped keyframe (0 = off): the mapping time follows the input's duration, not its
+    # keyframe count (fast motion, many keyframes: fewer steps each)
+    stream_pace: float = 12.0
     keep_up: float = 0.0                 # > 0: also cap a keyframe's steps at this fraction of
                                          # the stream time since the last mapped keyframe
                                          # (realtime: steps are dropped, never keyframes)
@@ -249,7 +253,8 @@ class MappingConfig:
         base = dict(iters_per_keyframe=15, iters_first=150, final_refine_iters=30,
                     random_views_per_iter=1, window_views_per_iter=3, prune_every=50,
                     densify_every=50, prune_min_age=25, budget_s_per_keyframe=0.0,
-                    budget_s_first=0.0, final_refine_per_keyframe=0, final_refine_s=0.0)
+                    budget_s_first=0.0, final_refine_per_keyframe=0, final_refine_s=0.0,
+                    stream_pace=0.0)
         base.update(overrides)
         return cls(**base)
 

@@ -101,6 +101,27 @@ def test_keep_up_caps_the_budget_by_the_stream_time_between_keyframes():
     assert mp.keyframe_budget(False, 11.0) == pytest.approx(0.5)
 
 
+def test_stream_pace_shrinks_the_budget_of_keyframes_that_come_fast():
+    """mapping.stream_pace: a keyframe 0.1 s of stream after the last one gets 12 x 0.1 s,
+    one 1 s after gets the whole budget; the first keyframe and a run without a budget (the
+    paper preset) are not capped; keep_up (realtime) caps below it."""
+    mp = _mapper(iters_first=3, iters_per_keyframe=3, budget_s_per_keyframe=4.0,
+                 budget_s_first=15.0, stream_pace=12.0)
+    img, pose, depth = _views(1)[0]
+    assert mp.keyframe_budget(True, 0.0) == pytest.approx(15.0)
+    mp.add_keyframe(0, img, pose, depth, timestamp=10.0)
+    assert mp.keyframe_budget(False, 10.1) == pytest.approx(1.2)
+    assert mp.keyframe_budget(False, 11.0) == pytest.approx(4.0)
+    assert mp.keyframe_budget(False, 9.0) == pytest.approx(4.0)    # no stream time: the budget
+    mp.mcfg.keep_up = 0.8
+    assert mp.keyframe_budget(False, 10.1) == pytest.approx(0.08)
+    mp.mcfg.keep_up, mp.mcfg.budget_s_per_keyframe = 0.0, 0.0
+    assert mp.keyframe_budget(False, 10.1) == 0.0                  # no budget, no cap
+    assert SlamConfig().mapping.stream_pace > 0
+    paper = load_config(None, {}, preset="paper").mapping
+    assert paper.budget_s_per_keyframe == 0 and paper.keep_up == 0
+
+
 def test_final_refinement_scales_with_the_number_of_keyframes():
     mp = _mapper(iters_first=3, iters_per_keyframe=2, final_refine_iters=2000,
                  final_refine_per_keyframe=4)

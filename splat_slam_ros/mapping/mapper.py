@@ -224,15 +224,20 @@ class Mapper:
 
     def keyframe_budget(self, first: bool, timestamp: float) -> float:
         """Wall seconds one keyframe's optimisation may take (0 = no limit): the configured
-        budget, capped in keep-up mode at ``keep_up`` x the stream time since the last mapped
-        keyframe, so that the mapper keeps pace with the keyframes (it drops steps, never
-        keyframes)."""
+        budget, shrunk to ``stream_pace`` x the stream time since the last mapped keyframe
+        (the run's mapping time then follows the input's duration), and capped in keep-up
+        mode at ``keep_up`` x that time, so that the mapper keeps pace with the keyframes (it
+        drops steps, never keyframes)."""
         m = self.mcfg
         budget = m.budget_s_first if first else m.budget_s_per_keyframe
         last = self._last_mapped_ts
-        if m.keep_up > 0 and not first and last is not None and timestamp > last:
-            cap = m.keep_up * (timestamp - last)
-            budget = min(budget, cap) if budget > 0 else cap
+        if first or last is None or not timestamp > last:
+            return float(budget)
+        dt = timestamp - last
+        if m.stream_pace > 0 and budget > 0:
+            budget = min(budget, m.stream_pace * dt)
+        if m.keep_up > 0:
+            budget = min(budget, m.keep_up * dt) if budget > 0 else m.keep_up * dt
         return float(budget)
 
     def final_refine_budget(self) -> Tuple[int, float]:
