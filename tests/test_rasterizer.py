@@ -9,12 +9,10 @@ catches any systematic mistake (a wrong term moves it to >1e-2).
 """
 from __future__ import annotations
 
-import math
 import os
 import subprocess
 import sys
 import textwrap
-import time
 from pathlib import Path
 
 import pytest
@@ -23,7 +21,6 @@ import torch
 from splat_slam_ros.mapping.rasterizer import RasterizerInputError, RasterOutput, rasterize
 from splat_slam_ros.mapping.rasterizer import kernel as rkernel
 from splat_slam_ros.mapping.rasterizer.projection import project_gaussians
-from splat_slam_ros.mapping.rasterizer.reference import rasterize_reference
 
 W, H = 61, 45  # not multiples of the tile size: partial edge tiles
 TOL = 1e-4
