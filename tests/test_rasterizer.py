@@ -263,6 +263,18 @@ def test_cpp_projection_matches_torch(ext, dtype):
         assert rel(x, y) < gtol, (name, rel(x, y))
 
 
+def test_projection_binding_refuses_mismatched_gradients(ext):
+    means, quats, scales, _o, _c, viewmat, (fx, fy, cx, cy) = make_scene(n=30, edge_cases=False)
+    n = means.shape[0]
+    args = (means, quats.contiguous(), scales, viewmat.contiguous(), fx, fy, cx, cy, W, H, 0.01)
+    zeros = lambda *s: torch.zeros(*s, dtype=torch.float64)  # noqa: E731
+    d = ext.project_backward(*args, zeros(n, 2), zeros(n, 3), zeros(n))
+    assert [tuple(t.shape) for t in d] == [(n, 3), (n, 4), (n, 3)]
+    assert all(t.abs().max() == 0 for t in d)          # zero upstream: exact zeros
+    with pytest.raises(RuntimeError, match="projection gradients"):
+        ext.project_backward(*args, zeros(n, 2), zeros(n, 2), zeros(n))
+
+
 def test_viewmat_gradient_goes_through_the_torch_projection(ext):
     """The C++ projection gives no viewmat gradient: a viewmat that needs one is projected by
     projection.py, so the cpp backend still returns the reference's gradient."""

@@ -171,10 +171,12 @@ std::vector<torch::Tensor> project_bwd(torch::Tensor means, torch::Tensor quats,
                                        torch::Tensor g_con, torch::Tensor g_dep) {
   check_projection(means, quats, scales, viewmat);
   const int64_t n = means.size(0);
+  const int64_t per[3] = {2, 3, 1};  // means2d, conics, depths
+  int i = 0;
   for (const auto* t : {&g_m2d, &g_con, &g_dep}) {
     TORCH_CHECK(t->scalar_type() == means.scalar_type() && t->is_contiguous() &&
-                    t->size(0) == n,
-                "projection gradients must match the means");
+                    t->dim() >= 1 && t->size(0) == n && t->numel() == n * per[i++],
+                "projection gradients must match the projected outputs");
   }
   torch::Tensor d_means = torch::empty_like(means), d_quats = torch::empty_like(quats);
   torch::Tensor d_scales = torch::empty_like(scales);
