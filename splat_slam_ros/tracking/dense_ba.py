@@ -173,7 +173,8 @@ def _fixed_mask(fixed, N, device) -> torch.Tensor:
     return m
 
 
-EDGE_CHUNK = 24         # edges whose Jacobians are built at once (bounds the BA's memory)
+EDGE_CHUNK = 12         # edges whose Jacobians are built at once (bounds the BA's memory)
+GRAM_CHUNK = 1 << 18    # elements of the padded coupling blocks built at once (1 MiB float32)
 
 
 def _edge_blocks(poses, disps, intr, ii, jj, target, weight, huber):
@@ -182,7 +183,10 @@ def _edge_blocks(poses, disps, intr, ii, jj, target, weight, huber):
     b_e (E, P), and the cost info - built EDGE_CHUNK edges at a time."""
     E = len(ii)
     P = disps.shape[1] * disps.shape[2]
-    parts, cost, wsum, n_valid = [], 0.0, 0.0, 0
+    opts = dict(dtype=disps.dtype, device=disps.device)
+    He, ve = torch.empty(E, 6, 6, **opts), torch.empty(E, 6, **opts)
+    ae, ce, be = torch.empty(E, P, 6, **opts), torch.empty(E, P, **opts), torch.empty(E, P, **opts)
+    cost, wsum, n_valid = 0.0, 0.0, 0
     for s in range(0, E, EDGE_CHUNK):
         sl = slice(s, min(s + EDGE_CHUNK, E))
         rs, wgt, Jp, Jd = _edge_terms(poses, disps, intr, ii[sl], jj[sl], target[sl],
@@ -193,12 +197,13 @@ def _edge_blocks(poses, disps, intr, ii, jj, target, weight, huber):
         n_valid += int((wgt.sum(-1) > 0).sum())
         Jf = Jp.reshape(e, P * 2, 6)
         JfT = Jf.transpose(1, 2)
-        parts.append((JfT @ Jf,                                          # (e, 6, 6)
-                      (JfT @ rs.reshape(e, P * 2, 1))[..., 0],           # (e, 6)
-                      Jp[:, :, 0] * Jd[:, :, 0:1] + Jp[:, :, 1] * Jd[:, :, 1:2],   # (e, P, 6)
-                      (Jd * Jd).sum(-1), (Jd * rs).sum(-1)))             # (e, P) x 2
+        torch.matmul(JfT, Jf, out=He[sl])                                # (e, 6, 6)
+        ve[sl] = (JfT @ rs.reshape(e, P * 2, 1))[..., 0]                 # (e, 6)
+        torch.mul(Jp[:, :, 0], Jd[:, :, 0:1], out=ae[sl])                # (e, P, 6)
+        ae[sl] += Jp[:, :, 1] * Jd[:, :, 1:2]
+        torch.sum(Jd * Jd, -1, out=ce[sl])                               # (e, P) x 2
+        torch.sum(Jd * rs, -1, out=be[sl])
         del rs, wgt, Jp, Jd, Jf, JfT
-    He, ve, ae, ce, be = (torch.cat(x) for x in zip(*parts))
     info = BAInfo(cost=cost, rms=(cost / max(wsum, 1e-12)) ** 0.5, n_valid=n_valid)
     return He, ve, ae, ce, be, info
 
@@ -258,12 +263,17 @@ def ba_step(poses: torch.Tensor, disps: torch.Tensor, intr, ii: torch.Tensor, jj
     slot[order] = torch.arange(E, device=device) - starts[inv[order]]
     M = int(counts.max())
     sqc = Cinv[src].sqrt()                                           # (ns, P)
-    A = torch.zeros(ns, M, P, 6, dtype=dt, device=device)
-    A[inv, slot] = ae * sqc[inv][..., None]
-    At = A.permute(0, 1, 3, 2).reshape(ns, M * 6, P)
-    del A
-    G = (At @ At.transpose(1, 2)).reshape(ns, M, 6, M, 6)             # (ns, M, 6, M, 6)
-    del At
+    G = torch.empty(ns, M * 6, M * 6, dtype=dt, device=device)
+    per = max(1, GRAM_CHUNK // (M * P * 6))          # sources per batch (bounds the memory)
+    for s0 in range(0, ns, per):
+        n = min(per, ns - s0)
+        sel = ((inv >= s0) & (inv < s0 + n)).nonzero()[:, 0]
+        A = torch.zeros(n, M, P, 6, dtype=dt, device=device)
+        A[inv[sel] - s0, slot[sel]] = ae[sel] * sqc[inv[sel]][..., None]
+        At = A.permute(0, 1, 3, 2).reshape(n, M * 6, P)
+        torch.matmul(At, At.transpose(1, 2), out=G[s0:s0 + n])
+        del A, At
+    G = G.reshape(ns, M, 6, M, 6)                                    # (ns, M, 6, M, 6)
     same = inv[:, None] == inv[None, :]
     e1, e2 = same.nonzero(as_tuple=True)
     F = G[inv[e1], slot[e1], :, slot[e2], :].to(torch.float64)       # (npairs, 6, 6)

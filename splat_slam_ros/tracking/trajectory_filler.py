@@ -102,7 +102,7 @@ def fill_trajectory(records: List[FrameRecord], kf_poses: Dict[int, torch.Tensor
             else np.zeros((0, 4, 4)))
 
 
-def _refine(fit, poses_out, pose, disp, intr, iters, huber, max_cells: int = 1 << 16):
+def _refine(fit, poses_out, pose, disp, intr, iters, huber, max_cells: int = 1 << 14):
     """Pose-only alignment (Eq. 1 target block) of the frames in ``fit`` (index into
     ``poses_out``, record) against their reference keyframe and, where it has one, the next
     keyframe (two edges); ``poses_out`` is updated in place. Solved in batches of
