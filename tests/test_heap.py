@@ -55,6 +55,32 @@ def test_bounded_heap_keeps_large_freed_blocks_out_of_the_heap():
     assert rss["1"] < rss["0"] - 60, rss               # 50 x 2 MB freed
 
 
+FRAMES = """
+import sys, numpy as np
+from splat_slam_ros.heap import bound_heap
+assert (bound_heap(1 << 20) if sys.argv[1] == "1MiB" else bound_heap()) is True
+frames, keep = [], []
+for i in range(60):            # decoded 640x480 RGB frames between small arrays that stay
+    frames.append(np.ones((480, 640, 3), np.uint8))
+    keep.append(np.ones(2000))
+del frames
+with open("/proc/self/status") as f:
+    print(int(next(l for l in f if l.startswith("VmRSS")).split()[1]) // 1024)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc mallopt: Linux only")
+def test_bounded_heap_returns_freed_frames_to_the_os():
+    """A decoded 640x480 frame (0.9 MB) is above bound_heap's default threshold: freed, it
+    goes back to the OS; with a 1 MiB threshold it came from the heap and stayed resident
+    (part of the tracker's peak RSS)."""
+    import subprocess
+    rss = {flag: int(subprocess.run([sys.executable, "-c", FRAMES, flag], check=True,
+                                    capture_output=True, text=True).stdout.split()[-1])
+           for flag in ("1MiB", "default")}
+    assert rss["default"] < rss["1MiB"] - 40, rss       # 60 x 0.9 MB freed
+
+
 def test_peak_rss_is_the_programs_own_not_the_parents():
     """A child started by a big process reports its own peak (the benchmarks' RSS column):
     getrusage's ru_maxrss can carry the parent's peak over across fork + exec."""

@@ -298,3 +298,12 @@ def test_icl_map_mesh_against_gt_depth_mesh(shared_data, tmp_path, capsys):
     assert mesh["accuracy_cm"] < 5.0 and mesh["completion_cm"] < 5.0
     assert mesh["completion_ratio_pct"] > 60.0
     assert mesh["gt_faces_kept_pct"] > 80.0
+
+
+def test_auto_voxel_on_more_depth_samples_than_float32_counts():
+    """70 M valid depths (300 keyframes at 640x480 with ground-truth depth): the subsampling
+    positions must stay inside the array (a float32 linspace rounded past its end)."""
+    from splat_slam_ros.mapping.mesh import AUTO_VOXEL_PER_DEPTH
+    n = 70_348_551
+    d = torch.full((n,), 2.0)
+    assert auto_voxel([d]) == pytest.approx(2.0 * AUTO_VOXEL_PER_DEPTH)

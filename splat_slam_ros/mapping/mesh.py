@@ -65,7 +65,10 @@ def auto_voxel(depths: Sequence[torch.Tensor]) -> float:
     if len(vals) == 0:
         raise MeshError("no valid depth in any view: nothing to fuse into a mesh")
     if len(vals) > MAX_AUTO_SAMPLES:
-        vals = vals[torch.linspace(0, len(vals) - 1, MAX_AUTO_SAMPLES).long()]
+        # integer positions: a float32 linspace rounds past the last index above 2^24 values
+        idx = torch.arange(MAX_AUTO_SAMPLES, dtype=torch.int64) * (len(vals) - 1) \
+            // (MAX_AUTO_SAMPLES - 1)
+        vals = vals[idx]
     return float(vals.median()) * AUTO_VOXEL_PER_DEPTH
 
 
