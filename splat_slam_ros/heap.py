@@ -38,9 +38,9 @@ def bound_heap(mmap_threshold: int = 1 << 19, arenas: int = 2) -> bool:
     it turns the adjustment off) keeps large blocks out of the heap. 512 KiB puts a decoded
     640x480 RGB frame (0.9 MB) and the BA's per-chunk Jacobians in their own mappings (at
     1 MiB they came from the heap: 4 MB more peak RSS over a 300-frame tracking run, at no
-    measurable speed difference). Fewer arenas keep the
-    threads (executor, worker, BLAS) from each holding their own fragmented heap. Returns
-    False where the C library has no ``mallopt``."""
+    measurable speed difference). Fewer arenas keep the threads (executor, worker, BLAS)
+    from each holding their own fragmented heap. Returns False where the C library has no
+    ``mallopt``."""
     fn = getattr(_LIBC, "mallopt", None)
     if fn is None:
         return False

@@ -26,6 +26,17 @@ def test_freed_fragmented_heap_is_given_back():
     assert float(sum(k.sum() for k in keep)) == 100 * 30000          # what is in use stays
 
 
+def child_rss_mb(script: str, flags) -> dict:
+    """{flag: RSS in MB at the end of ``script`` run in a fresh interpreter with ``flag``}
+    (allocator settings only take effect in a process of their own)."""
+    import subprocess
+    code = script + 'with open("/proc/self/status") as f:\n' \
+        '    print(int(next(l for l in f if l.startswith("VmRSS")).split()[1]) // 1024)\n'
+    return {flag: int(subprocess.run([sys.executable, "-c", code, flag], check=True,
+                                     capture_output=True, text=True).stdout.split()[-1])
+            for flag in flags}
+
+
 CHURN = """
 import sys, torch
 from splat_slam_ros.heap import bound_heap
@@ -38,8 +49,6 @@ for i in range(50):            # 2 MB blocks between small ones that stay, then 
     blocks.append(torch.ones(500000))
     keep.append(torch.ones(1000))
 del blocks
-with open("/proc/self/status") as f:
-    print(int(next(l for l in f if l.startswith("VmRSS")).split()[1]) // 1024)
 """
 
 
@@ -48,10 +57,7 @@ def test_bounded_heap_keeps_large_freed_blocks_out_of_the_heap():
     """bound_heap (every node's start-up): large blocks stay mmapped and go back to the OS
     when freed, without waiting for a trim; glibc's default lets them into the heap once
     the first one was freed, where they stay resident."""
-    import subprocess
-    rss = {flag: int(subprocess.run([sys.executable, "-c", CHURN, flag], check=True,
-                                    capture_output=True, text=True).stdout.split()[-1])
-           for flag in ("0", "1")}
+    rss = child_rss_mb(CHURN, ("0", "1"))
     assert rss["1"] < rss["0"] - 60, rss               # 50 x 2 MB freed
 
 
@@ -64,8 +70,6 @@ for i in range(60):            # decoded 640x480 RGB frames between small arrays
     frames.append(np.ones((480, 640, 3), np.uint8))
     keep.append(np.ones(2000))
 del frames
-with open("/proc/self/status") as f:
-    print(int(next(l for l in f if l.startswith("VmRSS")).split()[1]) // 1024)
 """
 
 
@@ -74,10 +78,7 @@ def test_bounded_heap_returns_freed_frames_to_the_os():
     """A decoded 640x480 frame (0.9 MB) is above bound_heap's default threshold: freed, it
     goes back to the OS; with a 1 MiB threshold it came from the heap and stayed resident
     (part of the tracker's peak RSS)."""
-    import subprocess
-    rss = {flag: int(subprocess.run([sys.executable, "-c", FRAMES, flag], check=True,
-                                    capture_output=True, text=True).stdout.split()[-1])
-           for flag in ("1MiB", "default")}
+    rss = child_rss_mb(FRAMES, ("1MiB", "default"))
     assert rss["default"] < rss["1MiB"] - 40, rss       # 60 x 0.9 MB freed
 
 
