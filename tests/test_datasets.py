@@ -499,3 +499,15 @@ def test_missing_intrinsics_file_error(tmp_path):
     root, _, _ = make_tum(tmp_path / "s", n=2)
     with pytest.raises(DatasetError, match=r"intrinsics file not found: .*missing.yaml"):
         open_dataset(root, intrinsics=tmp_path / "missing.yaml")
+
+
+def test_image_datasets_do_not_load_the_bag_readers():
+    """The tracking process reads folders without the mcap/zstd/lz4 readers (0.7 MB of RSS:
+    #11's memory target); open_dataset imports them only for a bag."""
+    import subprocess
+    import sys
+    code = ("import sys, splat_slam_ros.io.datasets as d, splat_slam_ros.coordinator; "
+            "print(sorted(m for m in ('mcap', 'zstandard', 'lz4', 'splat_slam_ros.io.bagio') "
+            "if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout

@@ -41,7 +41,6 @@ from typing import Optional, Union
 
 import cv2
 
-from splat_slam_ros.io.bagio import BagDataset
 from splat_slam_ros.io.dataset_base import (ASSOC_TOL, DEFAULT_FPS, FORMATS, IMAGE_EXTS,
                                             INTERP_MAX_GAP, REPLICA_DEFAULT, TUM_DEFAULTS,
                                             VIDEO_EXTS, Dataset, DatasetError, FileDataset,
@@ -53,7 +52,7 @@ from splat_slam_ros.io.dataset_formats import (_open_euroc, _open_folder, _open_
 from splat_slam_ros.types import Intrinsics
 
 __all__ = ["ASSOC_TOL", "DEFAULT_FPS", "FORMATS", "IMAGE_EXTS", "INTERP_MAX_GAP", "REPLICA_DEFAULT",
-           "TUM_DEFAULTS", "VIDEO_EXTS", "BagDataset", "Dataset", "DatasetError", "FileDataset",
+           "TUM_DEFAULTS", "VIDEO_EXTS", "Dataset", "DatasetError", "FileDataset",
            "VideoDataset", "associate", "interpolate_poses", "load_intrinsics", "ns_to_stamp",
            "read_depth", "read_image", "stamp_to_ns", "LAYOUTS", "detect_format", "open_dataset"]
 
@@ -120,7 +119,8 @@ def open_dataset(path, fmt: str = "auto", intrinsics: Union[None, str, Path, Int
         fmt = detect_format(p)
     if fmt not in FORMATS:
         raise DatasetError(f"unknown format {fmt!r}; use one of auto, {', '.join(FORMATS)}")
-    if fmt == "bag":
+    if fmt == "bag":      # imported here: the mcap/zstd/lz4 readers cost 0.7 MB of RSS
+        from splat_slam_ros.io.bagio import BagDataset
         return BagDataset(p, max_frames=max_frames, stride=stride, keep_mono=keep_mono,
                           **options)
     K, extra = as_intrinsics(intrinsics)
