@@ -239,3 +239,35 @@ def test_tracker_uses_the_auto_size():
     assert (t.intrinsics.width, t.intrinsics.height) == (320, 240)
     assert t.intrinsics.fx == pytest.approx(262.5, rel=0.01)
     assert t.map_intrinsics is t.intrinsics    # keyframes handed on at the same size
+
+
+def test_bench_defaults_clean_twin_psnr(tmp_path):
+    """bench_defaults --clean-twin: the clean render of the same frames scores against the
+    realistic input at the run's keyframes; identical frames score inf, camera effects less,
+    and the frames are compared at the run's processing size."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    try:
+        import bench_defaults
+    finally:
+        sys.path.remove(str(REPO / "benchmarks"))
+    from splat_slam_ros.io import synth
+    from splat_slam_ros.io.trajectory_io import read_trajectory, write_tum
+    real = synth.generate_sequence("builtin", 6, "96x72", tmp_path / "real", progress=False,
+                                   seed=3, realism="realistic")
+    clean = synth.generate_sequence("builtin", 6, "96x72", tmp_path / "clean", progress=False,
+                                    seed=3)
+    run = tmp_path / "run"
+    run.mkdir()
+    ts, P = read_trajectory(real / "groundtruth.txt")
+    write_tum(run / "trajectory_keyframes.txt", ts[[1, 4]], P[[1, 4]])
+    dump_config(SlamConfig(), run / "config.yaml")
+    assert bench_defaults.clean_twin_psnr(run, clean, clean) == float("inf")
+    p = bench_defaults.clean_twin_psnr(run, real, clean)
+    assert 15.0 < p < 40.0
+    cfg = SlamConfig()
+    cfg.camera.width, cfg.camera.height = 16, 12       # a coarser processing size: blur hides
+    dump_config(cfg, run / "config.yaml")
+    assert bench_defaults.clean_twin_psnr(run, real, clean) > p + 1.0
+    write_tum(run / "trajectory_keyframes.txt", ts[:1] + 100.0, P[:1])
+    with pytest.raises(ValueError, match="no keyframe"):
+        bench_defaults.clean_twin_psnr(run, real, clean)
