@@ -214,6 +214,11 @@ class MappingConfig:
     lr_scales: float = 0.001
     lr_rotations: float = 0.001
     lr_exposure: float = 0.01
+    # the camera's radial vignetting V = 1 + v1 r^2 + v2 r^4 (r: distance from the principal
+    # point / half the image diagonal), one for all keyframes, learned with the exposures and
+    # applied with them (colour a V C + b) in the loss and the keyframe metrics (README "Mapping")
+    vignetting: bool = True
+    lr_vignetting: float = 0.01
     render_every: int = 1                # publish / save a render every N keyframes
     # views per iteration: the window (Eq. 8 sums over it; 0 = all) + random older keyframes
     window_views_per_iter: int = 3       # (paper: 0, the whole window)

@@ -335,3 +335,42 @@ def test_map_sequence_gt_poses_and_depth(scene, tmp_path):
     with pytest.raises(MapError, match="ground-truth pose"):
         map_sequence([Frame(0, 0.0, frames[0].image, K, gt_depth=frames[0].gt_depth)], cfg, K,
                       progress=False)
+
+
+def _vignetted(img, v1):
+    ys, xs = np.mgrid[0:H, 0:W]
+    r2 = ((xs - K.cx) ** 2 + (ys - K.cy) ** 2) / (0.25 * (W * W + H * H))
+    return np.clip(img * (1.0 + v1 * r2)[..., None] + 0.5, 0, 255).astype(np.uint8)
+
+
+def test_learned_vignetting_explains_a_radial_falloff(scene):
+    """mapping.vignetting: a camera whose corners are 30 % darker; the map learns the falloff
+    (v1 < 0) from views that see the same wall at different radii, renders the keyframes
+    better than a map without it, and keeps it through state_dict."""
+    poses = [pose_at(), pose_at(0.6, 0, 0), pose_at(-0.6, 0, 0), pose_at(0, -0.4, 0.4),
+             pose_at(0.3, 0.3, -0.3)]
+    views = [render_view(scene, p) for p in poses]
+    res = {}
+    for on in (True, False):
+        mp = Mapper(small_cfg(iters_first=60, iters_per_keyframe=40, final_refine_iters=100,
+                              downsample_first=2, downsample=2, kf_covisibility=1.0,
+                              vignetting=on), K)
+        for i, (p, (img, d)) in enumerate(zip(poses, views)):
+            mp.add_keyframe(i, _vignetted(img, -0.3), p, d)
+        mp.final_refine()
+        assert len(mp.keyframes) == len(poses)
+        res[on] = (mp.evaluate_keyframes()["psnr"], mp.vignette.detach().clone(), mp)
+    assert float(res[True][1][0]) < -0.1 and res[False][1].abs().max() == 0, res
+    assert res[True][0] > res[False][0] + 1.0, (res[True][0], res[False][0])
+    mp = res[True][2]
+    with torch.no_grad():
+        v = mp._vignetting(H, W, mp.intr)[..., 0]
+    corner = 1 + float(mp.vignette.detach().sum())          # r = 1 at a corner (centred camera)
+    assert float(v[int(K.cy), int(K.cx)]) == pytest.approx(1.0, abs=1e-3)
+    assert float(v[0, 0]) == pytest.approx(corner, abs=0.03)
+    K2 = K.scaled(2.0, 2.0)                                   # the same falloff at any size
+    with torch.no_grad():
+        v2 = mp._vignetting(2 * H, 2 * W, (K2.fx, K2.fy, K2.cx, K2.cy))[..., 0]
+    assert float(v2[0, 0]) == pytest.approx(corner, abs=0.03)
+    arrays, meta = mp.state_dict()
+    assert meta["vignette"] == pytest.approx(mp.vignette.tolist())

@@ -64,6 +64,9 @@ class Mapper:
                                      m.kf_cutoff)
         self.keyframes: Dict[int, MappedKeyframe] = {}
         self._exp_opt: Optional[torch.optim.Optimizer] = None
+        # (v1, v2) of the radial vignetting, learned from the second keyframe on
+        self.vignette = torch.zeros(2, device=self.device, requires_grad=m.vignetting)
+        self._r2: Dict[tuple, torch.Tensor] = {}        # (H, W, cx, cy) -> r^2 map
         self.gen = torch.Generator().manual_seed(int(m.seed))
         self.rng = np.random.default_rng(int(m.seed))
         self.iteration = 0
@@ -120,7 +123,7 @@ class Mapper:
         out = self._raster(pose, intr, W, H)
         rgb = out.rgb
         if kf_id is not None and kf_id in self.keyframes:
-            rgb = self._expose(rgb, self.keyframes[kf_id])
+            rgb = self._expose(rgb, self.keyframes[kf_id], intr)
         rgb = (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
         return rgb, out.depth.float().cpu().numpy()
 
@@ -131,9 +134,25 @@ class Mapper:
             return 0.0
         return float((self._raster(check_pose(pose)).alpha > 0.5).float().mean())
 
-    @staticmethod
-    def _expose(rgb: torch.Tensor, kf: MappedKeyframe) -> torch.Tensor:
+    def _expose(self, rgb: torch.Tensor, kf: MappedKeyframe, intr=None) -> torch.Tensor:
+        """The camera's response to rendered colour: a_k V C_k + b_k (Eq. 8's exposure, with
+        the learned vignetting V when ``mapping.vignetting``)."""
+        if self.mcfg.vignetting:
+            rgb = rgb * self._vignetting(rgb.shape[0], rgb.shape[1], intr or self.intr)
         return rgb * kf.exposure[0].exp() + kf.exposure[1]      # a_k C_k + b_k (Eq. 8)
+
+    def _vignetting(self, H: int, W: int, intr) -> torch.Tensor:
+        """(H, W, 1) radial falloff 1 + v1 r^2 + v2 r^4, r = distance from the principal
+        point / half the image diagonal (the same at any render size)."""
+        key = (H, W, *intr[2:])
+        r2 = self._r2.get(key)
+        if r2 is None:
+            ys = torch.arange(H, dtype=torch.float32, device=self.device)[:, None]
+            xs = torch.arange(W, dtype=torch.float32, device=self.device)[None, :]
+            r2 = ((xs - intr[2]) ** 2 + (ys - intr[3]) ** 2) / (0.25 * (W * W + H * H))
+            r2 = self._r2.setdefault(key, r2[..., None])
+        v = self.vignette
+        return (1.0 + v[0] * r2 + v[1] * r2 * r2).clamp_min(0.1)
 
     # ============================================================ keyframes
     @torch.no_grad()
@@ -256,8 +275,10 @@ class Mapper:
         if kf.index > 0:
             kf.exposure.requires_grad_(True)
             grp = {"params": [kf.exposure], "lr": self.mcfg.lr_exposure}
-            if self._exp_opt is None:
-                self._exp_opt = torch.optim.Adam([grp], lr=self.mcfg.lr_exposure)
+            if self._exp_opt is None:                 # the vignetting needs two views too
+                vig = [{"params": [self.vignette], "lr": self.mcfg.lr_vignetting}] \
+                    if self.mcfg.vignetting else []
+                self._exp_opt = torch.optim.Adam([grp] + vig, lr=self.mcfg.lr_exposure)
             else:
                 self._exp_opt.add_param_group(grp)
         self.keyframes[kf.kf_id] = kf
@@ -602,6 +623,7 @@ class Mapper:
                 "last_ms": round(self.last_ms, 2), "deformations": self.n_deformations,
                 "deformed_gaussians": self.n_deformed_gaussians, "iterations": self.iteration,
                 "skipped_iterations": self.skipped_iters,
+                "vignette": [round(float(x), 4) for x in self.vignette.detach().cpu()],
                 **self.counts}
 
     def keyframe_trajectory(self) -> Tuple[np.ndarray, np.ndarray]:
@@ -657,7 +679,8 @@ class Mapper:
                 "n_deformations": int(self.n_deformations),
                 "n_deformed_gaussians": int(self.n_deformed_gaussians),
                 "scene_depth": float(self._scene_depth), "next_index": int(self._next_index),
-                "counts": dict(self.counts)}
+                "counts": dict(self.counts),
+                "vignette": [float(x) for x in self.vignette.detach().cpu()]}
         return arrays, meta
 
     def load_state_dict(self, arrays: Dict[str, np.ndarray], meta: Dict, image_of,
@@ -698,6 +721,8 @@ class Mapper:
         self._scene_depth = float(meta.get("scene_depth", 0.0))
         self._next_index = max(self._next_index, int(meta.get("next_index", 0)))
         self.counts.update({k: int(v) for k, v in (meta.get("counts") or {}).items()})
+        with torch.no_grad():
+            self.vignette.copy_(torch.tensor(meta.get("vignette", [0.0, 0.0])))
 
     def save_renders(self, folder, depth_scale: float = 1000.0) -> int:
         """Write ``kf_<id>.png`` (rendered colour with the keyframe's exposure) and
