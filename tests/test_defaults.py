@@ -158,6 +158,7 @@ def test_preset_paper_restores_the_paper_schedule():
     assert (m.iters_per_keyframe, m.iters_first, m.final_refine_iters) == (60, 1050, 2000)
     assert m.budget_s_per_keyframe == 0 and m.final_refine_per_keyframe == 0
     assert m.window_views_per_iter == 0 and c.camera.max_pixels == 0
+    assert not m.vignetting and SlamConfig().mapping.vignetting   # Eq. 8's exposure alone
     assert c.depth.dense_views == 0                    # the BA grid only (Eq. 4-5)
     # --config and --set apply on top of the preset
     c = load_config(REPO / "config" / "tum.yaml", {"mapping.iters_first": 5}, preset="paper")
