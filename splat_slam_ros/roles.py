@@ -320,9 +320,12 @@ class LoopRole:
         self.loop.restore_merged(meta.get("merged", []))
 
     def on_keyframe(self, kf: KeyframeData) -> Outbox:
+        # a replay of a keyframe consumed before a restart is acked again: the first ack may
+        # have died with the old process, and the lockstep player waits for it
+        again = [_ack(kf)] if kf.kf_id in self.kf_ids else []
         batch = self.batcher.add(kf, lambda k: k in self.kf_ids)
         if not batch:
-            return Outbox()
+            return Outbox(acks=again)
         for k in batch:
             if self.loop is None:
                 self.loop = self._make(k.intrinsics)
@@ -337,7 +340,7 @@ class LoopRole:
             staged = self._loop_edges_staged()
             self.store.commit(staged, None)          # the edge records ...
             self.store.commit({}, self.meta())       # ... then the pairs that use them
-        return Outbox(updates=events, acks=[_ack(k) for k in batch])
+        return Outbox(updates=events, acks=again + [_ack(k) for k in batch])
 
     def on_update(self, ev: UpdateEvent) -> Outbox:
         if ev.source not in self.update_sources or ev.seq <= self.trk_seq:
@@ -599,7 +602,9 @@ class MapperRole:
 
     # ------------------------------------------------------------ inputs
     def on_keyframe(self, kf: KeyframeData) -> Outbox:
-        if kf.kf_id in self.offered or kf.kf_id in self.pending_kf:
+        if kf.kf_id in self.offered:        # consumed before a restart: ack again (LoopRole)
+            return Outbox(acks=[_ack(kf)])
+        if kf.kf_id in self.pending_kf:
             return Outbox()
         self.newest_kf = max(self.newest_kf, int(kf.kf_id))
         self.pending_kf[kf.kf_id] = kf

@@ -125,6 +125,24 @@ def test_mapper_role_skips_old_revisions_and_waits_for_the_digest():
     assert role.lacking() == []
 
 
+def test_consumers_ack_a_replayed_keyframe_again():
+    """A keyframe replayed to a restarted consumer that had consumed it (its ack may have died
+    with the old process) is acked again, so a lockstep player waiting for it goes on; it is
+    not consumed twice. (Without this the player waited its 300 s ack timeout.)"""
+    role, k0, depth, f = mapper_role_inputs()
+    role.on_keyframe(k0)
+    pd = ProxyDepth(0, depth, np.ones_like(depth, np.uint8), f.gt_pose, revision=0)
+    assert role.on_proxy_depth(pd).acks == [(0, 0, 0.0)]
+    out = role.on_keyframe(k0)                             # the replay
+    assert out.acks == [(0, 0, 0.0)] and out.mapped == [] and role.pending_kf == {}
+    assert role.on_keyframe(replace(k0, kf_id=1, frame_index=1, timestamp=1.0)).acks == []
+    loop = LoopRole(cfg_full())
+    k = replace(k0, disparity=np.ones((30, 40), np.float32))
+    assert loop.on_keyframe(k).acks == [(0, 0, 0.0)]
+    n = len(loop.loop.kfs.ids)
+    assert loop.on_keyframe(k).acks == [(0, 0, 0.0)] and len(loop.loop.kfs.ids) == n
+
+
 def test_mapper_role_holds_a_keyframe_without_depth_until_a_revision_has_some():
     """Revision 0 of the first keyframe of a 2-keyframe warm-up has no valid pixel (no views
     yet): mapped, it anchored no Gaussians and left the map without a scene depth (every
