@@ -128,7 +128,7 @@ def test_mapper_role_skips_old_revisions_and_waits_for_the_digest():
 def test_consumers_ack_a_replayed_keyframe_again():
     """A keyframe replayed to a restarted consumer that had consumed it (its ack may have died
     with the old process) is acked again, so a lockstep player waiting for it goes on; it is
-    not consumed twice. (Without this the player waited its 300 s ack timeout.)"""
+    not consumed twice. (Without it a lost ack makes the player wait out its 300 s timeout.)"""
     role, k0, depth, f = mapper_role_inputs()
     role.on_keyframe(k0)
     pd = ProxyDepth(0, depth, np.ones_like(depth, np.uint8), f.gt_pose, revision=0)
