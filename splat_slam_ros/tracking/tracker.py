@@ -37,6 +37,7 @@ from splat_slam_ros.tracking.motion_filter import MotionFilter, flow_scale, para
 from splat_slam_ros.depth.dspo import make_depth_prior
 from splat_slam_ros.runtime import limit_threads, resolve_device
 from splat_slam_ros.tracking.trajectory_filler import FrameRecord, fill_trajectory
+from splat_slam_ros.tracking.two_view import two_view_start
 from splat_slam_ros.types import TRACKER_SEQ_START, Frame, Intrinsics, KeyframeData, UpdateEvent
 
 log = logging.getLogger(__name__)
@@ -359,6 +360,27 @@ class Tracker:
         self._warm_best = None
         self._pending = []
 
+    def _init_ba(self, ids, poses, disps, ii, jj, tgt, wgt):
+        """Initialisation BA from the identity and from the two-view start (:mod:`two_view`);
+        the result with the smaller residual."""
+        n = self.tc.init_iters
+        best = bundle_adjust(poses, disps, self.intr, ii, jj, tgt, wgt, iters=n, fixed=1,
+                             huber=self.huber)
+        flows, f = [], self.graph.flow(ids[0], ids[1])
+        for a, b in zip(ids[1:], ids[2:] + [None]):
+            flows.append(f)
+            f = compose_flows(f, self.graph.flow(a, b)) if b is not None else None
+        w = self.graph.edges[(ids[0], ids[1])][1].float()
+        start = two_view_start(flows, [w] * len(flows), self.intr, self.motion.cell_weight)
+        if start is not None:
+            alt = bundle_adjust(start.to(poses), disps, self.intr, ii, jj, tgt, wgt, iters=n,
+                                fixed=1, huber=self.huber)
+            log.info("initialisation BA: rms %.3f from the identity, %.3f from two views",
+                     best[2][-1].rms, alt[2][-1].rms)
+            if alt[2][-1].rms < best[2][-1].rms:
+                best = alt
+        return best
+
     def _initialize(self, frame, info) -> TrackStep:
         ids = list(self.window)
         # extra edges k -> k-2 (and back) for a stiffer warm-up graph
@@ -370,9 +392,7 @@ class Tracker:
         poses, disps = self.kfs.stack(ids)
         ii, jj, tgt, wgt, pairs = self.graph.gather(ids)
         t0 = time.perf_counter()
-        n = self.tc.init_iters
-        poses, disps, infos = bundle_adjust(poses, disps, self.intr, ii, jj, tgt, wgt,
-                                            iters=n, fixed=1, huber=self.huber)
+        poses, disps, infos = self._init_ba(ids, poses, disps, ii, jj, tgt, wgt)
         # Monocular scale is arbitrary: normalise the mean disparity to 1.
         s = float(disps.mean())
         disps = disps / s
