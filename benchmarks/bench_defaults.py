@@ -148,24 +148,21 @@ def run_one(mode: str, bag: Path, out: Path, a, env) -> dict:
 
 def clean_twin_psnr(run_out: Path, seq: Path, clean: Path) -> float:
     """Mean PSNR of the clean twin's frames against ``seq``'s at the keyframes of the run in
-    ``run_out``, at the run's processing size, with a per-keyframe gain/offset per channel."""
-    import cv2
+    ``run_out``, in the run's keyframe camera (crop, processing size), with a per-keyframe
+    gain/offset per channel."""
     from splat_slam_ros.config import load_config
     from splat_slam_ros.evaluation import psnr
     from splat_slam_ros.io.datasets import open_dataset
     from splat_slam_ros.io.trajectory_io import read_trajectory
+    from splat_slam_ros.tracking.flow_frontend import mapping_preprocessor
     ts, _ = read_trajectory(run_out / "trajectory_keyframes.txt")
     want = {round(float(t), 4) for t in ts}
     real, twin = open_dataset(seq), open_dataset(clean)
     real.load_depth = twin.load_depth = False
-    K = real.intrinsics
-    w, h = load_config(run_out / "config.yaml").camera.processing_size(K.width, K.height)
-    if w <= 0 or h <= 0:                                # (0, 0): the input size
-        w, h = K.width, K.height
+    pre = mapping_preprocessor(load_config(run_out / "config.yaml"), real.intrinsics)
 
     def at_keyframes(ds) -> dict:
-        return {round(float(f.timestamp), 4): cv2.resize(np.asarray(f.image), (w, h),
-                                                         interpolation=cv2.INTER_AREA)
+        return {round(float(f.timestamp), 4): pre(f.image)
                 for f in ds if round(float(f.timestamp), 4) in want}
     a, b = at_keyframes(real), at_keyframes(twin)
     vals = [psnr(b[t].astype(np.float32) / 255.0, a[t].astype(np.float32) / 255.0,

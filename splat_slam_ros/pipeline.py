@@ -107,7 +107,8 @@ def evaluate_trajectories(dataset, out: Path, metrics: dict) -> Optional[float]:
 
 def evaluate_map_depth(dataset, out: Path, cfg: SlamConfig, metrics: dict) -> None:
     """``depth_l1_cm``: the map's rendered depth at the estimated keyframe poses against the
-    dataset's depth (nearest-resized to the processing size, the dataset's camera), after the Sim(3) scale of the keyframe
+    dataset's depth brought to the keyframes' camera (undistortion, ``camera.crop``, the
+    processing size; nearest-neighbour), after the Sim(3) scale of the keyframe
     trajectory's ATE alignment (a monocular map has no metric scale); pixels valid in both.
     Used for in-process runs and graph runs alike (it reads ``out``'s map.ply and
     trajectory_keyframes.txt). Nothing is added when the dataset has no depth or ground truth."""
@@ -124,21 +125,16 @@ def evaluate_map_depth(dataset, out: Path, cfg: SlamConfig, metrics: dict) -> No
     except ValueError as e:                             # too few keyframes to align
         metrics["depth_l1_error"] = str(e)
         return
-    import cv2
-    K = dataset.intrinsics
-    w, h = cfg.camera.processing_size(K.width, K.height)     # rendered at processing size
-    if w <= 0 or h <= 0:
-        w, h = K.width, K.height
-    Ks = K.resized(w, h)
-    mp = Mapper.load_ply(ply, cfg, Ks)
+    from splat_slam_ros.tracking.flow_frontend import mapping_preprocessor
+    pre = mapping_preprocessor(cfg, dataset.intrinsics)     # the keyframes' camera
+    mp = Mapper.load_ply(ply, cfg, pre.intrinsics)
     want = {round(float(t), 4): T for t, T in zip(ts, P)}
     errs = []
     for f in dataset:
         T = want.get(round(float(f.timestamp), 4))
         if T is None or f.gt_depth is None:
             continue
-        gd = cv2.resize(np.asarray(f.gt_depth, np.float32), (int(w), int(h)),
-                        interpolation=cv2.INTER_NEAREST)
+        gd = pre.depth(f.gt_depth)
         _, d = mp.render(T)
         try:
             errs.append(ev.depth_l1_cm(d * scale, gd))

@@ -266,7 +266,7 @@ def test_bench_defaults_clean_twin_psnr(tmp_path):
     p = bench_defaults.clean_twin_psnr(run, real, clean)
     assert 15.0 < p < 40.0
     cfg = SlamConfig()
-    cfg.camera.width, cfg.camera.height = 16, 12       # a coarser processing size: blur hides
+    cfg.camera.width, cfg.camera.height = 32, 24       # a coarser processing size: blur hides
     dump_config(cfg, run / "config.yaml")
     assert bench_defaults.clean_twin_psnr(run, real, clean) > p + 1.0
     write_tum(run / "trajectory_keyframes.txt", ts[:1] + 100.0, P[:1])

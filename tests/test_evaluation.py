@@ -596,3 +596,56 @@ def test_image_metrics_and_summarize(lpips_files):
     assert abs(m["depth_l1_cm"] - 2.0) < 1e-9
     s = ev.summarize([{"psnr": 20.0, "ssim": 0.5}, {"psnr": 30.0, "ssim": 0.7}])
     assert abs(s["psnr"] - 25.0) < 1e-12 and abs(s["ssim"] - 0.6) < 1e-12
+
+
+# ------------------------------------------------------------------ map depth L1 (pipeline)
+def test_map_depth_l1_compares_in_the_keyframes_camera(tmp_path, monkeypatch):
+    """``pipeline.evaluate_map_depth`` brings the dataset's depth to the keyframes' camera
+    (undistorted, cropped, resized) before comparing it with the map's render in that
+    camera: a perfect map of a tilted plane seen by a strongly distorted camera scores
+    ~0 cm, with and without ``camera.crop``."""
+    import cv2
+    from types import SimpleNamespace
+    from splat_slam_ros import pipeline
+    from splat_slam_ros.config import SlamConfig
+    from splat_slam_ros.mapping.mapper import Mapper
+    from splat_slam_ros.types import Intrinsics
+    K = Intrinsics(150.0, 150.0, 79.5, 59.5, 160, 120, "plumb_bob", [-0.3, 0.1, 0.0, 0.0, 0.0])
+
+    def plane_depth(xn, tx):                      # world plane z = 2 + 0.5 x, camera at x = tx
+        return (2.0 + 0.5 * tx) / (1.0 - 0.5 * xn)
+
+    v, u = np.mgrid[0:K.height, 0:K.width].astype(np.float64)
+    und = cv2.undistortPoints(np.stack([u, v], -1).reshape(-1, 1, 2), K.K,
+                              np.asarray(K.distortion)).reshape(K.height, K.width, 2)
+    ts = np.arange(4) * 0.1
+    poses = np.stack([np.eye(4)] * 4)
+    poses[:, 0, 3] = [0.0, 0.05, 0.05, 0.0]        # a square in x, y (the plane: no y term)
+    poses[:, 1, 3] = [0.0, 0.0, 0.05, 0.05]
+    frames = [SimpleNamespace(timestamp=t, gt_depth=plane_depth(und[..., 0], P[0, 3])
+                              .astype(np.float32)) for t, P in zip(ts, poses)]
+    class Data(list):
+        intrinsics, has_gt_depth = K, True
+
+        def gt_trajectory(self):
+            return ts, poses
+    ds = Data(frames)
+
+    class PlaneMap:                               # renders the plane exactly in its camera
+        def __init__(self, intr):
+            self.intr = intr
+
+        def render(self, T):
+            i = self.intr
+            vv, uu = np.mgrid[0:i.height, 0:i.width].astype(np.float64)
+            return None, plane_depth((uu - i.cx) / i.fx, T[0, 3]).astype(np.float32)
+
+    monkeypatch.setattr(Mapper, "load_ply", staticmethod(lambda path, cfg, intr: PlaneMap(intr)))
+    write_tum(tmp_path / "trajectory_keyframes.txt", ts, poses)
+    (tmp_path / "map.ply").write_bytes(b"")
+    for crop in (0, 8):
+        cfg = SlamConfig()
+        cfg.camera.crop = crop
+        m = {}
+        pipeline.evaluate_map_depth(ds, tmp_path, cfg, m)
+        assert m.get("depth_l1_views") == 4 and m["depth_l1_cm"] < 0.5, (crop, m)

@@ -141,22 +141,45 @@ class ImagePreprocessor:
             img = img[..., 0]
         if img.ndim == 3 and img.shape[2] == 4:
             img = img[..., :3]
+        img = self._warp(img, cv2.INTER_LINEAR, cv2.INTER_AREA)
+        if img.ndim == 2:
+            img = np.repeat(img[..., None], 3, axis=2)
+        return np.ascontiguousarray(img)
+
+    def depth(self, depth: np.ndarray) -> np.ndarray:
+        """A depth map of the raw camera (H x W, metres) on this image's pixels: the same
+        undistortion, crop, resize and trim, with nearest-neighbour sampling (no depth is
+        blended across an edge)."""
+        d = np.asarray(depth, np.float32)
+        if d.ndim == 3 and d.shape[2] == 1:
+            d = d[..., 0]
+        return np.ascontiguousarray(self._warp(d, cv2.INTER_NEAREST, cv2.INTER_NEAREST))
+
+    def _warp(self, img: np.ndarray, remap_interp: int, resize_interp: int) -> np.ndarray:
         H0, W0 = img.shape[:2]
         if (W0, H0) != (self.raw.width, self.raw.height):
             raise FrontendError(f"image is {W0}x{H0} but the intrinsics say "
                                 f"{self.raw.width}x{self.raw.height}")
         if self.map1 is not None:
-            img = cv2.remap(img, self.map1, self.map2, cv2.INTER_LINEAR)
+            img = cv2.remap(img, self.map1, self.map2, remap_interp)
         if self.crop:
             c = self.crop
             img = img[c:H0 - c, c:W0 - c]
         if self.resize is not None:
-            img = cv2.resize(img, self.resize, interpolation=cv2.INTER_AREA)
+            img = cv2.resize(img, self.resize, interpolation=resize_interp)
         Wf, Hf = self.trim
-        img = img[:Hf, :Wf]
-        if img.ndim == 2:
-            img = np.repeat(img[..., None], 3, axis=2)
-        return np.ascontiguousarray(img)
+        return img[:Hf, :Wf]
+
+
+def mapping_preprocessor(cfg, intrinsics: Intrinsics) -> ImagePreprocessor:
+    """The mapping camera of a raw camera (``camera.*``: undistortion, crop, the processing
+    size, trimmed to the BA grid): what keyframes are handed on at, and what the map's metrics
+    compare against (``pipeline.evaluate_map_depth``)."""
+    cam = cfg.camera
+    W0, H0 = intrinsics.width - 2 * cam.crop, intrinsics.height - 2 * cam.crop
+    mw, mh = cam.processing_size(W0, H0)
+    return ImagePreprocessor(intrinsics, cfg.tracking.ba_downsample, mw, mh, cam.crop,
+                             cam.undistort)
 
 
 def flow_input(image: np.ndarray, disp_shape, ba_downsample: int) -> np.ndarray:

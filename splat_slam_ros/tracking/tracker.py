@@ -31,7 +31,7 @@ from splat_slam_ros.tracking.dense_ba import (bundle_adjust, induced_flow_distan
 from splat_slam_ros.tracking.factor_graph import FactorGraph, proximity_pairs
 from splat_slam_ros.tracking.keyframe_set import KeyframeSet, KeyframeState
 from splat_slam_ros.tracking.flow_frontend import (ImagePreprocessor, compose_flows, image_is_degenerate,
-                            make_flow_predictor, predict_both)
+                            make_flow_predictor, mapping_preprocessor, predict_both)
 from splat_slam_ros.geometry import intr_tensor, pixel_grid, pose_from_tq, pose_to_tq, se3_exp, se3_inverse, se3_log
 from splat_slam_ros.tracking.motion_filter import MotionFilter, flow_scale, parallax
 from splat_slam_ros.depth.dspo import make_depth_prior
@@ -125,9 +125,7 @@ class Tracker:
         self.pre = ImagePreprocessor(intrinsics, tc.ba_downsample, w, h, cam.crop, cam.undistort)
         self.intrinsics = self.pre.intrinsics
         # keyframes are handed on at the mapping size (camera.*), which may be smaller
-        mw, mh = cam.processing_size(W0, H0)
-        self.map_pre = ImagePreprocessor(intrinsics, tc.ba_downsample, mw, mh, cam.crop,
-                                         cam.undistort)
+        self.map_pre = mapping_preprocessor(cfg, intrinsics)
         if self.map_pre.trim == self.pre.trim:
             self.map_pre = None
         self.map_intrinsics = self.intrinsics if self.map_pre is None else \
