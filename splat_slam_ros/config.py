@@ -196,7 +196,8 @@ class MappingConfig:
                                          # (realtime: steps are dropped, never keyframes)
     window_size: int = 8
     rgb_weight: float = 0.8              # lambda in Eq. 8
-    ba_depth_weight: float = 0.3         # depth-loss weight of BA-filled holes (source 3), 0..1
+    ba_depth_weight: float = 0.6         # depth-loss weight of BA-filled holes (source 3), 0..1
+                                         # (0.3 before session 13: README "Defaults")
     isotropy_weight: float = 10.0        # lambda_reg in Eq. 8
     downsample: int = 32                 # theta
     downsample_first: int = 16
