@@ -393,6 +393,19 @@ def test_device_option():
     assert np.median(np.abs(rgb_g.astype(float) - rgb_c)) <= 1
 
 
+def test_plan_frames_are_the_written_frames(tmp_path):
+    """``SequencePlan.frames``: in memory, the same images, stamps and camera as the files."""
+    from splat_slam_ros.io.datasets import open_dataset
+    plan = synth.plan_sequence("builtin", 3, "64x48", realism="realistic", warn=False)
+    frames = plan.frames()
+    assert [f.index for f in frames] == [0, 1, 2] and len(plan.frames(2)) == 2
+    out = gen(tmp_path, "w", frames=3, size="64x48", realism="realistic")
+    written = list(open_dataset(out))
+    for f, w in zip(frames, written):
+        assert abs(f.timestamp - w.timestamp) < 1e-6 and f.intrinsics.fx == w.intrinsics.fx
+        assert np.abs(f.image.astype(int) - np.asarray(w.image, int)).max() <= 1
+
+
 # --------------------------------------------------------------- determinism
 def test_deterministic_with_seed(tmp_path):
     a = gen(tmp_path, "a", frames=3, seed=7, noise=2.0)

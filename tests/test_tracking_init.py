@@ -15,14 +15,13 @@ import torch
 
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.evaluation import ate
-from splat_slam_ros.types import Frame, UpdateEvent
+from splat_slam_ros.types import UpdateEvent
 
 
 @lru_cache(maxsize=3)
 def fr2desk_clip(size: str = "320x240", frames: int = 30, blur: int = 5):
     """(frames, gt timestamps, gt poses) of the realistic fr2/desk clip at ``size``."""
     from splat_slam_ros.io import synth
-    from splat_slam_ros.io.synth.camera import CameraEffects
     from splat_slam_ros.runtime import limit_threads
     traj = Path(__file__).resolve().parents[2] / "shared" / "data" / "trajectories" / \
         "fr2_desk_groundtruth.txt"
@@ -30,12 +29,8 @@ def fr2desk_clip(size: str = "320x240", frames: int = 30, blur: int = 5):
         pytest.skip(f"{traj} not found")
     plan = synth.plan_sequence(str(traj), frames, size, start=47.0, realism="realistic",
                                exposure_ms=20.0, motion_blur=blur, warn=False)
-    effects = CameraEffects(plan.realism, plan.intrinsics, plan.seed)
-    out = []
     with limit_threads(1):
-        for k in range(frames):
-            img, _ = plan.render(k, effects)
-            out.append(Frame(k, float(plan.stamps[k]), img, plan.intrinsics))
+        out = plan.frames()
     return out, np.asarray(plan.stamps, np.float64), np.asarray(plan.poses, np.float64)
 
 

@@ -16,7 +16,6 @@ from splat_slam_ros.evaluation import ate
 from splat_slam_ros.geometry import pixel_grid, se3_exp
 from splat_slam_ros.tracking.dense_ba import reproject
 from splat_slam_ros.tracking.two_view import relative_motion, two_view_start
-from splat_slam_ros.types import Frame
 
 H, W, F = 30, 40, 32.8
 INTR = (F, F, (W - 1) / 2, (H - 1) / 2)
@@ -71,15 +70,10 @@ def builtin_clip(frames: int = 60):
     """The first frames of the demo's sequence: built-in path (planned for the demo's 240
     frames: the path depends on the duration), 320x240, realistic, seed 0."""
     from splat_slam_ros.io import synth
-    from splat_slam_ros.io.synth.camera import CameraEffects
     from splat_slam_ros.runtime import limit_threads
     plan = synth.plan_sequence("builtin", 240, "320x240", realism="realistic", warn=False)
-    effects = CameraEffects(plan.realism, plan.intrinsics, plan.seed)
-    out = []
     with limit_threads(1):
-        for k in range(frames):
-            img, _ = plan.render(k, effects)
-            out.append(Frame(k, float(plan.stamps[k]), img, plan.intrinsics))
+        out = plan.frames(frames)
     return (out, np.asarray(plan.stamps[:frames], np.float64),
             np.asarray(plan.poses[:frames], np.float64))
 

@@ -30,20 +30,25 @@ def flow_scale(intr) -> float:
     return 0.5 * (float(intr[0]) + float(intr[1])) / REF_BA_FOCAL
 
 
-def parallax(flow: torch.Tensor, weight: torch.Tensor, cell_weight: float = 0.2) -> float:
-    """Upper-quartile flow residual (BA px) after the best (RANSAC) homography: the part of
-    the motion that a pure rotation (or one dominant plane) cannot explain. 0 when too few
-    confident cells."""
+def flow_correspondences(flow: torch.Tensor, weight: torch.Tensor, cell_weight: float = 0.2):
+    """(src, dst) float32 (P, 2) BA-pixel positions of the cells whose mean weight exceeds
+    ``cell_weight`` and whose flow (h, w, 2) stays inside the image."""
     h, w = flow.shape[:2]
     v, u = np.mgrid[0:h, 0:w].astype(np.float32)
     f = flow.detach().float().cpu().numpy()
     dst = np.stack([u + f[..., 0], v + f[..., 1]], -1)
     m = (weight.detach().float().cpu().numpy().mean(-1) > cell_weight) & \
         (dst[..., 0] >= 0) & (dst[..., 0] <= w - 1) & (dst[..., 1] >= 0) & (dst[..., 1] <= h - 1)
-    if int(m.sum()) < 16:
+    return np.stack([u[m], v[m]], -1), dst[m]
+
+
+def parallax(flow: torch.Tensor, weight: torch.Tensor, cell_weight: float = 0.2) -> float:
+    """Upper-quartile flow residual (BA px) after the best (RANSAC) homography: the part of
+    the motion that a pure rotation (or one dominant plane) cannot explain. 0 when too few
+    confident cells."""
+    src, dst = flow_correspondences(flow, weight, cell_weight)
+    if len(src) < 16:
         return 0.0
-    src = np.stack([u[m], v[m]], -1)
-    dst = dst[m]
     H, _ = cv2.findHomography(src, dst, cv2.RANSAC, 0.5)
     if H is None:
         return 0.0

@@ -18,19 +18,10 @@ import cv2
 import numpy as np
 import torch
 
+from splat_slam_ros.tracking.motion_filter import flow_correspondences
+
 MIN_CELLS = 30             # confident cells needed for an essential matrix
 MIN_INLIER_FRAC = 0.5      # of them consistent with it (RANSAC), and in front of both cameras
-
-
-def _correspondences(flow: torch.Tensor, weight: torch.Tensor, cell_weight: float):
-    """(src, dst) BA-pixel positions of the confident cells whose flow stays in the image."""
-    h, w = flow.shape[:2]
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    f = flow.detach().double().cpu().numpy()
-    dst = np.stack([u + f[..., 0], v + f[..., 1]], -1)
-    m = (weight.detach().float().cpu().numpy().mean(-1) > cell_weight) & \
-        (dst[..., 0] >= 0) & (dst[..., 0] <= w - 1) & (dst[..., 1] >= 0) & (dst[..., 1] <= h - 1)
-    return np.stack([u[m], v[m]], -1), dst[m]
 
 
 def relative_motion(flow: torch.Tensor, weight: torch.Tensor, K: np.ndarray,
@@ -39,7 +30,7 @@ def relative_motion(flow: torch.Tensor, weight: torch.Tensor, K: np.ndarray,
     X_2 = R X_1 + t, or None when the flow does not determine it (too few confident cells,
     no essential matrix with enough inliers in front of both cameras). ``parallax``: median
     flow left after removing the rotation's (K R K^-1), the translation's share."""
-    src, dst = _correspondences(flow, weight, cell_weight)
+    src, dst = (x.astype(np.float64) for x in flow_correspondences(flow, weight, cell_weight))
     if len(src) < MIN_CELLS:
         return None
     E, inl = cv2.findEssentialMat(src, dst, K, method=cv2.RANSAC, prob=0.999,

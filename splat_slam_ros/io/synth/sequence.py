@@ -6,7 +6,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Dict, Optional, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import cv2
 import numpy as np
@@ -21,7 +21,7 @@ from splat_slam_ros.io.synth.scene import Scene, build_scene
 from splat_slam_ros.io.synth.trajectories import PoseInterpolator, frame_stamps, load_trajectory
 from splat_slam_ros.io.trajectory_io import write_tum
 from splat_slam_ros.runtime import DeviceError, limit_threads, resolve_device
-from splat_slam_ros.types import Intrinsics
+from splat_slam_ros.types import Frame, Intrinsics
 
 
 def depth_to_png16(depth: np.ndarray) -> np.ndarray:
@@ -78,6 +78,13 @@ class SequencePlan:
                 rgb = acc / n_sub
         img = effects(rgb.cpu().numpy(), k, float(self.stamps[k] - self.stamps[0]))
         return img, depth.cpu().numpy().astype(np.float32)
+
+    def frames(self, n: Optional[int] = None) -> List[Frame]:
+        """The first ``n`` frames (all by default) rendered in memory as the tracker's input:
+        :class:`Frame` (index, stamp, the RGB image exactly as written, intrinsics)."""
+        effects = CameraEffects(self.realism, self.intrinsics, self.seed)
+        return [Frame(k, float(self.stamps[k]), self.render(k, effects)[0], self.intrinsics)
+                for k in range(len(self.stamps) if n is None else n)]
 
 
 def _resolve_intrinsics(size, intrinsics, fov) -> Intrinsics:
