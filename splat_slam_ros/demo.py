@@ -2,8 +2,9 @@
 
 ``./run.sh demo`` runs this. It generates a synthetic hand-held sequence through a textured
 room with the project's own generator (no data set needed), converts it to a rosbag2/mcap
-bag, runs Splat-SLAM on the bag (the ROS 2 node graph when ``--graph``, else all stages in
-one process) and prints ATE, PSNR and frames/s. Everything lands in ``--out``.
+bag, runs Splat-SLAM on the bag with the default configuration (the ROS 2 node graph by
+default, ``--mode inprocess`` for all stages in one process) and prints ATE, PSNR and
+frames/s. Everything lands in ``--out``.
 """
 from __future__ import annotations
 
@@ -27,7 +28,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="camera realism preset of the generator (default realistic)")
     p.add_argument("--mode", default="graph", choices=["graph", "inprocess"],
                    help="run the ROS 2 node graph (default), or all stages in one process")
-    p.add_argument("--config", default=None, help="SLAM config YAML (default config/demo.yaml)")
+    p.add_argument("--config", default=None,
+                   help="SLAM config YAML (default: the built-in defaults, as for splat-slam-run; "
+                        "config/demo.yaml is a faster preset with a poorer map)")
     p.add_argument("--fresh", action="store_true", help="regenerate the sequence and the bag")
     return p
 
@@ -37,11 +40,12 @@ def main(argv=None) -> int:
     from splat_slam_ros.cli.common import run_main
 
     def body() -> int:
-        from splat_slam_ros.config import config_dir, load_config
+        from splat_slam_ros.config import load_config
         from splat_slam_ros.io.datasets import open_dataset
         from splat_slam_ros.io.bagio import write_bag
         from splat_slam_ros.io.synth import generate_sequence
 
+        cfg = load_config(args.config)       # first: a bad file stops before any work
         out = Path(args.out)
         seq, bag, run_dir = out / "sequence", out / "bag", out / "run"
         if args.fresh:
@@ -62,8 +66,6 @@ def main(argv=None) -> int:
             write_bag(open_dataset(seq), bag, progress=True)
         else:
             print(f"[demo] 2/4 reusing the bag in {bag}")
-        cfg_path = args.config or str(config_dir() / "demo.yaml")
-        cfg = load_config(cfg_path if Path(cfg_path).is_file() else None)
 
         t_run = time.perf_counter()
         if args.mode == "graph":
@@ -75,7 +77,8 @@ def main(argv=None) -> int:
             # cross-talk with the demo (set ROS_DOMAIN_ID yourself to choose one)
             os.environ.setdefault("ROS_DOMAIN_ID", str(random_domain_id()))
             print(f"[demo] 3/4 running the ROS 2 node graph on the bag -> {run_dir}", flush=True)
-            rc = graph.main(["--bag", str(bag), "--out", str(run_dir), "--config", cfg_path])
+            rc = graph.main(["--bag", str(bag), "--out", str(run_dir)]
+                            + (["--config", args.config] if args.config else []))
             if rc:
                 return rc
         else:
