@@ -25,7 +25,7 @@ are noisy, so read them with the load average.
 ``--clean-twin`` also renders each sequence without camera effects (``<name>_<frames>_clean``:
 same trajectory, frames and scene; no blur, exposure drift, vignetting, noise or JPEG) and
 reports ``psnr_clean_twin``: the PSNR of those clean frames against the realistic input at the
-run's keyframes, at the processing size, after the best per-channel gain and offset per
+run's keyframes, in the keyframes' camera (crop, processing size), after the best per-channel gain and offset per
 keyframe (the exposure model of Eq. 8): the true scene, without vignetting or blur, seen
 through the exposure model. A reference for the map's keyframe PSNR, not a bound: a map fitted
 to the frames also learns their vignetting (``mapping.vignetting``) and, where the motion

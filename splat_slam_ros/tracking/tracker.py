@@ -342,12 +342,16 @@ class Tracker:
 
     def _window_parallax(self) -> float:
         """Parallax (reference BA px) first -> newest warm-up keyframe (flows composed)."""
-        ids = self.window
-        f = self.graph.flow(ids[0], ids[1])
+        flows, w = self._flows_from_first(self.window)
+        return parallax(flows[-1], w, self.motion.cell_weight) / self.px_scale
+
+    def _flows_from_first(self, ids):
+        """Flows ids[0] -> ids[k], k >= 1 (BA px), composed along the keyframe chain, and the
+        first edge's weight (the cells that are confident from the first keyframe)."""
+        flows = [self.graph.flow(ids[0], ids[1])]
         for a, b in zip(ids[1:-1], ids[2:]):
-            f = compose_flows(f, self.graph.flow(a, b))
-        w = self.graph.edges[(ids[0], ids[1])][1].float()
-        return parallax(f, w, self.motion.cell_weight) / self.px_scale
+            flows.append(compose_flows(flows[-1], self.graph.flow(a, b)))
+        return flows, self.graph.edges[(ids[0], ids[1])][1].float()
 
     def _reset(self) -> None:
         self.kfs.clear()
@@ -364,11 +368,7 @@ class Tracker:
         n = self.tc.init_iters
         best = bundle_adjust(poses, disps, self.intr, ii, jj, tgt, wgt, iters=n, fixed=1,
                              huber=self.huber)
-        flows, f = [], self.graph.flow(ids[0], ids[1])
-        for a, b in zip(ids[1:], ids[2:] + [None]):
-            flows.append(f)
-            f = compose_flows(f, self.graph.flow(a, b)) if b is not None else None
-        w = self.graph.edges[(ids[0], ids[1])][1].float()
+        flows, w = self._flows_from_first(ids)
         start = two_view_start(flows, [w] * len(flows), self.intr, self.motion.cell_weight)
         if start is not None:
             alt = bundle_adjust(start.to(poses), disps, self.intr, ii, jj, tgt, wgt, iters=n,
