@@ -54,7 +54,8 @@ SEQUENCES = {   # name: (trajectory file, extra splat-slam-synth options)
 TARGETS = {"fps": 1.24, "psnr": 30.0, "depth_l1_cm": 3.0, "ate_rmse_cm_full": 1.0,
            "peak_rss_gb": 3.0}
 KEYS = ("frames", "keyframes", "ate_rmse_cm_full", "ate_rmse_cm_keyframes", "psnr", "ssim",
-        "depth_l1_cm", "timings_s", "wall_s", "error")
+        "depth_l1_cm", "depth_l1_edges_cm", "depth_l1_surfaces_cm", "depth_edge_band_fraction",
+        "timings_s", "wall_s", "error")
 
 
 def tool(name: str) -> str:
@@ -222,11 +223,13 @@ def main(argv=None) -> int:
             Path(a.json).parent.mkdir(parents=True, exist_ok=True)
             Path(a.json).write_text(json.dumps(res, indent=2))
     print("\n| sequence / mode | frames/s | ATE full (cm) | PSNR (dB) | depth L1 (cm) | "
-          "peak RSS (GB) | keyframes | load before -> after | clean-twin PSNR (dB) |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "at edges / on surfaces (cm) | peak RSS (GB) | keyframes | load before -> after | "
+          "clean-twin PSNR (dB) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for k, r in res["runs"].items():
         print(f"| {k} | {fmt(r['fps'])} | {fmt(r.get('ate_rmse_cm_full'))} | "
               f"{fmt(r.get('psnr'), 1)} | {fmt(r.get('depth_l1_cm'))} | "
+              f"{fmt(r.get('depth_l1_edges_cm'), 1)} / {fmt(r.get('depth_l1_surfaces_cm'))} | "
               f"{fmt(r['peak_rss_mb'] / 1024)} | {r.get('keyframes', '-')} | "
               f"{r['load_before'][0]:.1f} -> {r['load_after'][0]:.1f} | "
               f"{fmt(r.get('psnr_clean_twin'), 2)} |")

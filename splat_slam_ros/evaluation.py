@@ -398,6 +398,29 @@ def depth_l1_cm(depth, ref, mask=None) -> float:
     return float(100.0 * (d[valid] - r[valid]).abs().mean())
 
 
+def depth_edge_band(ref, radius: int, jump: float = 0.05) -> torch.Tensor:
+    """(H, W) bool: pixels within ``radius`` px (square window) of a depth discontinuity of
+    ``ref``, i.e. of a 4-neighbour pair, both valid, whose depths differ by more than
+    ``jump`` in log depth (5 %). Splits depth errors into "at object boundaries" (where a
+    coarse depth bleeds from one surface onto the other) and "on surfaces"."""
+    r = torch.as_tensor(_np64(ref, "reference depth")).squeeze()
+    if r.ndim != 2:
+        raise MetricError(f"reference depth must be H x W, got {tuple(r.shape)}")
+    ok = torch.isfinite(r) & (r > 0)
+    lg = torch.log(torch.where(ok, r, torch.ones_like(r)))
+    edge = torch.zeros_like(ok)
+    jx = ((lg[:, 1:] - lg[:, :-1]).abs() > jump) & ok[:, 1:] & ok[:, :-1]
+    jy = ((lg[1:] - lg[:-1]).abs() > jump) & ok[1:] & ok[:-1]
+    edge[:, 1:] |= jx
+    edge[:, :-1] |= jx
+    edge[1:] |= jy
+    edge[:-1] |= jy
+    if radius > 0:
+        k = 2 * int(radius) + 1
+        edge = torch.nn.functional.max_pool2d(edge[None, None].float(), k, 1, int(radius))[0, 0] > 0
+    return edge
+
+
 # -------------------------------------------------------------------- LPIPS
 _LPIPS_CACHE: Dict[tuple, tuple] = {}
 _WEIGHT_NAME = re.compile(r"(?:^|\.)(?:lpips_w(\d+)|lin(\d+)(?:\.model\.1)?\.weight)$")

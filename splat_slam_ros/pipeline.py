@@ -110,6 +110,10 @@ def evaluate_map_depth(dataset, out: Path, cfg: SlamConfig, metrics: dict) -> No
     dataset's depth brought to the keyframes' camera (undistortion, ``camera.crop``, the
     processing size; nearest-neighbour), after the Sim(3) scale of the keyframe
     trajectory's ATE alignment (a monocular map has no metric scale); pixels valid in both.
+    Also split by where the error is: ``depth_l1_edges_cm`` over the pixels within
+    ``tracking.ba_downsample`` px (one BA cell) of a depth edge of the dataset's depth
+    (:func:`evaluation.depth_edge_band`; their share ``depth_edge_band_fraction``), and
+    ``depth_l1_surfaces_cm`` over the rest (pixel means over all views).
     Used for in-process runs and graph runs alike (it reads ``out``'s map.ply and
     trajectory_keyframes.txt). Nothing is added when the dataset has no depth or ground truth."""
     from splat_slam_ros import evaluation as ev
@@ -129,7 +133,8 @@ def evaluate_map_depth(dataset, out: Path, cfg: SlamConfig, metrics: dict) -> No
     pre = mapping_preprocessor(cfg, dataset.intrinsics)     # the keyframes' camera
     mp = Mapper.load_ply(ply, cfg, pre.intrinsics)
     want = {round(float(t), 4): T for t, T in zip(ts, P)}
-    errs = []
+    band_px = int(cfg.tracking.ba_downsample)           # one BA cell
+    errs, split = [], np.zeros((2, 2))                  # [band, surface] x [sum cm, pixels]
     for f in dataset:
         T = want.get(round(float(f.timestamp), 4))
         if T is None or f.gt_depth is None:
@@ -140,10 +145,19 @@ def evaluate_map_depth(dataset, out: Path, cfg: SlamConfig, metrics: dict) -> No
             errs.append(ev.depth_l1_cm(d * scale, gd))
         except ev.MetricError:                          # nothing rendered in this view
             continue
+        ok = np.isfinite(d) & (d > 0) & np.isfinite(gd) & (gd > 0)
+        band = ev.depth_edge_band(gd, band_px).numpy()
+        e = 100.0 * np.abs(d * scale - gd)
+        for i, m in enumerate((ok & band, ok & ~band)):
+            split[i] += (float(e[m].sum()), int(m.sum()))
     if errs:
         metrics["depth_l1_cm"] = round(float(np.mean(errs)), 4)
         metrics["depth_l1_views"] = len(errs)
         metrics["depth_l1_sim3_scale"] = round(scale, 6)
+        # where the error is: within one BA cell of a true depth edge, or on surfaces
+        for key, (tot, n) in zip(("depth_l1_edges_cm", "depth_l1_surfaces_cm"), split):
+            metrics[key] = round(float(tot / n), 4) if n else None
+        metrics["depth_edge_band_fraction"] = round(float(split[0, 1] / max(split[:, 1].sum(), 1)), 4)
 
 
 def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool = True,

@@ -468,6 +468,19 @@ def test_depth_l1_cm():
         ev.depth_l1_cm(np.ones((4, 4)), np.ones((4, 5)))
 
 
+def test_depth_edge_band_marks_pixels_near_depth_discontinuities_only():
+    ref = np.full((20, 30), 2.0, np.float32)
+    ref[:, 15:] = 4.0                                 # a step between columns 14 and 15
+    ref[:, :5] = np.linspace(2.0, 2.08, 5)            # a gentle slope (<5 % per pixel): no edge
+    ref[0, 20] = 0.0                                  # a missing pixel is no edge either
+    band = ev.depth_edge_band(ref, 3).numpy()
+    cols = np.flatnonzero(band.any(0))
+    assert cols.tolist() == list(range(11, 19)), cols  # 14, 15 and 3 px on either side
+    assert band[:, 11:19].all()
+    assert not ev.depth_edge_band(np.full((8, 8), 1.0), 2).any()
+    assert ev.depth_edge_band(ref, 0).numpy().sum() == 2 * 20
+
+
 # ------------------------------------------------------------------- LPIPS
 class _TinyNet(torch.nn.Module):
     def __init__(self):
@@ -649,3 +662,53 @@ def test_map_depth_l1_compares_in_the_keyframes_camera(tmp_path, monkeypatch):
         m = {}
         pipeline.evaluate_map_depth(ds, tmp_path, cfg, m)
         assert m.get("depth_l1_views") == 4 and m["depth_l1_cm"] < 0.5, (crop, m)
+
+
+def test_map_depth_l1_is_split_into_depth_edges_and_surfaces(tmp_path, monkeypatch):
+    """metrics.json says where the map's depth error is: a map that is exact except that the
+    near surface bleeds 3 px onto the far one behind a depth step has all its error within
+    one BA cell of the true edge (``depth_l1_edges_cm``) and none on the surfaces."""
+    from types import SimpleNamespace
+    from splat_slam_ros import pipeline
+    from splat_slam_ros.config import SlamConfig
+    from splat_slam_ros.mapping.mapper import Mapper
+    from splat_slam_ros.types import Intrinsics
+    K = Intrinsics(150.0, 150.0, 79.5, 59.5, 160, 120)
+    u = (np.arange(K.width) - K.cx) / K.fx
+    step = np.where(u < 0, 1.0, 3.0).astype(np.float32)            # near left, far right
+    ts = np.arange(4) * 0.1
+    poses = np.stack([np.eye(4)] * 4)            # (the renders and depths ignore the poses,
+    poses[:, 0, 3] = [0.0, 0.05, 0.05, 0.0]      # which only set the Sim(3) scale: 1)
+    poses[:, 1, 3] = [0.0, 0.0, 0.05, 0.05]
+    ds_frames = [SimpleNamespace(timestamp=t, gt_depth=np.tile(step, (K.height, 1)))
+                 for t in ts]
+
+    class Data(list):
+        intrinsics, has_gt_depth = K, True
+
+        def gt_trajectory(self):
+            return ts, poses
+
+    class BleedingMap:
+        def __init__(self, intr):
+            self.intr = intr
+
+        def render(self, T):
+            i = self.intr
+            x = (np.arange(i.width) - i.cx) / i.fx
+            row = np.where(x < 3.0 / i.fx, 1.0, 3.0).astype(np.float32)   # 3 px too wide
+            return None, np.tile(row, (i.height, 1))
+
+    monkeypatch.setattr(Mapper, "load_ply",
+                        staticmethod(lambda path, cfg, intr: BleedingMap(intr)))
+    write_tum(tmp_path / "trajectory_keyframes.txt", ts, poses)
+    (tmp_path / "map.ply").write_bytes(b"")
+    m = {}
+    pipeline.evaluate_map_depth(Data(ds_frames), tmp_path, SlamConfig(), m)
+    assert m["depth_l1_views"] == 4 and m["depth_l1_cm"] > 1.0, m
+    assert m["depth_l1_surfaces_cm"] == 0.0, m
+    # 3 of the band's 2 x 8 + 2 columns are 200 cm off
+    band = m["depth_edge_band_fraction"]
+    assert 0.05 < band < 0.2, m
+    assert m["depth_l1_edges_cm"] == pytest.approx(200.0 * 3 / 18, rel=0.2), m
+    assert m["depth_l1_cm"] == pytest.approx(band * m["depth_l1_edges_cm"], rel=1e-3), m

@@ -96,8 +96,9 @@ def main(argv=None) -> int:
         m = res.metrics
         print(f"frames {res.frames}  keyframes {res.keyframes}  wall {res.wall_s:.1f} s  "
               f"{m['fps']:.2f} frames/s")
-        for k in ("ate_rmse_cm_full", "ate_rmse_cm_keyframes", "psnr", "ssim", "depth_l1_cm"):
-            if k in m:
+        for k in ("ate_rmse_cm_full", "ate_rmse_cm_keyframes", "psnr", "ssim", "depth_l1_cm",
+                  "depth_l1_edges_cm", "depth_l1_surfaces_cm"):
+            if isinstance(m.get(k), (int, float)):
                 print(f"{k} {m[k]:.4f}")
         if res.timings:
             print("time per stage (s): " + ", ".join(f"{k} {v:.1f}" for k, v in res.timings.items()))
