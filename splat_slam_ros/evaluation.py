@@ -417,7 +417,8 @@ def depth_edge_band(ref, radius: int, jump: float = 0.05) -> torch.Tensor:
     edge[:-1] |= jy
     if radius > 0:
         k = 2 * int(radius) + 1
-        edge = torch.nn.functional.max_pool2d(edge[None, None].float(), k, 1, int(radius))[0, 0] > 0
+        edge = torch.nn.functional.max_pool2d(edge[None, None].float(), k, 1,
+                                              int(radius))[0, 0] > 0
     return edge
 
 

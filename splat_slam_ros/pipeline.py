@@ -157,7 +157,8 @@ def evaluate_map_depth(dataset, out: Path, cfg: SlamConfig, metrics: dict) -> No
         # where the error is: within one BA cell of a true depth edge, or on surfaces
         for key, (tot, n) in zip(("depth_l1_edges_cm", "depth_l1_surfaces_cm"), split):
             metrics[key] = round(float(tot / n), 4) if n else None
-        metrics["depth_edge_band_fraction"] = round(float(split[0, 1] / max(split[:, 1].sum(), 1)), 4)
+        share = split[0, 1] / max(split[:, 1].sum(), 1)
+        metrics["depth_edge_band_fraction"] = round(float(share), 4)
 
 
 def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool = True,
