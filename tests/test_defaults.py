@@ -160,6 +160,7 @@ def test_preset_paper_restores_the_paper_schedule():
     assert m.window_views_per_iter == 0 and c.camera.max_pixels == 0
     assert not m.vignetting and SlamConfig().mapping.vignetting   # Eq. 8's exposure alone
     assert c.depth.dense_views == 0                    # the BA grid only (Eq. 4-5)
+    assert m.isotropy_weight == 10.0 and SlamConfig().mapping.isotropy_weight == 1.0
     # --config and --set apply on top of the preset
     c = load_config(REPO / "config" / "tum.yaml", {"mapping.iters_first": 5}, preset="paper")
     assert c.mapping.iters_first == 5 and c.camera.width == 512 and c.mapping.iters_per_keyframe == 60
