@@ -155,6 +155,8 @@ class DepthConfig:
     mv_eta: float = 0.01                 # eta in Eq. 5 (fraction of mean depth)
     mv_min_views: int = 2                # n_c
     mv_max_depth_ratio: float = 3.0      # reject depth > ratio x median
+    mv_min_parallax_deg: float = 1.0     # a view counts only with a baseline >= tan(this) x
+                                         # median depth (0 = any; pure rotations confirm any depth)
     fill_small_holes: int = 0            # max hole size (px) filled when no mono model
     fill_holes_from_ba: bool = True      # no mono model: multi-view holes take the BA depth
     device: str = "auto"                 # "cpu", "cuda" or "auto" (torch part of proxy depth)

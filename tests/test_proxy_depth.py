@@ -11,7 +11,7 @@ from splat_slam_ros.depth.proxy_depth import (SOURCE_BA, SOURCE_EMPTY, SOURCE_MO
                                         SOURCE_MULTIVIEW,
                                         ProxyDepthEstimator, compose_proxy_depth,
                                         consistency_count, fill_small_holes, fit_scale_shift,
-                                        multiview_filter)
+                                        all_pairs, multiview_filter, parallax_pairs)
 from splat_slam_ros.depth.upsample import corner_preference, upsample_disparity
 from splat_slam_ros.types import TRACKER_SEQ_START, Intrinsics, KeyframeData, UpdateEvent
 
@@ -128,6 +128,33 @@ def test_filter_keeps_true_depth_rejects_corruption():
     # surface consistently: allowed for a handful of pixels)
     rel = np.abs(bad[valid] - depth[valid]) / depth[valid]
     assert (rel < 1e-6).mean() > 0.999
+
+
+def test_views_without_parallax_confirm_no_depth():
+    """Eq. 4 under a pure rotation: every depth reprojects consistently, so views that only
+    rotated would "confirm" a depth 100x too far (what BA leaves on keyframes it cannot
+    triangulate). With ``min_parallax_deg`` such views do not count; views with a baseline
+    keep the true depth valid."""
+    rot = np.stack([np.eye(4) for _ in range(4)])
+    for i in range(4):                                   # pan by 2 degrees per view, no baseline
+        rot[i, :3, :3] = so3_exp(torch.tensor([0.0, np.radians(2.0 * i), 0.0],
+                                              dtype=torch.float64)).numpy()
+    depth = np.stack([raycast(p, ivec(BA), BA.height, BA.width) for p in rot])
+    wrong = torch.from_numpy((100.0 * depth).astype(np.float32))
+    P = torch.from_numpy(rot)
+    v_any, _ = multiview_filter(wrong, P, ivec(BA), max_depth_ratio=0)
+    assert v_any.numpy().mean() > 0.8                    # the wrong depth passes Eq. 5 ...
+    v_par, count = multiview_filter(wrong, P, ivec(BA), max_depth_ratio=0, min_parallax_deg=1.0)
+    assert not v_par.any() and not count.any()           # ... not without parallax
+    pairs = all_pairs(4)
+    assert len(parallax_pairs(wrong, P, pairs, 1.0)) == 0
+    assert len(parallax_pairs(wrong, P, pairs, 0.0)) == len(pairs)
+    # a translating sequence (baselines 0.12 m at ~2 m: > 3 degrees) is unaffected
+    poses, d = scene(6)
+    a, ca = multiview_filter(torch.from_numpy(d), torch.from_numpy(poses), ivec(BA))
+    b, cb = multiview_filter(torch.from_numpy(d), torch.from_numpy(poses), ivec(BA),
+                             min_parallax_deg=1.0)
+    assert torch.equal(a, b) and torch.equal(ca, cb) and a.numpy().mean() > 0.5
 
 
 def test_filter_rejects_far_depth_by_median():

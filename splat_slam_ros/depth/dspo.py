@@ -216,7 +216,8 @@ class DspoPrior:
         depth = torch.where(st.disps > 0, 1.0 / st.disps.clamp_min(1e-12),
                             torch.zeros_like(st.disps))
         low, _ = multiview_filter(depth, st.poses, st.intr, self.dc.mv_eta,
-                                  self.dc.mv_min_views, self.dc.mv_max_depth_ratio, pairs=pairs)
+                                  self.dc.mv_min_views, self.dc.mv_max_depth_ratio, pairs=pairs,
+                                  min_parallax_deg=self.dc.mv_min_parallax_deg)
         active = torch.zeros(N, dtype=torch.bool, device=dev)
         active[st.ii.to(dev)] = True
         huber = None

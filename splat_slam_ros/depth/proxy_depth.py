@@ -194,13 +194,37 @@ def consistency_count(depths: torch.Tensor, poses: torch.Tensor, intr, eta: floa
 
 
 @torch.no_grad()
+def parallax_pairs(depths: torch.Tensor, poses: torch.Tensor, pairs: torch.Tensor,
+                   min_deg: float) -> torch.Tensor:
+    """The (target, view) pairs whose baseline is at least tan(``min_deg``) x the target's
+    median depth. Eq. 4 cannot test a depth without parallax: under a pure rotation every
+    depth reprojects consistently, so such views would "confirm" any depth, including the
+    near-zero disparities that BA leaves on keyframes it cannot triangulate."""
+    if min_deg <= 0 or len(pairs) == 0:
+        return pairs
+    D = depths.to(torch.float32)
+    ok = torch.isfinite(D) & (D > 0)
+    med = torch.nanmedian(torch.where(ok, D, torch.full_like(D, float("nan"))).flatten(1),
+                          dim=1).values                                   # nan if none
+    c = poses.to(torch.float64)[:, :3, 3]
+    base = (c[pairs[:, 0]] - c[pairs[:, 1]]).norm(dim=1)
+    need = float(np.tan(np.radians(min_deg))) * med[pairs[:, 0]].to(torch.float64)
+    return pairs[base >= need]
+
+
 def multiview_filter(depths: torch.Tensor, poses: torch.Tensor, intr, eta: float = 0.01,
                      min_views: int = 2, max_depth_ratio: float = 3.0,
                      pairs: Optional[torch.Tensor] = None,
-                     valid: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
+                     valid: Optional[torch.Tensor] = None,
+                     min_parallax_deg: float = 0.0) -> Tuple[torch.Tensor, torch.Tensor]:
     """Eq. 5 validity: consistent in >= ``min_views`` other keyframes and depth <=
-    ``max_depth_ratio`` x the median of the consistent depths. Returns (valid (N,h,w) bool,
-    count (N,h,w) int32)."""
+    ``max_depth_ratio`` x the median of the consistent depths; only views with a baseline
+    of at least ``min_parallax_deg`` at the target's median depth count
+    (:func:`parallax_pairs`). Returns (valid (N,h,w) bool, count (N,h,w) int32)."""
+    if pairs is None:
+        pairs = all_pairs(depths.shape[0], depths.device)
+    pairs = parallax_pairs(depths, poses, pairs.to(depths.device).reshape(-1, 2),
+                           min_parallax_deg)
     count = consistency_count(depths, poses, intr, eta, pairs, valid)
     ok = count >= int(min_views)
     if max_depth_ratio and max_depth_ratio > 0:
@@ -649,7 +673,8 @@ class ProxyDepthEstimator:
         depth_ba = _disp_to_depth(disp)
         valid_ba, _ = multiview_filter(depth_ba, poses, intr_ba, self.dc.mv_eta,
                                        self.dc.mv_min_views, self.dc.mv_max_depth_ratio,
-                                       pairs=pairs)
+                                       pairs=pairs,
+                                       min_parallax_deg=self.dc.mv_min_parallax_deg)
         self.timings["filter_ms"] += 1e3 * (time.perf_counter() - t0)
         self.timings["n"] += len(ids)
         H, W = self.intr.height, self.intr.width
