@@ -209,6 +209,7 @@ def test_proxy_depth_estimator_runs_the_configured_model(models):
     cfg = SlamConfig()
     cfg.depth.mono_model = str(p)
     cfg.depth.mono_provider = "cpu"
+    cfg.depth.mv_min_parallax_deg = 0.0   # identical views (no parallax) make the valid part
     intr = Intrinsics(100.0, 100.0, 79.5, 59.5, 160, 120)
     est = ProxyDepthEstimator(cfg, intr)
     # depth ramp 1..2 m along x (identical views: consistent), image red ramp -> mono ramp
