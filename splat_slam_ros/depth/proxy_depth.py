@@ -7,8 +7,10 @@ image). The mapper needs a depth map at the tracking resolution that it can trus
    warped with its depth into the other keyframes k, the depth of k is read there and
    back-projected (Eq. 4); the pixel is consistent with k when the two 3D points are closer
    than ``eta * mean depth of i``. It is valid when consistent in ``>= n_c`` views (Eq. 5)
-   and its depth is ``<= 3x`` the median valid depth. Done at BA resolution (the disparity
-   carries no finer information), batched over (target, view) pairs.
+   and its depth is ``<= 3x`` the median valid depth. Only views with parallax count
+   (baseline >= tan(``mv_min_parallax_deg``) x median depth, :func:`parallax_pairs`): without
+   it every depth reprojects consistently. Done at BA resolution (the disparity carries no
+   finer information), batched over (target, view) pairs.
 2. Upsampling (:mod:`upsample`, :func:`upsample_disparity`) to the tracking resolution: bilinear in
    disparity (exact for planes) inside a 2x2 BA cell whose 4 pixels are valid and either
    within ``1 + upsample_disc`` of each other or continuous with the neighbouring cells
