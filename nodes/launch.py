@@ -443,10 +443,10 @@ class Launcher:
         return m
 
     def summary(self, m: dict) -> None:
+        from splat_slam_ros.pipeline import SUMMARY_METRICS
         self.say(f"frames {m['frames']}  keyframes {m['keyframes']}  wall {m['wall_s']:.1f} s  "
                  f"{m['fps']:.2f} frames/s")
-        for k in ("ate_rmse_cm_full", "ate_rmse_cm_keyframes", "psnr", "ssim", "depth_l1_cm",
-                  "depth_l1_edges_cm", "depth_l1_surfaces_cm"):
+        for k in SUMMARY_METRICS:
             if isinstance(m.get(k), (int, float)):
                 self.say(f"{k} {m[k]:.4f}")
         self.say("per node: " + ", ".join(f"{n} cpu {v['cpu_s']:.1f} s rss {v['peak_rss_mb']:.0f} MB"

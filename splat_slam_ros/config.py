@@ -201,7 +201,7 @@ class MappingConfig:
     ba_depth_weight: float = 0.6         # depth-loss weight of BA-filled holes (source 3), 0..1
                                          # (0.3 before session 13: README "Defaults")
     isotropy_weight: float = 1.0         # lambda_reg in Eq. 8 (paper and --preset paper: 10; 1
-                                         # lets Gaussians follow edges: +0.3-0.6 dB; README)
+                                         # lets Gaussians follow edges: +0.3-0.7 dB; README)
     downsample: int = 32                 # theta
     downsample_first: int = 16
     init_opacity: float = 0.5

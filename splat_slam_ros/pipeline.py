@@ -39,6 +39,11 @@ class RunResult:
     events: int = 0
 
 
+# the metrics.json entries a finished run prints, in this order (splat-slam-run, -launch)
+SUMMARY_METRICS = ("ate_rmse_cm_full", "ate_rmse_cm_keyframes", "psnr", "ssim", "depth_l1_cm",
+                   "depth_l1_edges_cm", "depth_l1_surfaces_cm")
+
+
 def not_initialized_reason(cfg: SlamConfig, frames: int) -> str:
     tc = cfg.tracking
     # the hint halves what is set now (suggesting the values already in use would not help)

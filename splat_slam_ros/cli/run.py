@@ -64,7 +64,7 @@ def main(argv=None) -> int:
         bound_heap()            # a long-running process: large blocks back to the OS on free
         from splat_slam_ros.config import load_config
         from splat_slam_ros.io.datasets import open_dataset
-        from splat_slam_ros.pipeline import NotInitializedError, run
+        from splat_slam_ros.pipeline import SUMMARY_METRICS, NotInitializedError, run
 
         if args.gt_poses != args.gt_depth:
             print("error: --gt-poses and --gt-depth go together (mapping in isolation on ground "
@@ -96,8 +96,7 @@ def main(argv=None) -> int:
         m = res.metrics
         print(f"frames {res.frames}  keyframes {res.keyframes}  wall {res.wall_s:.1f} s  "
               f"{m['fps']:.2f} frames/s")
-        for k in ("ate_rmse_cm_full", "ate_rmse_cm_keyframes", "psnr", "ssim", "depth_l1_cm",
-                  "depth_l1_edges_cm", "depth_l1_surfaces_cm"):
+        for k in SUMMARY_METRICS:
             if isinstance(m.get(k), (int, float)):
                 print(f"{k} {m[k]:.4f}")
         if res.timings:
