@@ -3,6 +3,7 @@
 #   ./run.sh demo   set up .venv, then run the main job on the embedded default sequence
 #   ./run.sh test   set up .venv, then run the test suite (what CI runs)
 #   ./run.sh setup  only set up .venv
+#   ./run.sh check-system  print the missing Debian packages (empty line: none), install nothing
 # Set-up installs the apt packages it needs (when run as root and missing), creates .venv/
 # in the repository root, installs torch==2.13.0, the ROS 2 Jazzy wheels, builds the
 # tf2_msgs + splat_slam_msgs interface packages into the venv and installs this project editable.
@@ -17,14 +18,25 @@ PY="$VENV/bin/python"
 
 log() { printf '\033[1m[run.sh]\033[0m %s\n' "$*" >&2; }
 
-ensure_apt() {
-  local need=()
+# missing_packages: the Debian packages set-up needs that this machine lacks, one line, space-
+# separated (empty when nothing is missing). Every probe is a plain test or captures its whole
+# output before matching it: under `set -o pipefail` a `cmd | grep -q` pipeline fails at random
+# when grep exits at the first match and cmd then dies of SIGPIPE.
+missing_packages() {
+  local need=() libs
   command -v cmake >/dev/null 2>&1 || need+=(cmake)
   command -v g++ >/dev/null 2>&1 || need+=(g++)
   command -v make >/dev/null 2>&1 || need+=(make)
   python3 -c 'import ensurepip, venv' >/dev/null 2>&1 || need+=(python3-venv)
   [ -e /usr/lib/x86_64-linux-gnu/libjemalloc.so.2 ] || [ -e /usr/lib/aarch64-linux-gnu/libjemalloc.so.2 ] || need+=(libjemalloc2)
-  /sbin/ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0 ' || need+=(libusb-1.0-0)   # open3d
+  libs="$(/sbin/ldconfig -p 2>/dev/null || true)"
+  case "$libs" in *"libusb-1.0.so.0 "*) ;; *) need+=(libusb-1.0-0) ;; esac   # open3d
+  echo "${need[*]}"
+}
+
+ensure_apt() {
+  local need=()
+  read -r -a need <<< "$(missing_packages)"
   if [ ${#need[@]} -gt 0 ]; then
     if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
       log "installing apt packages: ${need[*]}"
@@ -69,7 +81,8 @@ cmd="${1:-demo}"
 shift || true
 case "$cmd" in
   setup) ensure_venv ;;
+  check-system) missing_packages ;;
   demo)  ensure_venv; exec "$PY" -m splat_slam_ros.demo "$@" ;;
   test)  ensure_venv; exec "$PY" -m pytest -n "${SPLAT_TEST_WORKERS:-2}" --dist loadfile "$@" ;;
-  *) echo "usage: ./run.sh demo|test|setup [args...]" >&2; exit 2 ;;
+  *) echo "usage: ./run.sh demo|test|setup|check-system [args...]" >&2; exit 2 ;;
 esac
