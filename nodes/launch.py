@@ -412,7 +412,7 @@ class Launcher:
         return out
 
     def write_metrics(self, end_wall: float) -> dict:
-        from splat_slam_ros.pipeline import _write_json
+        from splat_slam_ros.pipeline import _write_json, frame_counts
         eos = self.has_event("player", "end_of_stream") or {}
         mapper = (self.has_event("mapper", "saved") or {}).get("metrics", {})
         trk = self.has_event("tracker", "saved") or {}
@@ -422,8 +422,7 @@ class Launcher:
              "player_mode": self.args.mode}
         m.update(mapper)
         m["frames"] = frames
-        m["frames_tracked"] = trk.get("frames")
-        m["frames_dropped"] = trk.get("dropped")
+        m.update(frame_counts(trk.get("frames"), trk.get("dropped"), trk.get("posed")))
         m["keyframes"] = trk.get("keyframes", 0)
         m["wall_s"] = round(wall, 3)
         m["wall_total_s"] = round(end_wall - self.t0, 3)

@@ -174,6 +174,7 @@ class TrackerNode(SplatNode):
             return
         self.saved = True
         files, trk = [], (self.role.tracker if self.role is not None else None)
+        posed = 0
         if self.output_dir is not None and trk is not None:
             from splat_slam_ros.io.trajectory_io import write_tum
             self.output_dir.mkdir(parents=True, exist_ok=True)
@@ -181,11 +182,12 @@ class TrackerNode(SplatNode):
             write_tum(self.output_dir / "trajectory_full.txt", ts, P)
             write_tum(self.output_dir / "trajectory_keyframes.txt", *trk.trajectory_keyframes())
             files = ["trajectory_full.txt", "trajectory_keyframes.txt"]
+            posed = len(ts)
             if len(ts):
                 self.stamps, self.poses = list(ts), list(P)
                 self._publish_path(float(ts[-1]))
         self.publish_event("saved", files=files, frames=self.camera.n_frames,
-                           dropped=self.camera.n_dropped, keyframes=self._keyframes(),
+                           dropped=self.camera.n_dropped, posed=posed, keyframes=self._keyframes(),
                            timings={k: round(float(v), 3) for k, v in
                                     (trk.timings.items() if trk is not None else [])})
 

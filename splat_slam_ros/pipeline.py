@@ -44,6 +44,16 @@ SUMMARY_METRICS = ("ate_rmse_cm_full", "ate_rmse_cm_keyframes", "psnr", "ssim", 
                    "depth_l1_edges_cm", "depth_l1_surfaces_cm")
 
 
+def frame_counts(received: int, dropped: int, posed: int) -> Dict[str, int]:
+    """The frame counts of metrics.json, the same in every mode: ``frames_received`` (input
+    frames that reached the tracker's intake), ``frames_dropped`` (of those, never tracked:
+    queue full or unusable), ``frames_tracked`` (received - dropped: never counts a drop) and
+    ``frames_posed`` (lines of trajectory_full.txt)."""
+    received, dropped, posed = int(received or 0), int(dropped or 0), int(posed or 0)
+    return {"frames_received": received, "frames_dropped": dropped,
+            "frames_tracked": received - dropped, "frames_posed": posed}
+
+
 def not_initialized_reason(cfg: SlamConfig, frames: int) -> str:
     tc = cfg.tracking
     # the hint halves what is set now (suggesting the values already in use would not help)
@@ -242,7 +252,9 @@ def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics) ->
     result.keyframes = len(trk.published)
     if result.keyframes == 0:
         return
-    write_tum(out / "trajectory_full.txt", *trk.trajectory_full())
+    ts_full, poses_full = trk.trajectory_full()
+    write_tum(out / "trajectory_full.txt", ts_full, poses_full)
+    metrics.update(frame_counts(result.frames, 0, len(ts_full)))
     write_tum(out / "trajectory_keyframes.txt", *trk.trajectory_keyframes())
     timings = {k: co.timings.get(k, 0.0) for k in ("tracking", "loop_closure", "depth",
                                                     "mapping")}

@@ -226,9 +226,9 @@ def derive_warnings(rec: RunRecord) -> List[str]:
                    "motion or texture for the motion filter / warm-up)")
     if m.get("frames_dropped"):
         out.append(f"{m['frames_dropped']} input frames were dropped before tracking")
-    tracked = m.get("frames_tracked")
-    if isinstance(tracked, int) and isinstance(frames, int) and tracked < frames:
-        out.append(f"only {tracked} of {frames} played frames reached the tracker")
+    received = m.get("frames_received")
+    if isinstance(received, int) and isinstance(frames, int) and received < frames:
+        out.append(f"only {received} of {frames} played frames reached the tracker")
     if rec.est is not None and isinstance(frames, int) and m.get("mode") != "gt_mapping" \
             and len(rec.est[0]) < frames:
         out.append(f"{frames - len(rec.est[0])} of {frames} frames have no estimated pose")

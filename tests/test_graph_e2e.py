@@ -94,7 +94,9 @@ def test_graph_end_to_end(graph_run):
         assert (out / f).is_file(), f
     assert any((out / "renders").glob("*.png"))
     m = json.loads((out / "metrics.json").read_text())
-    assert m["frames"] == 40 and m["frames_tracked"] == 40 and m["frames_dropped"] == 0
+    # lockstep: nothing is dropped, so the counts are exact
+    assert m["frames"] == 40 and m["frames_received"] == 40 and m["frames_dropped"] == 0
+    assert m["frames_tracked"] == 40 and m["frames_posed"] == 40
     assert m["keyframes"] >= 4
     # 40 clean 192x144 frames, fast mapping schedule: measured 0.86 cm / 21.3 dB
     assert m["ate_rmse_cm_full"] < 3.0 and m["psnr"] > 17.0 and m["fps"] > 0, m
@@ -310,8 +312,16 @@ def test_live_topics_ctrl_c_finalises(tiny_bag, tmp_path):
     for f in ("trajectory_full.txt", "trajectory_keyframes.txt", "metrics.json"):
         assert (out / f).is_file(), (f, log[-3000:])
     m = json.loads((out / "metrics.json").read_text())
-    assert m["dataset"] == "live" and m["frames_tracked"] == 40
-    assert 0 <= m["frames_dropped"] < 40
+    # live input: how many of the 40 frames arrive (best-effort QoS) and how many a busy
+    # tracker drops depends on the machine and its load; every frame that arrived is either
+    # tracked or counted as dropped, and the posed count is the trajectory's line count
+    assert m["dataset"] == "live"
+    assert 0 < m["frames_received"] <= 40, m
+    assert m["frames_tracked"] + m["frames_dropped"] == m["frames_received"], m
+    assert m["frames_tracked"] > 0, m
+    rows = [ln for ln in (out / "trajectory_full.txt").read_text().splitlines()
+            if ln and not ln.startswith("#")]
+    assert len(rows) == m["frames_posed"] <= m["frames_tracked"], m
 
 
 def _children(pid: int):
