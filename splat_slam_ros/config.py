@@ -182,20 +182,26 @@ class MappingConfig:
     # Defaults: a schedule sized for a 2-core CPU (README "Defaults"); the paper's GPU schedule
     # (60 / 1050 / 2000 iterations, whole window per step) is config/paper.yaml (--preset paper).
     device: str = "auto"                 # "auto" (CUDA when torch sees it), "cpu" or "cuda"
-    # at most, per keyframe (paper: 60); the budgets below bound the time, this cap only binds
-    # on a fast machine (30 -> 45 there: fr2/desk +0.6 dB, README "Defaults on a 2-core CPU")
-    iters_per_keyframe: int = 45
-    iters_first: int = 300               # at most, for the first keyframe (paper: 1050)
-    budget_s_per_keyframe: float = 4.0   # wall seconds one keyframe's steps may take (0 = none)
+    # Budgets (mapping/budget.py, README "Mapping budgets"): offline (lockstep replay,
+    # splat-slam-run) in optimisation steps, the same whatever the load; with time_budget (live
+    # input: the launcher turns it on for realtime input) wall-clock caps come on top.
+    iters_per_keyframe: int = 45         # steps per keyframe, at most (paper: 60)
+    iters_first: int = 300               # ... for the first keyframe (paper: 1050)
+    min_iters_per_keyframe: int = 3      # steps every mapped keyframe gets, whatever the pace
+    # a keyframe gets at most this x the stream seconds since the last mapped keyframe steps
+    # (0 = off): the mapping follows the input's duration, not its keyframe count (fast
+    # motion, many keyframes: fewer steps each); sized so that the default keeps its frames/s
+    # on 2 cores
+    stream_pace_steps: float = 90.0
+    time_budget: bool = False            # wall-clock caps below (live input); off: steps only
+    budget_s_per_keyframe: float = 4.0   # time_budget: wall seconds of one keyframe's steps (0 = none)
     budget_s_first: float = 15.0         # ... the first keyframe's
-    min_iters_per_keyframe: int = 3      # steps run even past the budget
-    # a keyframe's budget_s_per_keyframe shrinks to this x the stream time since the last
-    # mapped keyframe (0 = off): the mapping time follows the input's duration, not its
-    # keyframe count (fast motion, many keyframes: fewer steps each)
+    # time_budget: budget_s_per_keyframe shrinks to this x the stream time since the last
+    # mapped keyframe (0 = off)
     stream_pace: float = 12.0
-    keep_up: float = 0.0                 # > 0: also cap a keyframe's steps at this fraction of
-                                         # the stream time since the last mapped keyframe
-                                         # (realtime: steps are dropped, never keyframes)
+    keep_up: float = 0.0                 # time_budget, > 0: also cap a keyframe's steps at this
+                                         # fraction of the stream time since the last mapped
+                                         # keyframe (realtime: steps are dropped, never keyframes)
     window_size: int = 8
     rgb_weight: float = 0.8              # lambda in Eq. 8
     ba_depth_weight: float = 0.6         # depth-loss weight of BA-filled holes (source 3), 0..1
@@ -213,7 +219,7 @@ class MappingConfig:
     prune_opacity: float = 0.7
     final_refine_iters: int = 2000       # beta, at most
     final_refine_per_keyframe: int = 20  # refinement = min(beta, this x keyframes) (0 = beta)
-    final_refine_s: float = 60.0         # wall-second cap of the final refinement (0 = none)
+    final_refine_s: float = 60.0         # time_budget: wall-second cap of the refinement (0 = none)
     lr_means: float = 0.0016              # 10x 3DGS: +0.6 dB, -0.4 cm depth L1 on ICL (bench_mapping)
     lr_colors: float = 0.0025
     lr_opacity: float = 0.05
@@ -265,7 +271,7 @@ class MappingConfig:
                     random_views_per_iter=1, window_views_per_iter=3, prune_every=50,
                     densify_every=50, prune_min_age=25, budget_s_per_keyframe=0.0,
                     budget_s_first=0.0, final_refine_per_keyframe=0, final_refine_s=0.0,
-                    stream_pace=0.0)
+                    stream_pace=0.0, stream_pace_steps=0.0)
         base.update(overrides)
         return cls(**base)
 

@@ -1,5 +1,5 @@
-"""CPU defaults: OpenMP wait policy (in-process / node parity), the time-budgeted mapping
-schedule, the final refinement scaled by the keyframes, presets and the auto resolution."""
+"""CPU defaults: OpenMP wait policy (in-process / node parity), the mapping budgets (steps
+offline, wall-clock with time_budget), the final refinement scaled by the keyframes, presets and the auto resolution."""
 import os
 import subprocess
 import sys
@@ -68,9 +68,11 @@ def _mapper(**kw):
     return Mapper(cfg, K, device="cpu")
 
 
-def test_keyframe_budget_is_respected_and_drops_steps_not_keyframes():
+def test_keyframe_time_budget_is_respected_and_drops_steps_not_keyframes():
+    """mapping.time_budget (live input): wall-clock caps stop a keyframe's steps early; the
+    cut steps are counted per keyframe and in total, no keyframe is skipped."""
     mp = _mapper(iters_first=100000, iters_per_keyframe=100000, budget_s_first=0.6,
-                 budget_s_per_keyframe=0.4, min_iters_per_keyframe=3)
+                 budget_s_per_keyframe=0.4, min_iters_per_keyframe=3, time_budget=True)
     views = _views(3)
     for k, (img, pose, depth) in enumerate(views):
         t0 = time.perf_counter()
@@ -79,9 +81,28 @@ def test_keyframe_budget_is_respected_and_drops_steps_not_keyframes():
         assert st["mapped"]
         budget = 0.6 if k == 0 else 0.4
         assert took < budget + 0.5, (k, took)        # + render/init and one slow step
+        assert st["steps"] >= 3 and st["steps"] + st["steps_skipped"] == 100000
     assert len(mp.keyframes) == 3
     assert mp.iteration >= 3 * 3                      # min_iters at least, every keyframe
-    assert mp.stats()["skipped_iterations"] > 0
+    stats = mp.stats()
+    assert stats["budget"] == "time" and stats["skipped_iterations"] > 0
+    assert stats["steps_per_keyframe"]["skipped"] == stats["skipped_iterations"]
+
+
+def test_step_budgets_ignore_the_wall_clock_offline():
+    """Offline (the default, no time_budget) the same wall-second settings that cut steps
+    above do nothing: every keyframe runs its step budget, whatever the machine."""
+    mp = _mapper(iters_first=40, iters_per_keyframe=25, budget_s_first=1e-4,
+                 budget_s_per_keyframe=1e-4, final_refine_iters=30, final_refine_s=1e-4)
+    assert not mp.mcfg.time_budget
+    for k, (img, pose, depth) in enumerate(_views(3)):
+        st = mp.add_keyframe(k, img, pose, depth, force=True)
+        assert (st["steps"], st["steps_skipped"]) == ((40, 0) if k == 0 else (25, 0))
+    assert mp.final_refine() ["refine_iters"] == 30
+    stats = mp.stats()
+    assert stats["budget"] == "steps" and stats["skipped_iterations"] == 0
+    assert stats["iterations"] == 40 + 2 * 25 + 30
+    assert stats["steps_per_keyframe"] == {"mean": 30.0, "min": 25, "max": 40, "skipped": 0}
 
 
 def test_without_budget_the_iteration_counts_are_exact():
@@ -92,34 +113,47 @@ def test_without_budget_the_iteration_counts_are_exact():
 
 
 def test_keep_up_caps_the_budget_by_the_stream_time_between_keyframes():
-    mp = _mapper(iters_first=3, iters_per_keyframe=3, budget_s_per_keyframe=3.0, keep_up=0.5)
+    mp = _mapper(iters_first=3, iters_per_keyframe=3, budget_s_per_keyframe=3.0, keep_up=0.5,
+                 time_budget=True)
     img, pose, depth = _views(1)[0]
     mp.add_keyframe(0, img, pose, depth, timestamp=10.0)
-    assert mp.keyframe_budget(False, 10.4) == pytest.approx(0.2)     # 0.5 x 0.4 s
-    assert mp.keyframe_budget(False, 20.0) == pytest.approx(3.0)     # the budget itself
+    assert mp.keyframe_budget(False, 10.4).wall_s == pytest.approx(0.2)     # 0.5 x 0.4 s
+    assert mp.keyframe_budget(False, 20.0).wall_s == pytest.approx(3.0)     # the budget itself
     mp.mcfg.budget_s_per_keyframe = 0.0
-    assert mp.keyframe_budget(False, 11.0) == pytest.approx(0.5)
+    assert mp.keyframe_budget(False, 11.0).wall_s == pytest.approx(0.5)
+    mp.mcfg.time_budget = False                        # offline: no wall-clock cap at all
+    assert mp.keyframe_budget(False, 10.4).wall_s == 0.0
 
 
 def test_stream_pace_shrinks_the_budget_of_keyframes_that_come_fast():
-    """mapping.stream_pace: a keyframe 0.1 s of stream after the last one gets 12 x 0.1 s,
-    one 1 s after gets the whole budget; the first keyframe and a run without a budget (the
-    paper preset) are not capped; keep_up (realtime) caps below it."""
-    mp = _mapper(iters_first=3, iters_per_keyframe=3, budget_s_per_keyframe=4.0,
-                 budget_s_first=15.0, stream_pace=12.0)
+    """Offline, mapping.stream_pace_steps: a keyframe 0.1 s of stream after the last one gets
+    90 x 0.1 = 9 steps, one 1 s after its whole iters_per_keyframe, never fewer than
+    min_iters_per_keyframe; the first keyframe is not paced. With time_budget the wall form
+    (stream_pace x the stream time, keep_up below it) caps the same keyframes."""
+    mp = _mapper(iters_first=300, iters_per_keyframe=45, budget_s_per_keyframe=4.0,
+                 budget_s_first=15.0, stream_pace=12.0, stream_pace_steps=90.0,
+                 min_iters_per_keyframe=3)
     img, pose, depth = _views(1)[0]
-    assert mp.keyframe_budget(True, 0.0) == pytest.approx(15.0)
+    assert mp.keyframe_budget(True, 0.0) == (300, 0.0, 3)
+    mp.mcfg.iters_first = 3
     mp.add_keyframe(0, img, pose, depth, timestamp=10.0)
-    assert mp.keyframe_budget(False, 10.1) == pytest.approx(1.2)
-    assert mp.keyframe_budget(False, 11.0) == pytest.approx(4.0)
-    assert mp.keyframe_budget(False, 9.0) == pytest.approx(4.0)    # no stream time: the budget
+    assert mp.keyframe_budget(False, 10.1).steps == 9
+    assert mp.keyframe_budget(False, 10.01).steps == 3             # min_iters_per_keyframe
+    assert mp.keyframe_budget(False, 11.0).steps == 45
+    assert mp.keyframe_budget(False, 9.0).steps == 45              # no stream time: the cap
+    mp.mcfg.time_budget = True
+    assert mp.keyframe_budget(True, 0.0).wall_s == pytest.approx(15.0)
+    assert mp.keyframe_budget(False, 10.1) == pytest.approx((9, 1.2, 3))
+    assert mp.keyframe_budget(False, 11.0).wall_s == pytest.approx(4.0)
     mp.mcfg.keep_up = 0.8
-    assert mp.keyframe_budget(False, 10.1) == pytest.approx(0.08)
+    assert mp.keyframe_budget(False, 10.1).wall_s == pytest.approx(0.08)
     mp.mcfg.keep_up, mp.mcfg.budget_s_per_keyframe = 0.0, 0.0
-    assert mp.keyframe_budget(False, 10.1) == 0.0                  # no budget, no cap
-    assert SlamConfig().mapping.stream_pace > 0
+    assert mp.keyframe_budget(False, 10.1).wall_s == 0.0           # no budget, no cap
+    m = SlamConfig().mapping
+    assert m.stream_pace_steps > 0 and m.stream_pace > 0 and not m.time_budget
     paper = load_config(None, {}, preset="paper").mapping
     assert paper.budget_s_per_keyframe == 0 and paper.keep_up == 0
+    assert paper.stream_pace_steps == 0
 
 
 def test_final_refinement_scales_with_the_number_of_keyframes():
@@ -127,7 +161,7 @@ def test_final_refinement_scales_with_the_number_of_keyframes():
                  final_refine_per_keyframe=4)
     for k, (img, pose, depth) in enumerate(_views(3)):
         mp.add_keyframe(k, img, pose, depth, force=True)
-    assert mp.final_refine_budget() == (12, 0.0)
+    assert mp.final_refine_budget() == (12, 0.0, 0)
     assert mp.final_refine()["refine_iters"] == 12
     mp.mcfg.final_refine_per_keyframe = 0            # the paper's fixed beta
     mp.mcfg.final_refine_iters = 9
@@ -135,17 +169,20 @@ def test_final_refinement_scales_with_the_number_of_keyframes():
 
 
 def test_final_refinement_time_cap():
-    mp = _mapper(iters_first=3, final_refine_iters=10 ** 6, final_refine_s=0.5)
+    mp = _mapper(iters_first=3, final_refine_iters=10 ** 6, final_refine_s=0.5,
+                 time_budget=True)
     img, pose, depth = _views(1)[0]
     mp.add_keyframe(0, img, pose, depth)
     t0 = time.perf_counter()
     r = mp.final_refine()
     assert time.perf_counter() - t0 < 1.0 and 0 < r["refine_iters"] < 10 ** 6
+    assert r["refine_iters"] + r["refine_skipped"] == 10 ** 6
 
 
-def test_default_schedule_is_budgeted_and_scaled():
+def test_default_schedule_is_in_steps_and_scaled():
     m = SlamConfig().mapping
-    assert m.budget_s_per_keyframe > 0 and m.budget_s_first > 0
+    assert not m.time_budget and m.stream_pace_steps > 0
+    assert m.budget_s_per_keyframe > 0 and m.budget_s_first > 0     # for live input
     assert m.final_refine_per_keyframe > 0 and m.final_refine_s > 0
     assert m.device == "auto" and SlamConfig().depth.device == "auto"
     assert SlamConfig().tracking.device == "auto"
@@ -201,8 +238,9 @@ def test_launcher_preset_gives_the_nodes_one_merged_file(tmp_path, monkeypatch):
 
 
 def test_launcher_keeps_the_mapper_at_pace_on_realtime_input(tmp_path, monkeypatch):
-    """Live topics (and --mode realtime): mapping.keep_up defaults on (steps skipped, never
-    keyframes); an explicit --set wins."""
+    """Live topics (and --mode realtime): wall-clock budgets (mapping.time_budget) and
+    mapping.keep_up default on (steps skipped, never keyframes); an explicit --set wins;
+    lockstep replay keeps the step budgets."""
     from splat_slam_nodes import launch
     monkeypatch.setenv("SPLAT_SLAM_DDS_RANGE", "localhost")
 
@@ -212,11 +250,23 @@ def test_launcher_keeps_the_mapper_at_pace_on_realtime_input(tmp_path, monkeypat
         return L
     live = planned()
     assert live.cfg.mapping.keep_up == launch.REALTIME_KEEP_UP > 0
+    assert live.cfg.mapping.time_budget
     assert f"mapping.keep_up:={launch.REALTIME_KEEP_UP}" in live._node_args("mapper")
+    assert "mapping.time_budget:=true" in live._node_args("mapper")
     assert "keeps pace" in live.keep_up_note
     off = planned("--set", "mapping.keep_up=0")
-    assert off.cfg.mapping.keep_up == 0 and not off.keep_up_note
+    assert off.cfg.mapping.keep_up == 0 and off.cfg.mapping.time_budget
     assert "mapping.keep_up:=0" in off._node_args("mapper")
+    steps = planned("--set", "mapping.time_budget=false")     # step budgets on live input
+    assert not steps.cfg.mapping.time_budget and steps.cfg.mapping.keep_up == 0
+    assert not steps.keep_up_note
+    from splat_slam_nodes import bag_player                  # a bag (its reader stubbed)
+    monkeypatch.setattr(bag_player, "BagReader", lambda path: object())
+    lock = planned("--bag", str(tmp_path / "b.mcap"))         # lockstep replay: steps
+    assert not lock.cfg.mapping.time_budget and lock.cfg.mapping.keep_up == 0
+    assert not lock.keep_up_note
+    rt = planned("--bag", str(tmp_path / "b.mcap"), "--mode", "realtime")
+    assert rt.cfg.mapping.time_budget and rt.cfg.mapping.keep_up > 0
 
 
 # --------------------------------------------------------------- resolution

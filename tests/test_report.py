@@ -254,8 +254,9 @@ def test_keyframe_views_against_ground_truth_depth(seq, tmp_path):
     np.testing.assert_allclose(prx, np.asarray(fr.gt_depth), atol=0.6 / scale)
     assert (cv2.imread(str(tmp_path / "kf_00000_input.png"))[..., ::-1] == fr.image).all()
     assert doc["history"] == [{"gaussians": doc["map"]["gaussians"], "iterations": 30,
-                               "keyframes": 1, "kf_id": 0, "mapped": True,
-                               "ms": doc["history"][0]["ms"], "timestamp": fr.timestamp}]
+                               "keyframes": 1, "kf_id": 0, "mapped": True, "steps": 30,
+                               "steps_skipped": 0, "ms": doc["history"][0]["ms"],
+                               "timestamp": fr.timestamp}]
 
 
 def test_mapping_on_ground_truth_report(seq, tmp_path):

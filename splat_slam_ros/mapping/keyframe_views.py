@@ -33,6 +33,7 @@ def history_entry(stats: dict, timestamp: Optional[float]) -> dict:
             "timestamp": None if timestamp is None else float(timestamp),
             "mapped": bool(stats["mapped"]), "gaussians": int(stats["gaussians"]),
             "keyframes": int(stats["keyframes"]), "iterations": int(stats["iterations"]),
+            "steps": int(stats.get("steps", 0)), "steps_skipped": int(stats.get("steps_skipped", 0)),
             "ms": round(float(stats["last_ms"]), 2)}
 
 

@@ -24,6 +24,8 @@ import numpy as np
 import torch
 
 from splat_slam_ros.config import SlamConfig
+from splat_slam_ros.mapping.budget import (Budget, final_refine_budget, keyframe_budget,
+                                           steps_summary)
 from splat_slam_ros.mapping.deformation import deform_gaussians
 from splat_slam_ros.mapping.gaussian_map import GaussianMap
 from splat_slam_ros.mapping.keyframe_inputs import (MapError, MappedKeyframe,
@@ -76,7 +78,8 @@ class Mapper:
                        "pruned_visibility": 0, "merged_keyframes": 0}
         self._next_index = 0           # MappedKeyframe.index of the next mapped keyframe
         self.last_ms = 0.0
-        self.skipped_iters = 0         # steps dropped to stay within the time budgets
+        self.skipped_iters = 0         # steps a wall-clock budget cut (mapping.time_budget)
+        self.refine_info: Dict[str, float] = {}   # the final refinement's steps (final_refine)
         self._last_mapped_ts: Optional[float] = None
         self.last_loss = float("nan")
         self._scene_depth = 0.0
@@ -228,10 +231,10 @@ class Mapper:
                      new["opacity_logits"], kf_id=kf_id, created=kf.index, born=self.iteration)
         removed = self.window.add(kf_id, vis, {k: k2.pose for k, k2 in self.keyframes.items()})
 
-        iters = self.mcfg.iters_first if empty else self.mcfg.iters_per_keyframe
-        self._optimize(iters, densify=True, progress=self.progress and iters >= 200,
-                       budget_s=self.keyframe_budget(empty, kf.timestamp),
-                       min_iters=self.mcfg.min_iters_per_keyframe)
+        b = self.keyframe_budget(empty, kf.timestamp)
+        done = self._optimize(b.steps, densify=True, progress=self.progress and b.steps >= 200,
+                              budget_s=b.wall_s, min_iters=b.min_steps)
+        stats.update({"steps": done, "steps_skipped": b.steps - done})
         self._last_mapped_ts = kf.timestamp
         n_vis_pruned = self._visibility_prune() if self._enough_views() else 0
         self.last_ms = 1000 * (time.perf_counter() - t0)
@@ -241,33 +244,18 @@ class Mapper:
         self.history.append(history_entry(stats, timestamp))
         return stats
 
-    def keyframe_budget(self, first: bool, timestamp: float) -> float:
-        """Wall seconds one keyframe's optimisation may take (0 = no limit): the configured
-        budget, shrunk to ``stream_pace`` x the stream time since the last mapped keyframe
-        (the run's mapping time then follows the input's duration), and capped in keep-up
-        mode at ``keep_up`` x that time, so that the mapper keeps pace with the keyframes (it
-        drops steps, never keyframes)."""
-        m = self.mcfg
-        budget = m.budget_s_first if first else m.budget_s_per_keyframe
+    def keyframe_budget(self, first: bool, timestamp: float) -> Budget:
+        """The steps (and, with ``mapping.time_budget``, wall seconds) of one keyframe's
+        optimisation (mapping/budget.py): paced by the stream time since the last mapped
+        keyframe, so the mapping time follows the input's duration (it drops steps, never
+        keyframes)."""
         last = self._last_mapped_ts
-        if first or last is None or not timestamp > last:
-            return float(budget)
-        dt = timestamp - last
-        if m.stream_pace > 0 and budget > 0:
-            budget = min(budget, m.stream_pace * dt)
-        if m.keep_up > 0:
-            budget = min(budget, m.keep_up * dt) if budget > 0 else m.keep_up * dt
-        return float(budget)
+        dt = None if first or last is None or not timestamp > last else timestamp - last
+        return keyframe_budget(self.mcfg, first, dt)
 
-    def final_refine_budget(self) -> Tuple[int, float]:
-        """(iterations, wall-second cap) of the final refinement: ``final_refine_iters``, or
-        ``final_refine_per_keyframe`` x keyframes when that is fewer (a short clip does not pay
-        the paper's 2000), capped by ``final_refine_s``."""
-        m = self.mcfg
-        iters = int(m.final_refine_iters)
-        if m.final_refine_per_keyframe > 0:
-            iters = min(iters, m.final_refine_per_keyframe * len(self.keyframes))
-        return iters, float(m.final_refine_s)
+    def final_refine_budget(self) -> Budget:
+        """The final refinement's steps (and wall cap with ``mapping.time_budget``)."""
+        return final_refine_budget(self.mcfg, len(self.keyframes))
 
     def _add_keyframe_record(self, kf: MappedKeyframe) -> None:
         """Store a mapped keyframe; its exposure (Eq. 8 affine a, b) joins the exposure
@@ -608,12 +596,14 @@ class Mapper:
         t0 = time.perf_counter()
         budget = 0.0
         if iters is None:
-            iters, budget = self.final_refine_budget()
+            iters, budget, _ = self.final_refine_budget()
         done = 0
         if self.keyframes:
             done = self._optimize(int(iters), densify=False, single_random=True,
                                   progress=progress, budget_s=budget)
-        return {"refine_iters": done, "refine_s": round(time.perf_counter() - t0, 3)}
+        self.refine_info = {"refine_iters": done, "refine_skipped": int(iters) - done,
+                            "refine_s": round(time.perf_counter() - t0, 3)}
+        return dict(self.refine_info)
 
     # ================================================================ output
     def stats(self) -> dict:
@@ -623,6 +613,9 @@ class Mapper:
                 "last_ms": round(self.last_ms, 2), "deformations": self.n_deformations,
                 "deformed_gaussians": self.n_deformed_gaussians, "iterations": self.iteration,
                 "skipped_iterations": self.skipped_iters,
+                "budget": "time" if self.mcfg.time_budget else "steps",
+                "steps_per_keyframe": steps_summary(self.history),
+                **{k: v for k, v in self.refine_info.items() if k != "refine_s"},
                 "vignette": [round(float(x), 4) for x in self.vignette.detach().cpu()],
                 **self.counts}
 
