@@ -4,27 +4,36 @@ Decodes every image on the executor-independent worker, checks it against the ca
 (camera_info, or ``node.intrinsics_file`` when no camera_info is published) and the size the
 tracker started with, and drops what it cannot use with a logged reason; every frame, used
 or dropped, is acknowledged on /splat/frame_ack (lockstep). ``node.max_queue`` bounds the
-frames waiting for the tracker (a live camera stays current; 0 = never drop).
+frames waiting for the tracker (a live camera stays current; 0 = never skip): a frame that
+arrives while that many wait is *skipped*, not dropped: its constant-velocity pose is
+published at once and the final trajectory places it between its tracked neighbours
+(``Tracker.skip``). Only when ``node.max_backlog`` jobs already wait for the worker is a frame
+dropped. Pose latency (arrival at this node -> pose published) is kept per frame.
 """
 from __future__ import annotations
 
 import threading
-from typing import Callable, Optional, Tuple
+import time
+from typing import Callable, Dict, List, Optional, Tuple
 
 
 class CameraInput:
-    def __init__(self, owner, on_frame: Callable):
-        """``on_frame(frame)`` runs on the owner's worker; it returns the kf_id made or None."""
+    def __init__(self, owner, on_frame: Callable, on_skip: Callable):
+        """``on_frame(frame)`` runs on the owner's worker; it returns the kf_id made or None.
+        ``on_skip(index, stamp, now)``: a skipped frame, once on the executor at arrival
+        (``now``: publish its predicted pose) and once on the worker (record it)."""
         from sensor_msgs.msg import CameraInfo, Image
 
         from . import qos as Q
-        self.owner, self.on_frame = owner, on_frame
+        self.owner, self.on_frame, self.on_skip = owner, on_frame, on_skip
         o, self.opts, self.cfg = owner, owner.opts, owner.cfg
         self.size: Optional[Tuple[int, int]] = None
         self.intr = None
         self.cam_info = None
         self.info_lock = threading.Condition()
-        self.n_frames = self.n_dropped = self.queued = 0
+        self.n_frames = self.n_dropped = self.n_skipped = self.queued = 0
+        self.arrived: Dict[int, float] = {}       # frame index -> arrival (monotonic s)
+        self.latency_ms: List[float] = []         # arrival -> pose published, per posed frame
         self.last_ns: Optional[int] = None        # newest frame stamp taken (replays: older)
         # a replayed frame is recognised by its stamp on the player's reliable input (a live
         # camera's clock may jump back: its frames are never dropped for that)
@@ -80,14 +89,39 @@ class CameraInput:
         mq = int(self.opts["max_queue"])
         index = self.n_frames
         self.n_frames += 1
-        if mq > 0 and self.queued >= mq:          # realtime: a slow tracker drops frames
-            self.n_dropped += 1
-            self._ack(index, msg.header.stamp, None)
-            self.owner.warn_throttled("drop", f"tracker busy: dropped frame {index} "
-                                      f"({self.n_dropped} so far)", error=False)
+        self.arrived[index] = time.monotonic()
+        if mq > 0 and self.queued >= mq:          # realtime: the tracker is busy
+            if self.owner.worker.pending() >= int(self.opts["max_backlog"]):
+                self.n_dropped += 1               # the worker is behind by the whole bound
+                self.arrived.pop(index, None)
+                self._ack(index, msg.header.stamp, None)
+                self.owner.warn_throttled("drop", f"tracker backlog full: dropped frame {index} "
+                                          f"({self.n_dropped} so far)", error=False)
+                return
+            self.n_skipped += 1
+            from .convert import from_stamp
+            stamp = from_stamp(msg.header.stamp)
+            self.on_skip(index, stamp, now=True)      # the predicted pose, at once
+            self.owner.worker.submit(self._skip, index, stamp, msg.header.stamp)
             return
         self.queued += 1
         self.owner.worker.submit(self._process, msg, index)
+
+    def posed(self, index: int) -> None:
+        """The pose of frame ``index`` was published: its latency is recorded."""
+        t = self.arrived.pop(index, None)
+        if t is not None:
+            self.latency_ms.append(1000.0 * (time.monotonic() - t))
+
+    def latency_stats(self) -> Dict[str, float]:
+        """Pose latency (arrival -> pose published) over the posed frames, in ms."""
+        import numpy as np
+        if not self.latency_ms:
+            return {}
+        a = np.asarray(self.latency_ms)
+        return {"p50": round(float(np.percentile(a, 50)), 2),
+                "p95": round(float(np.percentile(a, 95)), 2),
+                "max": round(float(a.max()), 2), "frames": int(a.size)}
 
     # ------------------------------------------------------------ worker thread
     def _ack(self, index: int, stamp, kf_id: Optional[int]) -> None:
@@ -104,6 +138,10 @@ class CameraInput:
                 self.info_lock.wait(timeout=float(self.opts["camera_info_timeout"]))
             return self.cam_info
 
+    def _skip(self, index: int, stamp: float, ros_stamp) -> None:
+        self.on_skip(index, stamp, now=False)      # the record, in frame order
+        self._ack(index, ros_stamp, None)
+
     def _process(self, msg, index: int) -> None:
         self.queued -= 1
         kf_id = None
@@ -112,6 +150,7 @@ class CameraInput:
             if frame is not None:
                 kf_id = self.on_frame(frame)
         finally:
+            self.arrived.pop(index, None)          # not posed (warm-up, lost, dropped)
             self._ack(index, msg.header.stamp, kf_id)
 
     def drop(self, index: int, why: str) -> None:

@@ -58,6 +58,7 @@ NODE_MODULES = {
 }
 RESUMABLE = ("tracker", "depth", "loop_closure", "mapper", "player")
 REALTIME_KEEP_UP = 0.8      # mapping.keep_up on realtime input unless the config sets one
+BACKGROUND_NODES = ("depth", "mapper", "loop_closure", "rerun")   # niced on realtime input
 
 
 class LaunchError(Exception):
@@ -73,9 +74,20 @@ def _pdeathsig():
         pass
 
 
+def _child_setup(nice: int):
+    """Child side: :func:`_pdeathsig`, then the OS priority ``nice`` (0: unchanged)."""
+    def setup():
+        _pdeathsig()
+        if nice:
+            os.nice(nice)
+    return setup
+
+
 class Child:
-    def __init__(self, name: str, args: List[str], env: Dict[str, str], out, prefix_width: int):
+    def __init__(self, name: str, args: List[str], env: Dict[str, str], out, prefix_width: int,
+                 nice: int = 0):
         self.name = name
+        self.nice = int(nice)
         self.args = args
         self.env = env
         self.out = out
@@ -91,7 +103,8 @@ class Child:
     def start(self) -> None:
         self.proc = subprocess.Popen(self.args, env=self.env, stdout=subprocess.PIPE,
                                      stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     start_new_session=True, preexec_fn=_pdeathsig)
+                                     start_new_session=True,
+                                     preexec_fn=_child_setup(self.nice))
         self.thread = threading.Thread(target=self._forward, args=(self.proc,), daemon=True)
         self.thread.start()
 
@@ -151,6 +164,7 @@ class Launcher:
         self.t0 = time.monotonic()
         self.t_play = None
         self.t_eos = None
+        self.t_mapped = None
         self.keep_up_note = ""
 
     # ------------------------------------------------------------ setup
@@ -210,15 +224,28 @@ class Launcher:
                 raise LaunchError(str(e)) from None
 
     def _realtime_keep_up(self) -> None:
-        """Realtime input (``--mode realtime``, live topics, ``--camera``): the mapper keeps
-        pace with the stream (``mapping.keep_up`` REALTIME_KEEP_UP) unless the configuration
-        or ``--set`` chose a value; it skips optimisation steps, never keyframes."""
+        """Realtime input (``--mode realtime``, live topics, ``--camera``): the camera sets the
+        pace, so the mapper's budgets are wall-clock (``mapping.time_budget``) and it keeps
+        pace with the stream (``mapping.keep_up`` REALTIME_KEEP_UP), unless the configuration
+        or ``--set`` chose otherwise; it skips optimisation steps, never keyframes. Lockstep
+        replay keeps the step budgets: the same map whatever the load."""
         realtime = self.args.mode == "realtime" or self.bag is None
-        if realtime and self.cfg.mapping.keep_up <= 0 and "mapping.keep_up" not in self.overrides:
+        if not realtime:
+            return
+        notes = []
+        m = self.cfg.mapping
+        if not m.time_budget and "mapping.time_budget" not in self.overrides:
+            self.overrides["mapping.time_budget"] = True
+            m.time_budget = True
+            notes.append("mapping.time_budget on (wall-clock budgets; --set "
+                         "mapping.time_budget=false keeps the step budgets)")
+        if m.time_budget and m.keep_up <= 0 and "mapping.keep_up" not in self.overrides:
             self.overrides["mapping.keep_up"] = REALTIME_KEEP_UP
-            self.cfg.mapping.keep_up = REALTIME_KEEP_UP
-            self.keep_up_note = (f"realtime input: mapping.keep_up {REALTIME_KEEP_UP} (the mapper "
-                                 "keeps pace; --set mapping.keep_up=0 turns it off)")
+            m.keep_up = REALTIME_KEEP_UP
+            notes.append(f"mapping.keep_up {REALTIME_KEEP_UP} (the mapper keeps pace; --set "
+                         "mapping.keep_up=0 turns it off)")
+        if notes:
+            self.keep_up_note = "realtime input: " + ", ".join(notes)
 
     def _node_args(self, name: str) -> List[str]:
         a = self.args
@@ -285,7 +312,7 @@ class Launcher:
             args = self._player_args() if n == "player" else self._node_args(n)
             if n == "camera":
                 args = launch_args(self.args, self.cfg, self.nodes, self.out_dir is not None)
-            c = Child(n, args, self.env, self.out, w)
+            c = Child(n, args, self.env, self.out, w, nice=self.nice_of(n))
             self.children[n] = c
         for n in names:
             self.children[n].start()
@@ -293,6 +320,14 @@ class Launcher:
                  f"network {self.dds_range})")
         if self.keep_up_note:
             self.say(self.keep_up_note)
+
+    def nice_of(self, name: str) -> int:
+        """OS priority of a node: on realtime input the tracker (and the input) get the CPU
+        first, the stages that work per keyframe run ``--background-nice`` lower."""
+        realtime = self.args.mode == "realtime" or self.bag is None
+        if realtime and name in BACKGROUND_NODES:
+            return int(self.args.background_nice)
+        return 0
 
     def say(self, text: str) -> None:
         self.out.write(f"[launch] {text}\n")
@@ -324,6 +359,8 @@ class Launcher:
             self.t_play = time.monotonic()
         if ev == "end_of_stream" and self.t_eos is None:
             self.t_eos = time.monotonic()
+        if node == "mapper" and ev == "saved" and self.t_mapped is None:
+            self.t_mapped = time.monotonic()       # the map is done: refined and written
         if ev in ("finalized", "saved"):
             self.say(f"{node} {ev}")
 
@@ -422,7 +459,11 @@ class Launcher:
              "player_mode": self.args.mode}
         m.update(mapper)
         m["frames"] = frames
-        m.update(frame_counts(trk.get("frames"), trk.get("dropped"), trk.get("posed")))
+        m.update(frame_counts(trk.get("frames"), trk.get("dropped"), trk.get("posed"),
+                              trk.get("skipped")))
+        m["pose_latency_ms"] = trk.get("latency_ms") or {}
+        if self.t_eos is not None and self.t_mapped is not None:
+            m["map_done_after_stream_s"] = round(self.t_mapped - self.t_eos, 3)
         m["keyframes"] = trk.get("keyframes", 0)
         m["wall_s"] = round(wall, 3)
         m["wall_total_s"] = round(end_wall - self.t0, 3)
@@ -445,6 +486,12 @@ class Launcher:
         from splat_slam_ros.pipeline import SUMMARY_METRICS
         self.say(f"frames {m['frames']}  keyframes {m['keyframes']}  wall {m['wall_s']:.1f} s  "
                  f"{m['fps']:.2f} frames/s")
+        self.say(f"frames posed {m['frames_posed']} (tracked {m['frames_tracked']}, skipped "
+                 f"{m['frames_skipped']}), dropped {m['frames_dropped']}")
+        lat = m.get("pose_latency_ms") or {}
+        if lat:
+            self.say(f"pose latency p50 {lat['p50']:.0f} ms, p95 {lat['p95']:.0f} ms, "
+                     f"max {lat['max']:.0f} ms")
         for k in SUMMARY_METRICS:
             if isinstance(m.get(k), (int, float)):
                 self.say(f"{k} {m[k]:.4f}")
@@ -507,6 +554,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="enable the /splat/map/reset service (disabled by default)")
     ap.add_argument("--tracking-only", action="store_true", help="no depth / mapper nodes")
     ap.add_argument("--no-loop-closure", action="store_true", help="no loop_closure node")
+    ap.add_argument("--background-nice", type=int, default=10, metavar="N",
+                    help="realtime input: run the depth, mapper, loop-closure (and rerun) nodes "
+                         "at OS priority +N so that the tracker gets the CPU first (default 10; "
+                         "0 = off; lockstep replay never changes priorities)")
     ap.add_argument("--max-restarts", type=int, default=3,
                     help="restarts of a resumable node before giving up (default 3)")
     ap.add_argument("--resume", action="store_true",

@@ -13,7 +13,9 @@ logged error; the frame is acknowledged as consumed and dropped, the node keeps 
 (nodes/camera_input.py). Resize / crop / undistort follow ``camera.*`` (the Tracker's
 preprocessor). Node options: node.input_qos (sensor = BEST_EFFORT, matches any camera
 driver; reliable for the bag player), node.max_queue (frames waiting for the tracker; 2 so a
-live camera stays current; the launcher sets 0 = never drop in lockstep),
+live camera stays current; more arriving are skipped: posed at once by constant velocity and
+placed between their tracked neighbours in the final trajectory; the launcher sets 0 = track
+every frame in lockstep), node.max_backlog (worker jobs waiting beyond which a frame is dropped),
 node.camera_info_timeout, node.intrinsics_file (when no camera_info is published).
 """
 from __future__ import annotations
@@ -30,7 +32,7 @@ from .node_common import TOPICS, SplatNode, run_node, takes_update
 
 class TrackerNode(SplatNode):
     def __init__(self):
-        super().__init__("tracker", {"input_qos": "sensor", "max_queue": 2,
+        super().__init__("tracker", {"input_qos": "sensor", "max_queue": 2, "max_backlog": 60,
                                      "camera_info_timeout": 2.0, "intrinsics_file": "",
                                      "loop_closure": True, "mapping": True, "path_every": 10})
         from geometry_msgs.msg import PoseStamped
@@ -51,7 +53,7 @@ class TrackerNode(SplatNode):
         self.subscribe(PoseGraphUpdate, TOPICS["updates"], Q.pose_graph_qos(),
                        lambda m, raw: takes_update(m, TrackerRole.update_sources) and
                        self.worker.submit(self._apply_update, m), "PoseGraphUpdate")
-        self.camera = CameraInput(self, self._track)
+        self.camera = CameraInput(self, self._track, self._skip)
         self.on_events(self._on_event)
         self.role = None                    # splat_slam_ros.roles.TrackerRole, on the first frame
         self.eos = self.saved = False
@@ -126,11 +128,30 @@ class TrackerNode(SplatNode):
         if self.role.tracker.initialized and not step.lost:
             self.pub_pose.publish(pose_stamped(step.pose, stamp, self.frame_id))
             self.frames.on_pose(step.pose, stamp)
+            self.camera.posed(frame.index)
             self.stamps.append(stamp)
             self.poses.append(step.pose)
             if step.is_keyframe or len(self.stamps) % max(1, int(self.opts["path_every"])) == 0:
                 self._publish_path(stamp)
         return step.kf_id if step.is_keyframe else None
+
+    def _skip(self, index: int, stamp: float, now: bool) -> None:
+        """A frame the busy tracker skips (live input). ``now`` (executor thread, at arrival):
+        publish its constant-velocity pose; else (worker, in frame order): record it, to be
+        placed between its tracked neighbours in the final trajectory."""
+        from .node_common import pose_stamped
+        role = self.role
+        if role is None or not role.tracker.initialized:
+            if not now and role is not None:
+                role.tracker.skip(index, stamp)
+            return
+        if now:
+            T = role.tracker.predict()
+            self.pub_pose.publish(pose_stamped(T, stamp, self.frame_id))
+            self.frames.on_pose(T, stamp)
+            self.camera.posed(index)
+        else:
+            role.tracker.skip(index, stamp)
 
     def _publish_path(self, stamp: float) -> None:
         from .node_common import path_msg
@@ -160,7 +181,7 @@ class TrackerNode(SplatNode):
         out = self.role.finalize() if self.role is not None else Outbox(final={"last_seq": 0})
         c = self.camera
         self.log.info(f"finalized: {c.n_frames} frames, {self._keyframes()} keyframes, "
-                      f"{c.n_dropped} dropped")
+                      f"{c.n_skipped} skipped (posed by interpolation), {c.n_dropped} dropped")
         out.final = dict(out.final or {}, keyframes=self._keyframes(), frames=c.n_frames,
                          dropped=c.n_dropped)
         self.emit(out)
@@ -187,7 +208,9 @@ class TrackerNode(SplatNode):
                 self.stamps, self.poses = list(ts), list(P)
                 self._publish_path(float(ts[-1]))
         self.publish_event("saved", files=files, frames=self.camera.n_frames,
-                           dropped=self.camera.n_dropped, posed=posed, keyframes=self._keyframes(),
+                           dropped=self.camera.n_dropped, skipped=self.camera.n_skipped,
+                           posed=posed, latency_ms=self.camera.latency_stats(),
+                           keyframes=self._keyframes(),
                            timings={k: round(float(v), 3) for k, v in
                                     (trk.timings.items() if trk is not None else [])})
 

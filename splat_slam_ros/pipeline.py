@@ -44,14 +44,17 @@ SUMMARY_METRICS = ("ate_rmse_cm_full", "ate_rmse_cm_keyframes", "psnr", "ssim", 
                    "depth_l1_edges_cm", "depth_l1_surfaces_cm")
 
 
-def frame_counts(received: int, dropped: int, posed: int) -> Dict[str, int]:
+def frame_counts(received: int, dropped: int, posed: int, skipped: int = 0) -> Dict[str, int]:
     """The frame counts of metrics.json, the same in every mode: ``frames_received`` (input
-    frames that reached the tracker's intake), ``frames_dropped`` (of those, never tracked:
-    queue full or unusable), ``frames_tracked`` (received - dropped: never counts a drop) and
+    frames that reached the tracker's intake), ``frames_dropped`` (of those, never posed:
+    backlog full or unusable), ``frames_skipped`` (live input, tracker busy: posed by
+    constant velocity at once and between their tracked neighbours in the trajectory),
+    ``frames_tracked`` (received - dropped - skipped: the frames the tracker aligned) and
     ``frames_posed`` (lines of trajectory_full.txt)."""
-    received, dropped, posed = int(received or 0), int(dropped or 0), int(posed or 0)
-    return {"frames_received": received, "frames_dropped": dropped,
-            "frames_tracked": received - dropped, "frames_posed": posed}
+    received, dropped = int(received or 0), int(dropped or 0)
+    posed, skipped = int(posed or 0), int(skipped or 0)
+    return {"frames_received": received, "frames_dropped": dropped, "frames_skipped": skipped,
+            "frames_tracked": received - dropped - skipped, "frames_posed": posed}
 
 
 def not_initialized_reason(cfg: SlamConfig, frames: int) -> str:

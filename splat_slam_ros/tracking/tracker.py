@@ -26,8 +26,8 @@ import numpy as np
 import torch
 
 from splat_slam_ros.config import SlamConfig
-from splat_slam_ros.tracking.dense_ba import (bundle_adjust, induced_flow_distance, pose_only_refine,
-                       reproject)
+from splat_slam_ros.tracking.dense_ba import (bundle_adjust, induced_flow_distance,
+                                              pose_only_refine, reproject)
 from splat_slam_ros.tracking.factor_graph import FactorGraph, proximity_pairs
 from splat_slam_ros.tracking.keyframe_set import KeyframeSet, KeyframeState
 from splat_slam_ros.tracking.flow_frontend import (ImagePreprocessor, compose_flows, image_is_degenerate,
@@ -41,7 +41,6 @@ from splat_slam_ros.tracking.two_view import two_view_start
 from splat_slam_ros.types import TRACKER_SEQ_START, Frame, Intrinsics, KeyframeData, UpdateEvent
 
 log = logging.getLogger(__name__)
-
 
 # a late initialisation (end of input) accepts this fraction of tracking.init_parallax
 LATE_INIT_PARALLAX = 0.25
@@ -150,8 +149,8 @@ class Tracker:
         self._seq = itertools.count(seq_start)      # update numbers (types.TRACKER_SEQ_START)
         self.last_pose = torch.eye(4, dtype=torch.float64, device=self.device)
         self.velocity = torch.eye(4, dtype=torch.float64, device=self.device)
-        self.lost_count = 0
-        self.n_lost = 0
+        self.lost_count = self.n_lost = 0
+        self.n_skipped = 0              # frames skip() posed without tracking (live, busy)
         self._last_flow = None          # (ref kf, flow ref -> previous frame): DIS init
         self._warm_best = None          # warm-up: the frame that moved most since the last kf
         # non-keyframes tracked against the newest keyframe: (record, prepared image); they
@@ -252,6 +251,15 @@ class Tracker:
         self.timings["track"] += time.perf_counter() - t0
         self.timings["frames"] += 1
         return step
+
+    def skip(self, index: int, timestamp: float) -> np.ndarray:
+        """A frame not tracked (live, busy): placed between its tracked neighbours later."""
+        self.n_skipped += 1
+        self.records.append(FrameRecord(int(index), float(timestamp), skipped=True))
+        return self.predict()
+
+    def predict(self) -> np.ndarray:     # constant velocity: the next frame's camera-to-world
+        return (self.last_pose @ self.velocity).cpu().numpy()
 
     def _lost(self, frame: Frame, why: str) -> TrackStep:
         self.lost_count += 1

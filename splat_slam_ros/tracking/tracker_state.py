@@ -85,6 +85,7 @@ def _records_arrays(recs: List[FrameRecord], h: int, w: int) -> Dict[str, np.nda
                             else np.zeros((0, 4, 4))),
             "ref_scale": np.array([r.ref_scale for r in recs], np.float64),
             "lost": np.array([r.lost for r in recs], bool),
+            "skipped": np.array([r.skipped for r in recs], bool),
             "has_flow": has_flow, "flow": flow, "weight": weight,
             "ref2_kf": np.array([opt(r.ref2_kf) for r in recs], np.int64),
             "has_flow2": has_flow2, "flow2": flow2, "weight2": weight2}
@@ -109,7 +110,8 @@ def _records_from(a: Dict[str, np.ndarray]) -> List[FrameRecord]:
                                rel_pose=pose(a["rel_pose"][i]), ref_scale=float(a["ref_scale"][i]),
                                flow=flow, weight=weight, lost=bool(a["lost"][i]),
                                online_pose=pose(a["online_pose"][i]),
-                               ref2_kf=ref2, flow2=flow2, weight2=weight2))
+                               ref2_kf=ref2, flow2=flow2, weight2=weight2,
+                               skipped=bool(a["skipped"][i]) if "skipped" in a else False))
     return out
 
 

@@ -36,6 +36,8 @@ class FrameRecord:
     ref2_kf: Optional[int] = None            # the next keyframe (set once it exists)
     flow2: Optional[torch.Tensor] = None     # (h, w, 2) float16, ref2 -> frame, BA pixels
     weight2: Optional[torch.Tensor] = None
+    skipped: bool = False                    # live input, tracker busy: never tracked (posed
+                                             # between its neighbours, _interpolate_skipped)
 
 
 def se3_interpolate(T0: torch.Tensor, T1: torch.Tensor, a: float) -> torch.Tensor:
@@ -74,8 +76,13 @@ def fill_trajectory(records: List[FrameRecord], kf_poses: Dict[int, torch.Tensor
     stack = torch.stack([kf_poses[known[o]].to(torch.float64).cpu() for o in order])
     pose = {k: kf_poses[k].to(torch.float64).cpu() for k in known}
     disp = {k: kf_disps[k].float().cpu() for k in known if k in kf_disps}
-    ts_out, poses_out, fit = [], [], []
+    ts_out, poses_out, fit, skipped = [], [], [], []
     for r in records:
+        if r.skipped:
+            skipped.append(len(poses_out))
+            ts_out.append(r.timestamp)
+            poses_out.append(None)
+            continue
         if r.kf_id is not None:
             if r.kf_id in kf_poses:
                 ts_out.append(r.timestamp)
@@ -97,9 +104,31 @@ def fill_trajectory(records: List[FrameRecord], kf_poses: Dict[int, torch.Tensor
         poses_out.append(T)
     if fit:
         _refine(fit, poses_out, pose, disp, intr, iters, huber)
+    if skipped:
+        _interpolate_skipped(ts_out, poses_out, skipped, kf_ts, stack)
     return (np.asarray(ts_out, dtype=np.float64),
             torch.stack(poses_out).numpy().astype(np.float64) if poses_out
             else np.zeros((0, 4, 4)))
+
+
+def _interpolate_skipped(ts_out, poses_out, skipped, kf_ts, kf_stack) -> None:
+    """Frames the tracker skipped (live input, busy) take the geodesic interpolation between
+    the nearest posed frames before and after them in time (in place); at the ends of the
+    trajectory, between the nearest keyframes."""
+    ts = np.asarray(ts_out, dtype=np.float64)
+    have = np.array([p is not None for p in poses_out])
+    known = np.flatnonzero(have)
+    kt = ts[known]
+    order = np.argsort(kt, kind="stable")
+    known, kt = known[order], kt[order]
+    for i in skipped:
+        k = int(np.searchsorted(kt, ts[i]))
+        if 0 < k < len(kt) and kt[k] > kt[k - 1]:
+            a = (ts[i] - kt[k - 1]) / (kt[k] - kt[k - 1])
+            poses_out[i] = se3_interpolate(poses_out[known[k - 1]], poses_out[known[k]],
+                                           float(a))
+        else:
+            poses_out[i] = interpolate_from_keyframes(float(ts[i]), kf_ts, kf_stack)
 
 
 def _refine(fit, poses_out, pose, disp, intr, iters, huber, max_cells: int = 1 << 14):
