@@ -4,8 +4,9 @@ Decodes every image on the executor-independent worker, checks it against the ca
 (camera_info, or ``node.intrinsics_file`` when no camera_info is published) and the size the
 tracker started with, and drops what it cannot use with a logged reason; every frame, used
 or dropped, is acknowledged on /splat/frame_ack (lockstep). ``node.max_queue`` bounds the
-frames waiting for the tracker (a live camera stays current; 0 = never skip): a frame that
-arrives while that many wait is *skipped*, not dropped: its constant-velocity pose is
+frames in flight (waiting or being tracked; 1 = a frame is tracked only when the tracker is
+free, so a live camera stays current; 0 = never skip): a frame that arrives while that many
+are in flight is *skipped*, not dropped: its constant-velocity pose is
 published at once and the final trajectory places it between its tracked neighbours
 (``Tracker.skip``). Only when ``node.max_backlog`` jobs already wait for the worker is a frame
 dropped. Pose latency (arrival at this node -> pose published) is kept per frame.
@@ -32,6 +33,7 @@ class CameraInput:
         self.cam_info = None
         self.info_lock = threading.Condition()
         self.n_frames = self.n_dropped = self.n_skipped = self.queued = 0
+        self.count_lock = threading.Lock()        # queued: executor += / worker -=
         self.arrived: Dict[int, float] = {}       # frame index -> arrival (monotonic s)
         self.latency_ms: List[float] = []         # arrival -> pose published, per posed frame
         self.last_ns: Optional[int] = None        # newest frame stamp taken (replays: older)
@@ -90,7 +92,11 @@ class CameraInput:
         index = self.n_frames
         self.n_frames += 1
         self.arrived[index] = time.monotonic()
-        if mq > 0 and self.queued >= mq:          # realtime: the tracker is busy
+        with self.count_lock:
+            busy = mq > 0 and self.queued >= mq   # realtime: mq frames in flight already
+            if not busy:
+                self.queued += 1
+        if busy:
             if self.owner.worker.pending() >= int(self.opts["max_backlog"]):
                 self.n_dropped += 1               # the worker is behind by the whole bound
                 self.arrived.pop(index, None)
@@ -104,7 +110,6 @@ class CameraInput:
             self.on_skip(index, stamp, now=True)      # the predicted pose, at once
             self.owner.worker.submit(self._skip, index, stamp, msg.header.stamp)
             return
-        self.queued += 1
         self.owner.worker.submit(self._process, msg, index)
 
     def posed(self, index: int) -> None:
@@ -143,13 +148,14 @@ class CameraInput:
         self._ack(index, ros_stamp, None)
 
     def _process(self, msg, index: int) -> None:
-        self.queued -= 1
         kf_id = None
         try:
             frame = self._frame(msg, index)
             if frame is not None:
                 kf_id = self.on_frame(frame)
         finally:
+            with self.count_lock:
+                self.queued -= 1                   # in flight until tracked
             self.arrived.pop(index, None)          # not posed (warm-up, lost, dropped)
             self._ack(index, msg.header.stamp, kf_id)
 

@@ -274,7 +274,7 @@ class Launcher:
                     param("ros.camera_info_topic", roles.get("camera_info", "/camera/camera_info"))
             if self.bag is not None and name == "tracker":
                 param("node.input_qos", "reliable")
-                param("node.max_queue", 0 if a.mode == "lockstep" else 2)
+                param("node.max_queue", 0 if a.mode == "lockstep" else 1)
         if name == "mapper" and a.allow_reset:
             param("node.allow_reset", True)          # /splat/map/reset is off by default
         if name == "rerun":
@@ -460,7 +460,7 @@ class Launcher:
         m.update(mapper)
         m["frames"] = frames
         m.update(frame_counts(trk.get("frames"), trk.get("dropped"), trk.get("posed"),
-                              trk.get("skipped")))
+                              trk.get("skipped"), trk.get("lost")))
         m["pose_latency_ms"] = trk.get("latency_ms") or {}
         if self.t_eos is not None and self.t_mapped is not None:
             m["map_done_after_stream_s"] = round(self.t_mapped - self.t_eos, 3)
@@ -487,7 +487,8 @@ class Launcher:
         self.say(f"frames {m['frames']}  keyframes {m['keyframes']}  wall {m['wall_s']:.1f} s  "
                  f"{m['fps']:.2f} frames/s")
         self.say(f"frames posed {m['frames_posed']} (tracked {m['frames_tracked']}, skipped "
-                 f"{m['frames_skipped']}), dropped {m['frames_dropped']}")
+                 f"{m['frames_skipped']}, lost {m['frames_lost']}), dropped "
+                 f"{m['frames_dropped']}")
         lat = m.get("pose_latency_ms") or {}
         if lat:
             self.say(f"pose latency p50 {lat['p50']:.0f} ms, p95 {lat['p95']:.0f} ms, "

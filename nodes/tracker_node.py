@@ -12,10 +12,10 @@ Bad input (unsupported encoding, no camera_info, a size change, undecodable byte
 logged error; the frame is acknowledged as consumed and dropped, the node keeps running
 (nodes/camera_input.py). Resize / crop / undistort follow ``camera.*`` (the Tracker's
 preprocessor). Node options: node.input_qos (sensor = BEST_EFFORT, matches any camera
-driver; reliable for the bag player), node.max_queue (frames waiting for the tracker; 2 so a
-live camera stays current; more arriving are skipped: posed at once by constant velocity and
-placed between their tracked neighbours in the final trajectory; the launcher sets 0 = track
-every frame in lockstep), node.max_backlog (worker jobs waiting beyond which a frame is dropped),
+driver; reliable for the bag player), node.max_queue (frames in flight, waiting or being
+tracked; 1: a frame is tracked only when the tracker is free, so a live camera stays current;
+the others are skipped: posed at once by constant velocity and placed between their tracked
+neighbours in the final trajectory; the launcher sets 0 = track every frame in lockstep), node.max_backlog (worker jobs waiting beyond which a frame is dropped),
 node.camera_info_timeout, node.intrinsics_file (when no camera_info is published).
 """
 from __future__ import annotations
@@ -32,7 +32,7 @@ from .node_common import TOPICS, SplatNode, run_node, takes_update
 
 class TrackerNode(SplatNode):
     def __init__(self):
-        super().__init__("tracker", {"input_qos": "sensor", "max_queue": 2, "max_backlog": 60,
+        super().__init__("tracker", {"input_qos": "sensor", "max_queue": 1, "max_backlog": 60,
                                      "camera_info_timeout": 2.0, "intrinsics_file": "",
                                      "loop_closure": True, "mapping": True, "path_every": 10})
         from geometry_msgs.msg import PoseStamped
@@ -83,6 +83,7 @@ class TrackerNode(SplatNode):
             self.log.fatal(f"cannot resume the tracker from {self.state_dir}: {e}")
             raise SystemExit(2)
         trk, stamp = self.role.tracker, self.role.resume_stamp
+        trk.on_pose_estimate = self._early_pose
         self.camera.resume(intr, stamp, (trk.records[-1].index + 1) if trk.records else 0)
         if self.role.resumed:
             self.log.info(f"resumed from {self.state_dir}: {len(trk.published)} keyframes, "
@@ -115,6 +116,7 @@ class TrackerNode(SplatNode):
                 self.log.fatal(f"cannot start the tracker: {e}")
                 raise SystemExit(2)
             ti = self.role.tracker.intrinsics
+            self.role.tracker.on_pose_estimate = self._early_pose
             self.log.info(f"tracker started on {frame.intrinsics.width}x{frame.intrinsics.height} "
                           f"frames (tracking at {ti.width}x{ti.height})")
         try:
@@ -134,6 +136,13 @@ class TrackerNode(SplatNode):
             if step.is_keyframe or len(self.stamps) % max(1, int(self.opts["path_every"])) == 0:
                 self._publish_path(stamp)
         return step.kf_id if step.is_keyframe else None
+
+    def _early_pose(self, index: int, stamp: float, T) -> None:
+        """A new keyframe's pose from its alignment, published before its local BA runs (the
+        refined pose follows): the pose latency does not wait for the BA."""
+        from .node_common import pose_stamped
+        self.pub_pose.publish(pose_stamped(T, stamp, self.frame_id))
+        self.camera.posed(index)
 
     def _skip(self, index: int, stamp: float, now: bool) -> None:
         """A frame the busy tracker skips (live input). ``now`` (executor thread, at arrival):
@@ -209,6 +218,7 @@ class TrackerNode(SplatNode):
                 self._publish_path(float(ts[-1]))
         self.publish_event("saved", files=files, frames=self.camera.n_frames,
                            dropped=self.camera.n_dropped, skipped=self.camera.n_skipped,
+                           lost=trk.n_lost if trk is not None else 0,
                            posed=posed, latency_ms=self.camera.latency_stats(),
                            keyframes=self._keyframes(),
                            timings={k: round(float(v), 3) for k, v in

@@ -44,17 +44,20 @@ SUMMARY_METRICS = ("ate_rmse_cm_full", "ate_rmse_cm_keyframes", "psnr", "ssim", 
                    "depth_l1_edges_cm", "depth_l1_surfaces_cm")
 
 
-def frame_counts(received: int, dropped: int, posed: int, skipped: int = 0) -> Dict[str, int]:
+def frame_counts(received: int, dropped: int, posed: int, skipped: int = 0,
+                 lost: int = 0) -> Dict[str, int]:
     """The frame counts of metrics.json, the same in every mode: ``frames_received`` (input
     frames that reached the tracker's intake), ``frames_dropped`` (of those, never posed:
     backlog full or unusable), ``frames_skipped`` (live input, tracker busy: posed by
     constant velocity at once and between their tracked neighbours in the trajectory),
-    ``frames_tracked`` (received - dropped - skipped: the frames the tracker aligned) and
+    ``frames_lost`` (the tracker could not align them: posed between keyframes),
+    ``frames_tracked`` (aligned by the tracker: received - dropped - skipped - lost) and
     ``frames_posed`` (lines of trajectory_full.txt)."""
-    received, dropped = int(received or 0), int(dropped or 0)
-    posed, skipped = int(posed or 0), int(skipped or 0)
+    received, dropped, posed = int(received or 0), int(dropped or 0), int(posed or 0)
+    skipped, lost = int(skipped or 0), int(lost or 0)
     return {"frames_received": received, "frames_dropped": dropped, "frames_skipped": skipped,
-            "frames_tracked": received - dropped - skipped, "frames_posed": posed}
+            "frames_lost": lost, "frames_tracked": received - dropped - skipped - lost,
+            "frames_posed": posed}
 
 
 def not_initialized_reason(cfg: SlamConfig, frames: int) -> str:
@@ -257,7 +260,7 @@ def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics) ->
         return
     ts_full, poses_full = trk.trajectory_full()
     write_tum(out / "trajectory_full.txt", ts_full, poses_full)
-    metrics.update(frame_counts(result.frames, 0, len(ts_full)))
+    metrics.update(frame_counts(result.frames, 0, len(ts_full), lost=trk.n_lost))
     write_tum(out / "trajectory_keyframes.txt", *trk.trajectory_keyframes())
     timings = {k: co.timings.get(k, 0.0) for k in ("tracking", "loop_closure", "depth",
                                                     "mapping")}

@@ -68,3 +68,8 @@ def test_offline_run_gives_the_same_map_on_a_busy_machine(clip, tmp_path):
     assert abs(quiet["ate_rmse_cm_full"] - loaded["ate_rmse_cm_full"]) < 1e-3
     assert abs(quiet["psnr"] - loaded["psnr"]) < 0.1, (quiet["psnr"], loaded["psnr"])
     assert a["gaussians"] == b["gaussians"]
+    # offline, every frame reaches the tracker and is posed; none skipped or dropped
+    for m in (quiet, loaded):
+        assert m["frames_received"] == m["frames_posed"] == 36, m
+        assert m["frames_skipped"] == m["frames_dropped"] == 0
+        assert m["frames_tracked"] + m["frames_lost"] == 36

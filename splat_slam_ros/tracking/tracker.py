@@ -151,6 +151,7 @@ class Tracker:
         self.velocity = torch.eye(4, dtype=torch.float64, device=self.device)
         self.lost_count = self.n_lost = 0
         self.n_skipped = 0              # frames skip() posed without tracking (live, busy)
+        self.on_pose_estimate: Optional[Callable] = None   # (index, stamp, pose) before BA
         self._last_flow = None          # (ref kf, flow ref -> previous frame): DIS init
         self._warm_best = None          # warm-up: the frame that moved most since the last kf
         # non-keyframes tracked against the newest keyframe: (record, prepared image); they
@@ -337,8 +338,7 @@ class Tracker:
         return kid
 
     def _ready_to_initialize(self, info: Dict[str, float]) -> bool:
-        """Initialise once ``init_min_keyframes`` keyframes span ``init_parallax`` (first ->
-        newest flow not explained by a homography), at ``warmup`` keyframes at the latest."""
+        """``init_min_keyframes`` span ``init_parallax``, or ``warmup`` keyframes are there."""
         n = len(self.window)
         if n >= max(self.tc.warmup, 2):
             return True
@@ -354,8 +354,7 @@ class Tracker:
         return parallax(flows[-1], w, self.motion.cell_weight) / self.px_scale
 
     def _flows_from_first(self, ids):
-        """Flows ids[0] -> ids[k], k >= 1 (BA px), composed along the keyframe chain, and the
-        first edge's weight (the cells that are confident from the first keyframe)."""
+        """Flows ids[0] -> ids[k] (BA px) composed along the chain; the first edge's weight."""
         flows = [self.graph.flow(ids[0], ids[1])]
         for a, b in zip(ids[1:-1], ids[2:]):
             flows.append(compose_flows(flows[-1], self.graph.flow(a, b)))
@@ -371,8 +370,7 @@ class Tracker:
         self._pending = []
 
     def _init_ba(self, ids, poses, disps, ii, jj, tgt, wgt):
-        """Initialisation BA from the identity and from the two-view start (:mod:`two_view`);
-        the result with the smaller residual."""
+        """Initialisation BA from the identity and from the two-view start: the better one."""
         n = self.tc.init_iters
         best = bundle_adjust(poses, disps, self.intr, ii, jj, tgt, wgt, iters=n, fixed=1,
                              huber=self.huber)
@@ -479,6 +477,8 @@ class Tracker:
         self._last_flow = (ref, f)
         info = {"mean_flow": fc.mean_flow, "valid": fc.valid_frac, "pose_rms": pinfo.rms}
         if self.motion.is_candidate(fc) and ref == self.window[-1]:
+            if self.on_pose_estimate is not None:      # a keyframe's pose before its local BA
+                self.on_pose_estimate(frame.index, float(frame.timestamp), T.cpu().numpy())
             return self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, info)
         self._set_pose(T)
         sf, sw = self._store_flow(f, w)
