@@ -29,7 +29,7 @@ import os
 import sys
 from pathlib import Path
 
-from bench_defaults import REPO, TRAJ, ensure_bag, timed, tool
+from bench_defaults import REPO, TRAJ, ensure_bag, fmt, timed, tool
 
 SEQUENCES = {   # name: (folder, trajectory file, frames, fps, extra splat-slam-synth options)
     # the same render as bench_defaults.py's fr2desk (one --data-dir serves both)
@@ -76,10 +76,6 @@ def run_one(mode: str, bag: Path, out: Path, sets, env) -> dict:
     frames = int(m.get("frames") or 0)
     r["posed_frac"] = round((m.get("frames_posed") or 0) / frames, 4) if frames else 0.0
     return r
-
-
-def fmt(v, nd=2):
-    return f"{v:.{nd}f}" if isinstance(v, (int, float)) else "-"
 
 
 def main(argv=None) -> int:
