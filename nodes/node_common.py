@@ -401,8 +401,34 @@ class Worker:
                 self.busy = False
 
 
+NODE_HELP = """
+Run it through splat-slam-launch (which starts the whole graph), or alone with ROS arguments:
+  {prog} --ros-args -r __node:=NAME -p config_file:=CONFIG.yaml -p KEY:=VALUE ...
+KEY is any configuration key (e.g. tracking.keyframe_thresh, mapping.iters_per_keyframe; see
+config/*.yaml) or a node option (node.*, listed above). -h/--help prints this and exits
+without starting ROS."""
+
+
+def node_help(make, argv: Optional[List[str]] = None) -> Optional[str]:
+    """The help text of a node executable when its arguments (before ``--ros-args``) ask for
+    it, else None: the module's description (topics, services, options) and how to run it."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    if "--ros-args" in args:
+        args = args[:args.index("--ros-args")]
+    if not ({"-h", "--help"} & set(args)):
+        return None
+    doc = (sys.modules[make.__module__].__doc__ or "").strip()
+    prog = Path(sys.argv[0]).name if argv is None else make.__module__
+    return doc + "\n" + NODE_HELP.format(prog=prog)
+
+
 def run_node(make: Callable[[], SplatNode], argv: Optional[List[str]] = None) -> int:
-    """Entry point body of every node executable: env, rclpy.init, build, spin."""
+    """Entry point body of every node executable: env, rclpy.init, build, spin (``--help``:
+    the node's description, without starting ROS)."""
+    text = node_help(make, argv)
+    if text is not None:
+        print(text)
+        return 0
     init_process()
     import rclpy
     rclpy.init(args=sys.argv if argv is None else argv)
