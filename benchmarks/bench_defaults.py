@@ -122,7 +122,7 @@ def run_one(mode: str, bag: Path, out: Path, a, env) -> dict:
         if a.max_frames:
             cmd += ["--max-frames", str(a.max_frames)]
     else:
-        cmd = [tool("splat-slam-launch"), "--bag", str(bag), "--out", str(out), "--mode",
+        cmd = [tool("splat-slam-launch"), "--bag", str(bag), "--out", str(out), "--fresh", "--mode",
                "lockstep", *extra]
         if a.max_frames:
             cmd += ["--max-frames", str(a.max_frames)]

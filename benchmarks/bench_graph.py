@@ -180,7 +180,7 @@ def main(argv=None) -> int:
             c0, _ = _rusage_children()
             t0 = time.perf_counter()
             args = [sys.executable, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out",
-                    str(out), "--mode", "lockstep"] + (["--config", cfg] if cfg else [])
+                    str(out), "--fresh", "--mode", "lockstep"] + (["--config", cfg] if cfg else [])
             r = subprocess.run(args, env=env, capture_output=True, text=True)
             wall_proc = time.perf_counter() - t0
             c1, _ = _rusage_children()

@@ -58,7 +58,8 @@ def ensure_sequence(data_dir: Path, name: str) -> Path:
 
 
 def run_one(mode: str, bag: Path, out: Path, sets, env) -> dict:
-    cmd = [tool("splat-slam-launch"), "--bag", str(bag), "--out", str(out), "--mode", mode,
+    cmd = [tool("splat-slam-launch"), "--bag", str(bag), "--out", str(out), "--fresh",
+           "--mode", mode,
            *[x for kv in sets for x in ("--set", kv)]]
     out.mkdir(parents=True, exist_ok=True)
     r = timed(cmd, out.parent / f"{out.name}.log", env)

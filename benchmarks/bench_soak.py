@@ -210,7 +210,7 @@ def run_soak(bag: Path, cfg_path: Path, out: Path, passes: int, rate: float,
     os.environ["ROS_DOMAIN_ID"] = env["ROS_DOMAIN_ID"]
     status = MapStatus(env)
     args = [sys.executable, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out", str(out),
-            "--config", str(cfg_path), "--mode", "realtime", "--rate", str(rate),
+            "--fresh", "--config", str(cfg_path), "--mode", "realtime", "--rate", str(rate),
             "--loop-bag", str(passes), "--final-timeout", str(timeout)]
     log = open(out.parent / f"{out.name}.log", "wb")
     t0 = time.monotonic()

@@ -59,6 +59,7 @@ NODE_MODULES = {
 RESUMABLE = ("tracker", "depth", "loop_closure", "mapper", "player")
 REALTIME_KEEP_UP = 0.8      # mapping.keep_up on realtime input unless the config sets one
 BACKGROUND_NODES = ("depth", "mapper", "loop_closure", "rerun")   # niced on realtime input
+FINISHED_MARK = "FINISHED"  # in OUT/state once a run finished: a new run may discard it
 
 
 class LaunchError(Exception):
@@ -195,9 +196,7 @@ class Launcher:
         self.out_dir = Path(a.out).resolve() if a.out else None
         if self.out_dir is not None:
             self.out_dir.mkdir(parents=True, exist_ok=True)
-            if (self.out_dir / "state").exists() and not a.resume:
-                import shutil
-                shutil.rmtree(self.out_dir / "state")
+            self._check_state()
         self.bag = None
         if a.bag:
             from .bag_player import BagReader, PlayerError
@@ -222,6 +221,28 @@ class Launcher:
                 check_camera_args(a.camera, a.camera_info)
             except CameraError as e:
                 raise LaunchError(str(e)) from None
+
+    def _check_state(self) -> None:
+        """``OUT/state`` of an earlier run: kept with ``--resume``; discarded when that run
+        finished (nothing to continue) or with ``--fresh``; else an error, never a silent loss
+        of the state that ``--resume`` needs after a crash."""
+        st, a = self.out_dir / "state", self.args
+        if a.resume and a.fresh:
+            raise LaunchError("--resume and --fresh exclude each other")
+        if not st.exists() or a.resume:
+            return
+        if not (a.fresh or (st / FINISHED_MARK).exists()):
+            raise LaunchError(f"{st} holds the crash-safe state of a run that did not finish: "
+                              "--resume continues that run, --fresh discards it and starts "
+                              "over (or choose another --out)")
+        import shutil
+        shutil.rmtree(st)
+
+    def mark_finished(self) -> None:
+        """The run finished (every stage saved): its state has nothing left to resume."""
+        st = self.out_dir / "state"
+        st.mkdir(parents=True, exist_ok=True)
+        (st / FINISHED_MARK).write_text(f"{time.time():.3f}\n")
 
     def _realtime_keep_up(self) -> None:
         """Realtime input (``--mode realtime``, live topics, ``--camera``): the camera sets the
@@ -561,9 +582,13 @@ def build_parser() -> argparse.ArgumentParser:
                          "0 = off; lockstep replay never changes priorities)")
     ap.add_argument("--max-restarts", type=int, default=3,
                     help="restarts of a resumable node before giving up (default 3)")
+    ap.add_argument("--fresh", action="store_true",
+                    help="discard the crash-safe state an unfinished run left in OUT/state and "
+                         "start over (without it, such a state stops the launcher: --resume "
+                         "or --fresh; the state of a finished run is replaced silently)")
     ap.add_argument("--resume", action="store_true",
                     help="continue the run in OUT from its crash-safe state (after the graph "
-                         "was killed); default: start fresh")
+                         "was killed); default: a new run")
     ap.add_argument("--start-timeout", type=float, default=180.0,
                     help="seconds the player waits for the nodes to be ready")
     ap.add_argument("--final-timeout", type=float, default=3600.0,
@@ -603,6 +628,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         rc = L.supervise()
         end = time.monotonic()
         if rc == 0 and L.out_dir is not None:
+            L.mark_finished()
             m = L.write_metrics(end)
             L.stop_children()
             m["nodes"] = L.node_stats()

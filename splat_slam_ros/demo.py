@@ -77,7 +77,7 @@ def main(argv=None) -> int:
             # cross-talk with the demo (set ROS_DOMAIN_ID yourself to choose one)
             os.environ.setdefault("ROS_DOMAIN_ID", str(random_domain_id()))
             print(f"[demo] 3/4 running the ROS 2 node graph on the bag -> {run_dir}", flush=True)
-            rc = graph.main(["--bag", str(bag), "--out", str(run_dir)]
+            rc = graph.main(["--bag", str(bag), "--out", str(run_dir), "--fresh"]
                             + (["--config", args.config] if args.config else []))
             if rc:
                 return rc

@@ -323,3 +323,31 @@ def test_bench_defaults_clean_twin_psnr(tmp_path):
     write_tum(run / "trajectory_keyframes.txt", ts[:1] + 100.0, P[:1])
     with pytest.raises(ValueError, match="no keyframe"):
         bench_defaults.clean_twin_psnr(run, real, clean)
+
+
+def test_launcher_never_discards_the_state_of_an_unfinished_run(tmp_path, monkeypatch):
+    """OUT/state of a run that did not finish is what --resume needs after a crash: a new
+    launch refuses it (--resume continues, --fresh discards); a finished run's state goes."""
+    from splat_slam_nodes import launch
+    monkeypatch.setenv("SPLAT_SLAM_DDS_RANGE", "localhost")
+
+    def planned(*extra):
+        L = launch.Launcher(launch.build_parser().parse_args(["--out", str(tmp_path), *extra]))
+        L.plan()
+        return L
+    st = tmp_path / "state" / "tracker"
+    st.mkdir(parents=True)
+    (st / "checkpoint.npz").write_bytes(b"x")
+    with pytest.raises(launch.LaunchError, match="--resume continues .* --fresh discards"):
+        planned()
+    assert (st / "checkpoint.npz").is_file()                  # untouched
+    planned("--resume")
+    assert (st / "checkpoint.npz").is_file()
+    with pytest.raises(launch.LaunchError, match="exclude each other"):
+        planned("--resume", "--fresh")
+    planned("--fresh")
+    assert not (tmp_path / "state").exists()
+    planned().mark_finished()                                  # a run that finished
+    (st).mkdir(parents=True)
+    planned()                                                  # replaced silently
+    assert not (tmp_path / "state").exists()
