@@ -69,6 +69,18 @@ def test_apply_ros_environment_only_writes_changes():
     assert 1 <= ros_env.random_domain_id() <= 101
 
 
+def test_graph_tests_never_reuse_a_recent_domain(monkeypatch):
+    """The graph tests' domains: this worker's share of 1..101, each id once per cycle (a
+    reused id let a previous test's lingering node end the next test's run)."""
+    import test_graph_support as gs
+    monkeypatch.setenv("PYTEST_XDIST_WORKER", "gw1")
+    monkeypatch.setenv("PYTEST_XDIST_WORKER_COUNT", "2")
+    monkeypatch.setattr(gs, "_DOMAINS", None)
+    ids = [gs._domain_id() for _ in range(51)]                 # 1, 3, ..., 101
+    assert len(set(ids)) == 51 and all(1 <= d <= 101 and d % 2 == 1 for d in ids)
+    assert gs._domain_id() == ids[0]                      # the cycle starts again
+
+
 def test_shipped_profile_is_valid_xml_with_the_measured_settings():
     import xml.etree.ElementTree as ET
     ns = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
