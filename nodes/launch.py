@@ -222,6 +222,10 @@ class Launcher:
             except CameraError as e:
                 raise LaunchError(str(e)) from None
 
+    def realtime(self) -> bool:
+        """Realtime input: ``--mode realtime``, live topics or ``--camera`` (not lockstep)."""
+        return self.args.mode == "realtime" or self.bag is None
+
     def _check_state(self) -> None:
         """``OUT/state`` of an earlier run: kept with ``--resume``; discarded when that run
         finished (nothing to continue) or with ``--fresh``; else an error, never a silent loss
@@ -250,8 +254,7 @@ class Launcher:
         pace with the stream (``mapping.keep_up`` REALTIME_KEEP_UP), unless the configuration
         or ``--set`` chose otherwise; it skips optimisation steps, never keyframes. Lockstep
         replay keeps the step budgets: the same map whatever the load."""
-        realtime = self.args.mode == "realtime" or self.bag is None
-        if not realtime:
+        if not self.realtime():
             return
         notes = []
         m = self.cfg.mapping
@@ -345,8 +348,7 @@ class Launcher:
     def nice_of(self, name: str) -> int:
         """OS priority of a node: on realtime input the tracker (and the input) get the CPU
         first, the stages that work per keyframe run ``--background-nice`` lower."""
-        realtime = self.args.mode == "realtime" or self.bag is None
-        if realtime and name in BACKGROUND_NODES:
+        if self.realtime() and name in BACKGROUND_NODES:
             return int(self.args.background_nice)
         return 0
 

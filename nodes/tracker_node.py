@@ -106,8 +106,6 @@ class TrackerNode(SplatNode):
     def _track(self, frame) -> Optional[int]:
         from splat_slam_ros.roles import TrackerRole
         from splat_slam_ros.tracking.tracker import TrackingError
-
-        from .node_common import pose_stamped
         if self.role is None:
             try:
                 self.role = TrackerRole(self.cfg, frame.intrinsics, bool(self.opts["loop_closure"]),
@@ -128,39 +126,37 @@ class TrackerNode(SplatNode):
         if out.keyframes:
             self.frames.on_keyframes(self.role.tracker, stamp)
         if self.role.tracker.initialized and not step.lost:
-            self.pub_pose.publish(pose_stamped(step.pose, stamp, self.frame_id))
-            self.frames.on_pose(step.pose, stamp)
-            self.camera.posed(frame.index)
+            self._publish_pose(frame.index, stamp, step.pose)
             self.stamps.append(stamp)
             self.poses.append(step.pose)
             if step.is_keyframe or len(self.stamps) % max(1, int(self.opts["path_every"])) == 0:
                 self._publish_path(stamp)
         return step.kf_id if step.is_keyframe else None
 
-    def _early_pose(self, index: int, stamp: float, T) -> None:
-        """A new keyframe's pose from its alignment, published before its local BA runs (the
-        refined pose follows): the pose latency does not wait for the BA."""
+    def _publish_pose(self, index: int, stamp: float, T, tf: bool = True) -> None:
+        """A frame's pose on /splat/camera_pose (and /tf), its latency recorded."""
         from .node_common import pose_stamped
         self.pub_pose.publish(pose_stamped(T, stamp, self.frame_id))
+        if tf:
+            self.frames.on_pose(T, stamp)
         self.camera.posed(index)
+
+    def _early_pose(self, index: int, stamp: float, T) -> None:
+        """A new keyframe's pose from its alignment, published before its local BA runs (the
+        refined pose and its /tf follow): the pose latency does not wait for the BA."""
+        self._publish_pose(index, stamp, T, tf=False)
 
     def _skip(self, index: int, stamp: float, now: bool) -> None:
         """A frame the busy tracker skips (live input). ``now`` (executor thread, at arrival):
         publish its constant-velocity pose; else (worker, in frame order): record it, to be
         placed between its tracked neighbours in the final trajectory."""
-        from .node_common import pose_stamped
         role = self.role
-        if role is None or not role.tracker.initialized:
-            if not now and role is not None:
-                role.tracker.skip(index, stamp)
+        if role is None:
             return
-        if now:
-            T = role.tracker.predict()
-            self.pub_pose.publish(pose_stamped(T, stamp, self.frame_id))
-            self.frames.on_pose(T, stamp)
-            self.camera.posed(index)
-        else:
+        if not now:
             role.tracker.skip(index, stamp)
+        elif role.tracker.initialized:
+            self._publish_pose(index, stamp, role.tracker.predict())
 
     def _publish_path(self, stamp: float) -> None:
         from .node_common import path_msg
