@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_graph.py [--frames 300] [--size 640x480] [--config FILE]
 
-A synthetic sequence along /work/shared/data/trajectories/freiburg1_xyz-groundtruth.txt
+A synthetic sequence along ../shared/data/trajectories/freiburg1_xyz-groundtruth.txt
 (splat_slam_ros.io.synth.generate_sequence) is converted to a rosbag2/MCAP bag
 (splat_slam_ros.io.bagio.write_bag) and run twice, each in its own process:
   1. in-process: splat_slam_ros.pipeline.run on the bag;

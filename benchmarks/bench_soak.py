@@ -1,7 +1,7 @@
 """Soak: the ROS 2 node graph in realtime mode on a long sequence in one revisited room.
 
     .venv/bin/python benchmarks/bench_soak.py [--frames 10000] [--size 160x120]
-        [--data-dir /work/bench_data] [--config FILE] [--rate 1.0] [--out DIR]
+        [--data-dir DIR] [--config FILE] [--rate 1.0] [--out DIR]
 
 The sequence: ``DATA_DIR/fr1xyz_300_real`` (TUM fr1/xyz motion, 300 realistic frames; rendered
 with ``splat-slam-synth`` when the folder is missing) is resized to ``--size`` and played there

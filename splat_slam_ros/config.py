@@ -205,7 +205,7 @@ class MappingConfig:
     window_size: int = 8
     rgb_weight: float = 0.8              # lambda in Eq. 8
     ba_depth_weight: float = 0.6         # depth-loss weight of BA-filled holes (source 3), 0..1
-                                         # (0.3 before session 13: README "Defaults")
+                                         # (0.3 in earlier versions: README "Defaults")
     isotropy_weight: float = 1.0         # lambda_reg in Eq. 8 (paper and --preset paper: 10; 1
                                          # lets Gaussians follow edges: +0.3-0.7 dB; README)
     downsample: int = 32                 # theta
