@@ -26,7 +26,7 @@ are noisy, so read them with the load average.
 same trajectory, frames and scene; no blur, exposure drift, vignetting, noise or JPEG) and
 reports ``psnr_clean_twin``: the PSNR of those clean frames against the realistic input at the
 run's keyframes, in the keyframes' camera (crop, processing size), after the best per-channel gain and offset per
-keyframe (the exposure model of Eq. 8): the true scene, without vignetting or blur, seen
+keyframe (the exposure model of Eq. 11): the true scene, without vignetting or blur, seen
 through the exposure model. A reference for the map's keyframe PSNR, not a bound: a map fitted
 to the frames also learns their vignetting (``mapping.vignetting``) and, where the motion
 repeats, much of their blur (README "Defaults on a 2-core CPU").

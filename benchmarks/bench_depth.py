@@ -1,4 +1,4 @@
-"""Proxy depth benchmark (paper §3.2, Eq. 4-5): accuracy, coverage and cost per keyframe.
+"""Proxy depth benchmark (paper §3.2, Eq. 4-6, 10): accuracy, coverage and cost per keyframe.
 
 Data: synthetic RGB-D sequences from ``splat_slam_ros.io.synth.generate_sequence`` (textured
 room, exact depth) along real recorded trajectories from ../shared/data/trajectories
@@ -14,7 +14,7 @@ error field, through an unknown affine map (depth = (D - 0.2) / 1.7). No learned
 is involved.
 
 Variants: ``raw`` (upsampled BA depth, no filter: what the mapper would get without
-Eq. 4-5), ``mv`` (multi-view filter, holes left: the default without a mono model),
+Eq. 4-6), ``mv`` (multi-view filter, holes left: the default without a mono model),
 ``mv+holes`` (plus small-hole fill, 64 px), ``mv+mono`` (full method with the stand-in).
 Prints a table and writes benchmarks/results/depth.json. Timings are wall-clock on a
 shared machine: noisy.
@@ -176,7 +176,7 @@ def raw_result(kf, cfg, intr):
 
 
 def microbench(threads_list, reps=10):
-    """Eq. 4-5 filter: one target keyframe against N views, and the upsample+compose step."""
+    """Eq. 4-6 filter: one target keyframe against N views, and the upsample+compose step."""
     out = {}
     rng = np.random.default_rng(0)
     for threads in threads_list:

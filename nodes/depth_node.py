@@ -11,6 +11,10 @@ The protocol (warm-up batches, replays, pending updates, finalisation) is
 :class:`splat_slam_ros.roles.DepthRole`; crash safety: its KeyframeStore in ``node.state_dir``
 — a restarted node resumes from it and publishes the current depth of every keyframe again
 (consumers skip the revisions they have).
+Errors: a configuration error (``depth.mono_model`` missing, without a valid sidecar or not
+loadable, a bad ``depth.*`` value) stops the node with one line and exit status 2 (the model
+file and sidecar are checked at start, the network is loaded at the first keyframe); a
+malformed message is dropped, logged and counted (``dropped_inputs`` in its graph events).
 """
 from __future__ import annotations
 
@@ -25,6 +29,13 @@ class DepthNode(SplatNode):
     def __init__(self):
         super().__init__("depth", {"loop_closure": True, "mapping": True})
         from splat_slam_ros.roles import DepthRole
+        if self.cfg.depth.mono_model:      # a bad path / sidecar stops the node now (exit 2)
+            from splat_slam_ros.config import ConfigError
+            from splat_slam_ros.depth.mono_depth import check_mono_model
+            try:
+                check_mono_model(self.cfg.depth.mono_model)
+            except ConfigError as e:
+                raise ConfigError(f"depth.mono_model: {e}") from None
         self.publishers("proxy_depth")
         self.role = DepthRole(self.cfg, loop_closure=bool(self.opts["loop_closure"]),
                               store=self.store())

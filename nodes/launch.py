@@ -18,7 +18,15 @@ crash-safe store in ``OUT/state/<node>``: the tracker from its last checkpoint (
 and update numbers continue; the player plays again from the frame after it), depth,
 loop_closure (with its loop edges) and mapper from what they stored, the player from its last
 acknowledged frame (``OUT/state/player/progress.json``). ``--resume`` after the whole graph
-was killed continues the same run from these stores.
+was killed continues the same run from these stores. A node that exits with status 2 stopped
+on a configuration error (e.g. a ``depth.mono_model`` that is not a model): no restart, the
+launcher stops the graph and names the node and its error.
+
+Exit status: 0 done; 2 configuration or usage error (of the launcher or of a node); 3 no
+result (no keyframe, or an empty map); 1 any other failure (a node died more than
+``--max-restarts`` times, finalisation timed out, the evaluation against the bag's ground
+truth failed: metrics.json then holds ``evaluation_error``; a bag without ground truth is no
+failure: ``evaluation_skipped``); 130 interrupted.
 
 End-of-stream / finalisation protocol (graph events on /splat/graph_events; the rules are
 the stage roles' in splat_slam_ros/roles.py, the same the in-process coordinator runs):
@@ -58,6 +66,11 @@ NODE_MODULES = {
 }
 RESUMABLE = ("tracker", "depth", "loop_closure", "mapper", "player")
 REALTIME_KEEP_UP = 0.8      # mapping.keep_up on realtime input unless the config sets one
+# realtime input, unless the config sets them (README "Live camera"): the first keyframe's
+# and the final refinement's wall seconds, and the steps of a keyframe while input waits, so
+# the map keeps pace and is done soon after the stream (background steps refine it while the
+# mapper has time)
+REALTIME_MAPPING = {"budget_s_first": 4.0, "min_iters_per_keyframe": 1, "final_refine_s": 8.0}
 BACKGROUND_NODES = ("depth", "mapper", "loop_closure", "rerun")   # niced on realtime input
 FINISHED_MARK = "FINISHED"  # in OUT/state once a run finished: a new run may discard it
 
@@ -100,8 +113,10 @@ class Child:
         self.cpu_s_last = 0.0            # CPU of the current one, last sample
         self.peak_rss = 0
         self.thread: Optional[threading.Thread] = None
+        self.error: Optional[str] = None     # the first fatal / ``error:`` line it logged
 
     def start(self) -> None:
+        self.error = None
         self.proc = subprocess.Popen(self.args, env=self.env, stdout=subprocess.PIPE,
                                      stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                      start_new_session=True,
@@ -111,8 +126,11 @@ class Child:
 
     def _forward(self, proc) -> None:
         for line in iter(proc.stdout.readline, b""):
+            text = line.decode(errors='replace').rstrip()
+            if self.error is None:
+                self.error = error_text(text)
             try:
-                self.out.write(f"{self.prefix} {line.decode(errors='replace').rstrip()}\n")
+                self.out.write(f"{self.prefix} {text}\n")
                 self.out.flush()
             except ValueError:
                 break
@@ -142,6 +160,19 @@ class Child:
                 os.kill(self.proc.pid, sig)
             except ProcessLookupError:
                 pass
+
+
+def error_text(line: str) -> Optional[str]:
+    """The message of a node's log line that says why it stops (``error: ...`` or a FATAL
+    log line), else None."""
+    if line.startswith("error: "):
+        return line[len("error: "):].strip()
+    i = line.find("[FATAL]")
+    if i < 0:
+        return None
+    rest = line[i + len("[FATAL]"):]
+    j = rest.find("]: ")                      # [time] [node]: message
+    return (rest[j + 3:] if j >= 0 else rest).strip()
 
 
 def _proc_cpu(pid: int) -> float:
@@ -208,6 +239,13 @@ class Launcher:
         tc = self.cfg.tracking
         self.with_loop = bool(tc.loop_closure or tc.global_ba) and not a.no_loop_closure
         self.with_mapping = not a.tracking_only
+        ec = self.cfg.evaluation
+        if self.with_mapping and (ec.lpips_backbone or ec.lpips_weights):
+            from splat_slam_ros.pipeline import check_lpips_config
+            try:
+                check_lpips_config(self.cfg)      # a missing / invalid file: before the run
+            except ConfigError as e:
+                raise LaunchError(str(e)) from None
         self.nodes = ["tracker"] + (["loop_closure"] if self.with_loop else []) + \
             (["depth", "mapper"] if self.with_mapping else [])
         from .launch_net import select_nodes
@@ -268,6 +306,14 @@ class Launcher:
             m.keep_up = REALTIME_KEEP_UP
             notes.append(f"mapping.keep_up {REALTIME_KEEP_UP} (the mapper keeps pace; --set "
                          "mapping.keep_up=0 turns it off)")
+        from splat_slam_ros.config import MappingConfig
+        defaults = MappingConfig()
+        for key, cap in REALTIME_MAPPING.items():
+            if m.time_budget and getattr(m, key) == getattr(defaults, key) and \
+                    f"mapping.{key}" not in self.overrides:
+                self.overrides[f"mapping.{key}"] = cap
+                setattr(m, key, cap)
+                notes.append(f"mapping.{key} {cap}")
         if notes:
             self.keep_up_note = "realtime input: " + ", ".join(notes)
 
@@ -424,6 +470,14 @@ class Launcher:
                 if name in ("player", "camera") and rc == 0:
                     c.expected_exit = True
                     continue
+                if rc == 2:                       # configuration error: a restart cannot help
+                    if c.thread is not None:
+                        c.thread.join(timeout=2)  # its last lines (the reason)
+                    why = (c.error or "no message").replace("configuration error: ", "", 1)
+                    self.failed = (f"the {name} node stopped on a configuration error "
+                                   f"(exit status 2): {why}")
+                    self.say(self.failed)
+                    return 2
                 if name in RESUMABLE and self.out_dir is not None and c.restarts < a.max_restarts:
                     c.restarted()
                     self.say(f"{name} died (exit status {rc}); restarting it "
@@ -469,6 +523,10 @@ class Launcher:
         for n, c in self.children.items():
             out[n] = {"cpu_s": round(c.cpu_s(), 2), "peak_rss_mb": round(c.peak_rss / 2**20, 1),
                       "restarts": c.restarts}
+            dropped = [d["dropped_inputs"] for d in self.events
+                       if d.get("node") == n and isinstance(d.get("dropped_inputs"), int)]
+            if dropped:                       # malformed messages it dropped (latest event)
+                out[n]["dropped_inputs"] = dropped[-1]
         return out
 
     def write_metrics(self, end_wall: float) -> dict:
@@ -493,17 +551,59 @@ class Launcher:
         m["fps"] = round(frames / max(wall, 1e-9), 3)
         m["nodes"] = self.node_stats()
         m["peak_rss_mb_sum"] = round(sum(v["peak_rss_mb"] for v in m["nodes"].values()), 1)
-        if self.bag is not None and self.out_dir is not None:
-            try:
-                from splat_slam_ros.io.bagio import BagDataset
-                from splat_slam_ros.pipeline import evaluate_map_depth, evaluate_trajectories
-                ds = BagDataset(self.args.bag)
-                evaluate_trajectories(ds, self.out_dir, m)
-                evaluate_map_depth(ds, self.out_dir, self.cfg, m)     # depth L1 vs the bag's
-            except Exception as e:                   # no ground truth / evaluation missing
-                m["evaluation_error"] = f"{type(e).__name__}: {e}"
+        if self.bag is None:
+            m["evaluation_skipped"] = "live input: no ground truth"
+        else:
+            self.evaluate(m)
+        if self.with_mapping and m.get("gaussians"):
+            from splat_slam_ros.pipeline import evaluate_lpips
+            evaluate_lpips(self.out_dir, self.cfg, m)      # lpips (null without a backbone)
         _write_json(self.out_dir / "metrics.json", m)
         return m
+
+    def evaluate(self, m: dict) -> None:
+        """ATE and depth L1 against the bag's ground truth into ``m``. A bag without ground
+        truth poses: ``evaluation_skipped`` says so; any failure of the evaluation itself:
+        ``evaluation_error`` (the launcher then exits 1), what it computed before stays."""
+        try:
+            from splat_slam_ros.io.bagio import BagDataset
+            from splat_slam_ros.pipeline import evaluate_map_depth, evaluate_trajectories
+            ds = BagDataset(self.args.bag)
+            if ds.gt_trajectory() is None:
+                m["evaluation_skipped"] = "no ground truth in the bag"
+                return
+            evaluate_trajectories(ds, self.out_dir, m)
+            evaluate_map_depth(ds, self.out_dir, self.cfg, m)     # depth L1 vs the bag's
+        except Exception as e:
+            m["evaluation_error"] = f"{type(e).__name__}: {e}"
+
+    def finish(self, end_wall: float) -> int:
+        """After a complete run: metrics.json, summary, report. The exit status: 0; 3 when
+        there is no result (no keyframe or an empty map); 1 when the evaluation (or the LPIPS
+        a configured backbone asked for) failed."""
+        from splat_slam_ros.pipeline import _write_json, no_result_reason
+        from splat_slam_ros.report import write_report
+        self.mark_finished()
+        m = self.write_metrics(end_wall)
+        self.stop_children()
+        m["nodes"] = self.node_stats()
+        m["warnings"] = getattr(self.out, "lines", [])
+        rc = 0
+        reason = no_result_reason(self.cfg, m)     # never a success without keyframes or map
+        if reason:
+            m["error"] = reason
+            rc = 3
+        elif m.get("evaluation_error") or m.get("lpips_error"):
+            rc = 1                                 # an evaluation that was asked for failed
+        _write_json(self.out_dir / "metrics.json", m)
+        self.summary(m)
+        self.say(f"report: {write_report(self.out_dir, self.cfg)[0]}")
+        if reason:
+            print(f"error: {reason}", file=sys.stderr)
+        if m.get("evaluation_error"):
+            print(f"error: the evaluation failed: {m['evaluation_error']} (metrics.json has "
+                  "what it computed)", file=sys.stderr)
+        return rc
 
     def summary(self, m: dict) -> None:
         from splat_slam_ros.pipeline import SUMMARY_METRICS
@@ -521,7 +621,11 @@ class Launcher:
                 self.say(f"{k} {m[k]:.4f}")
         self.say("per node: " + ", ".join(f"{n} cpu {v['cpu_s']:.1f} s rss {v['peak_rss_mb']:.0f} MB"
                                           + (f" restarts {v['restarts']}" if v["restarts"] else "")
+                                          + (f" dropped {v['dropped_inputs']} malformed input(s)"
+                                             if v.get("dropped_inputs") else "")
                                           for n, v in m["nodes"].items()))
+        if m.get("evaluation_skipped"):
+            self.say(f"no evaluation: {m['evaluation_skipped']}")
         self.say(f"outputs in {self.out_dir}")
 
 
@@ -557,7 +661,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--mode", choices=["lockstep", "realtime"], default="lockstep",
                     help="bag playback: lockstep (no frame dropped, default) or realtime")
     ap.add_argument("--rate", type=float, default=1.0, help="realtime playback speed factor")
-    ap.add_argument("--rerun", metavar="FILE.rrd", help="also record the run to a rerun .rrd file")
+    ap.add_argument("--rerun", metavar="FILE.rrd", help="also record the run to a rerun .rrd file "
+                    "(needs rerun-sdk: the [rerun] extra)")
     ap.add_argument("--rerun-connect", metavar="URL", help="also stream to a rerun viewer, e.g. "
                     "rerun+http://HOST:9876/proxy")
     ap.add_argument("--max-frames", type=int, default=0, help="play at most N frames")
@@ -612,7 +717,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.loop_bag < 1:
         print("error: --loop-bag must be at least 1", file=sys.stderr)
         return 2
-    from splat_slam_ros.report import WarningTee, write_report
+    from splat_slam_ros.report import WarningTee
     L = Launcher(args, out=WarningTee(sys.stdout))        # keeps warnings for the report
     try:
         L.plan()
@@ -630,21 +735,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         rc = L.supervise()
         end = time.monotonic()
         if rc == 0 and L.out_dir is not None:
-            L.mark_finished()
-            m = L.write_metrics(end)
-            L.stop_children()
-            m["nodes"] = L.node_stats()
-            from splat_slam_ros.pipeline import _write_json, no_result_reason
-            m["warnings"] = L.out.lines
-            reason = no_result_reason(L.cfg, m)     # never a success without keyframes or map
-            if reason:
-                m["error"] = reason
-                rc = 3
-            _write_json(L.out_dir / "metrics.json", m)
-            L.summary(m)
-            L.say(f"report: {write_report(L.out_dir, L.cfg)[0]}")
-            if rc == 3:
-                print(f"error: {m['error']}", file=sys.stderr)
+            rc = L.finish(end)
+        elif rc == 2:                               # a node's configuration error
+            print(f"error: {L.failed}", file=sys.stderr)
     finally:
         L.stop_children()
         try:

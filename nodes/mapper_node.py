@@ -1,4 +1,4 @@
-"""mapper_node: keyframes + proxy depth -> MapperRole (Gaussian map, Eq. 8) -> renders, map, status.
+"""mapper_node: keyframes + proxy depth -> MapperRole (Gaussian map, Eq. 11) -> renders, map, status.
 
 Subscribes  /splat/keyframes (images), /splat/proxy_depth (a keyframe is mapped once its
             depth is there; newer revisions deform its Gaussians, §3.2 "Map Deformation"),
@@ -57,12 +57,25 @@ class MapperNode(SplatNode):
         self.pub_status = n.create_publisher(MapperStatus, TOPICS["status"], Q.status_qos())
         self.publishers("ack")
         self.MapperStatus = MapperStatus
+        if self.opts["mapping"]:      # the first keyframe's one-off costs, before input
+            from splat_slam_ros.mapping.gaussian_map import warm_up
+            from splat_slam_ros.mapping.mapper import Mapper  # noqa: F401 (imported now)
+            from splat_slam_ros.mapping.rasterizer import select_backend
+            from splat_slam_ros.runtime import resolve_device
+            warm_up()
+            # an explicit mapping.raster_backend that cannot run stops the node now (exit 2)
+            select_backend(self.cfg.mapping.raster_backend,
+                           resolve_device(self.cfg.mapping.device, "mapping.device"))
         self.role = MapperRole(self.cfg, store=self.store(),
                                snapshot_every=int(self.opts["snapshot_every"]))
         if self.role.offered:
             self.log.info(f"resumed from {self.state_dir}: {sum(self.role.offered.values())} "
                           f"mapped keyframes, {len(self.role.offered)} consumed")
         self.route(self.role, keyframes=True, updates=True, proxy_depth=True, after=self._after)
+        # live input (mapping.time_budget): input that waits cuts the optimisation steps, and
+        # background steps run while none waits (mapping.background_steps): the map keeps pace
+        self.role.input_waiting = lambda: self.worker.pending() > 0
+        self.worker.idle = (self.role.wants_background, self.role.background)
         self.subscribe(PoseStamped, TOPICS["render_request"], Q.pose_qos(),
                        lambda m, raw: self.worker.submit(self._view, m), "render request")
         self.services = MapServices(self)                 # save / reset / render

@@ -21,8 +21,9 @@ import threading
 import time
 import traceback
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
+from splat_slam_ros.config import ConfigError
 from splat_slam_ros.heap import bound_heap, release_free_memory
 from splat_slam_ros.ros_env import RosEnvError, apply_ros_environment
 
@@ -147,6 +148,11 @@ class SplatNode:
                 except ConfigError as e:
                     self.log.fatal(f"parameter {key}: {e}")
                     raise SystemExit(2)
+        sections = {k.split(".")[0] for k in cfg.flat()}
+        for key in getattr(self.node, "_parameter_overrides", {}):   # -p of an unknown key
+            if key.split(".")[0] in sections and not self.node.has_parameter(key):
+                self.log.fatal(f"parameter {key}: unknown config key (see config/*.yaml)")
+                raise SystemExit(2)
         self.cfg = cfg
         self.opts: Dict[str, Any] = {}
         for key, default in {"output_dir": "", "state_dir": "", **options}.items():
@@ -199,6 +205,7 @@ class SplatNode:
             try:
                 msg = deserialize_message(raw, msg_type)
             except Exception as e:            # Fast CDR raises RMWError on garbage
+                self.worker.count_drop()
                 self.warn_throttled(f"deser:{topic}", f"dropping a {what} message on {topic} "
                                     f"that cannot be deserialised ({len(raw)} bytes): "
                                     f"{str(e).splitlines()[0][:120]}")
@@ -206,6 +213,7 @@ class SplatNode:
             try:
                 callback(msg, raw)
             except Exception as e:
+                self.worker.count_drop()
                 self.warn_throttled(f"cb:{topic}", f"error handling a {what} message on {topic}: "
                                     f"{type(e).__name__}: {e}")
         return self.node.create_subscription(msg_type, topic, cb, qos_profile, raw=True)
@@ -297,7 +305,8 @@ class SplatNode:
     # ------------------------------------------------------------ graph events
     def publish_event(self, event: str, **fields) -> None:
         from std_msgs.msg import String
-        d = {"node": self.name, "event": event, "t": time.time(), **fields}
+        d = {"node": self.name, "event": event, "t": time.time(),
+             "dropped_inputs": self.worker.dropped, **fields}     # malformed messages so far
         try:
             self._events_pub.publish(String(data=json.dumps(d, default=str)))
         except Exception as e:                 # context shut down meanwhile
@@ -344,7 +353,9 @@ class SplatNode:
 class Worker:
     """One thread that runs the node's core work in arrival order (callbacks only enqueue),
     so receiving never stalls behind a long mapping / BA step. ``lock`` serialises core
-    access with service callbacks."""
+    access with service callbacks. ``idle`` (optional: ``(wanted, work)`` callables) is work
+    done in short pieces while nothing is queued (the mapper's background steps on live
+    input); queued work always goes first."""
 
     def __init__(self, owner: SplatNode):
         self.owner = owner
@@ -354,6 +365,20 @@ class Worker:
         self._stop = threading.Event()
         self.fatal_rc = 0
         self.busy = False
+        self.dropped = 0                 # malformed inputs dropped (graph events -> metrics)
+        self._drop_lock = threading.Lock()
+        self.idle: Optional[Tuple[Callable[[], bool], Callable[[], None]]] = None
+
+    def _take(self):
+        """The next queued job; while none is queued and ``idle`` wants to work, a piece of it."""
+        if self.idle is not None:
+            try:
+                return self.q.get_nowait()
+            except queue.Empty:
+                wanted, work = self.idle
+                if wanted():
+                    return (work, (), {})
+        return self.q.get()
 
     def start(self) -> None:
         if not self.thread.is_alive():
@@ -371,10 +396,21 @@ class Worker:
     def pending(self) -> int:
         return self.q.qsize()
 
+    def count_drop(self) -> None:
+        with self._drop_lock:
+            self.dropped += 1
+
+    def _fatal(self, rc: int, text: str) -> None:
+        """Stop the node: exit status ``rc`` once spin returns."""
+        import rclpy
+        self.fatal_rc = rc
+        self.owner.log.fatal(text)
+        rclpy.try_shutdown()
+
     def _run(self) -> None:
         import rclpy
         while not self._stop.is_set():
-            item = self.q.get()
+            item = self._take()
             if item is None:
                 break
             fn, args, kw = item
@@ -383,13 +419,15 @@ class Worker:
                 with self.lock:
                     fn(*args, **kw)
             except SystemExit as e:          # a core stage cannot go on: stop the node
-                self.fatal_rc = int(e.code or 1)
-                self.owner.log.fatal(f"stopping: exit status {self.fatal_rc}")
-                rclpy.try_shutdown()
+                self._fatal(int(e.code or 1), f"stopping: exit status {int(e.code or 1)}")
                 break
-            except ValueError as e:          # bad input (ConversionError, MapError, ...)
+            except ConfigError as e:         # the stage cannot run so configured: stop the node
+                self._fatal(2, f"configuration error: {e}")
+                break
+            except ValueError as e:          # one malformed input (ConversionError, MapError...)
                 if not rclpy.ok():
                     break
+                self.count_drop()
                 self.owner.warn_throttled(f"work:{type(e).__name__}",
                                           f"dropped input ({getattr(fn, '__name__', 'task')}): "
                                           f"{type(e).__name__}: {e}")
@@ -437,6 +475,10 @@ def run_node(make: Callable[[], SplatNode], argv: Optional[List[str]] = None) ->
     except SystemExit as e:
         rclpy.try_shutdown()
         return int(e.code or 0)
+    except ConfigError as e:                 # checked at start: one line, no traceback
+        print(f"error: configuration error: {e}", file=sys.stderr, flush=True)
+        rclpy.try_shutdown()
+        return 2
     try:
         import torch
         torch.set_num_threads(int(os.environ.get("SPLAT_SLAM_THREADS", "0")) or

@@ -1,4 +1,5 @@
-"""rerun_logger: visualisation node — records the running graph with rerun (rerun-sdk).
+"""rerun_logger: visualisation node — records the running graph with rerun (rerun-sdk: the
+optional [rerun] extra, ``pip install '.[rerun]'``).
 
 Writes a .rrd file (``node.rrd``) and/or streams to a viewer (``node.connect``, a rerun gRPC
 URL such as ``rerun+http://HOST:9876/proxy``); with neither it spawns a local viewer.
@@ -20,17 +21,36 @@ from __future__ import annotations
 import sys
 
 import numpy as np
-import rerun as rr
+
+from splat_slam_ros.extras import MissingExtra
 
 from .node_common import TOPICS, SplatNode, pointcloud2_to_arrays, run_node
 
 MAX_ELLIPSOIDS = 50_000
+rr = None      # the rerun module: rerun-sdk is the optional [rerun] extra, see _import_rerun
+
+
+def _import_rerun():
+    """Import rerun-sdk on use (every other command runs without it)."""
+    global rr
+    if rr is None:
+        try:
+            import rerun
+        except ImportError as e:
+            raise MissingExtra("rerun", "the rerun logger node", e) from None
+        rr = rerun
+    return rr
 
 
 class RerunLogger(SplatNode):
     def __init__(self):
         super().__init__("rerun", {"rrd": "", "connect": "", "loop_closure": True,
                                    "mapping": True, "image_every": 5, "jpeg_quality": 85})
+        try:
+            _import_rerun()
+        except MissingExtra as e:
+            self.log.fatal(str(e))
+            raise SystemExit(2)
         rr.init("splat_slam_ros", spawn=False)
         sinks, where = [], []
         if self.opts["rrd"]:

@@ -19,12 +19,18 @@ class ConfigError(ValueError):
     """A user-facing configuration mistake (unknown key, wrong type, bad file)."""
 
 
+# mapping.raster_backend values (the rasterizer's BACKENDS; tests/test_raster_backend.py)
+RASTER_BACKENDS = ("auto", "cpp", "torch", "gsplat")
+
+
 @dataclass
 class CameraConfig:
+    """Input images: border crop, undistortion and the processing (mapping) image size."""
+
     # Processing (tracking + mapping) image size after crop/resize. 0 x 0 = auto: the input
     # size, shrunk (aspect kept, sides multiples of 16) to at most max_pixels pixels.
     width: int = 0
-    height: int = 0
+    height: int = 0                  # processing height (see width; 0 x 0 = auto)
     max_pixels: int = 76800      # auto rule's limit: 320x240 for 2 cores (0 = keep input size)
     crop: int = 0                # pixels cropped from every border before resize
     undistort: bool = True       # undistort when the camera has distortion coefficients
@@ -42,13 +48,16 @@ class CameraConfig:
 
 @dataclass
 class TrackingConfig:
+    """Camera tracking (paper 3.1): optical flow, keyframes, local and global bundle
+    adjustment (BA), loop closure and DSPO."""
+
     device: str = "auto"                 # "auto" (CUDA when torch sees it), "cpu", "cuda"
     threads: int = 1                     # torch/OpenCV threads while tracking (0 = unchanged)
     # Tracking image size, apart from the mapping size (camera.*): the cropped input shrunk
     # (aspect kept, sides multiples of 16) to at most max_pixels pixels, but never smaller
     # than the mapping image; 0 = the input size, -1 = the mapping size. Keyframes are handed
     # on at the mapping size (image + intrinsics) with the disparity at this size's BA grid.
-    # 110592 (640x480 -> 384x288): with the new flow settings little better (fr2/desk 0.176 cm
+    # 110592 (640x480 -> 384x288): with the default flow settings little better (fr2/desk 0.176 cm
     # either way, measured with stride 8) for ~25 % more tracking CPU (README "Tracking"): opt-in.
     max_pixels: int = -1
     ba_downsample: int = 8               # BA resolution = tracking image / this (paper: 1/8)
@@ -64,8 +73,8 @@ class TrackingConfig:
     # medium preset (README "Tracking", flow settings). Stride 8 (independent patches) is
     # faster and more accurate on smooth renders but loses real 1 Hz frames (fr3 sample)
     flow_finest_scale: int = 0
-    flow_patch_stride: int = 4
-    flow_refine_iters: int = 0
+    flow_patch_stride: int = 4           # DIS patch stride (px at the DIS input; -1 = the preset's)
+    flow_refine_iters: int = 0           # DIS variational refinement iterations (-1 = the preset's)
     fb_consistency_px: float = 1.0       # forward-backward error scale for confidences (tracking px)
     photo_sigma: float = 30.0            # photometric residual scale for confidences (grey levels)
     texture_grad: float = 1.0            # gradient (grey/px) at which a cell counts as textured
@@ -87,12 +96,12 @@ class TrackingConfig:
                                          # ref. BA px; 0 = init at init_min_keyframes)
     init_iters: int = 15                 # BA iterations of the initialisation
     frontend_window: int = 12            # keyframes in the local BA window (reference: 25)
-    frontend_radius: int = 1
+    frontend_radius: int = 1             # edges to the 2nd .. this-th previous keyframe (1 = none)
     frontend_max_factors: int = 36       # (reference: 75; CPU budget)
     frontend_thresh: float = 16.0        # proximity edges: induced mean flow below (ref. BA px)
     frontend_new_edges: int = 3          # proximity edge pairs added per new keyframe
-    frontend_nms: int = 1
-    max_edge_age: int = 50
+    frontend_nms: int = 1                # proximity edges: suppression radius (keyframe ids)
+    max_edge_age: int = 50               # drop non-consecutive BA edges after this many BA rounds
     ba_iters: int = 2                    # local BA iterations per keyframe
     pose_iters: int = 4                  # pose-only iterations per frame
     robust_huber_px: float = 2.0         # Huber threshold on the reprojection error (tracking px)
@@ -108,26 +117,26 @@ class TrackingConfig:
     loop_window: int = 12                # active keyframes checked / optimised (reference: 25)
     loop_flow_thresh: float = 25.0       # tau_loop (BA px, flow induced by the current estimate)
     loop_time_gap: int = 20              # tau_t (keyframes)
-    loop_nms: int = 12
+    loop_nms: int = 12                   # loop candidates: suppression radius (keyframe ids)
     loop_max_edges: int = 2              # loop candidates measured per step
-    loop_ba_iters: int = 2
+    loop_ba_iters: int = 2               # BA iterations of a loop closure
     loop_fit_rms: float = 0.25           # BA px: a loop edge already fitting this well needs no loop BA
     # online global BA (paper 3.1 "Global BA")
     global_ba: bool = True
     global_ba_every: int = 20            # keyframes
-    global_ba_iters: int = 3
+    global_ba_iters: int = 3             # BA iterations of one online global BA
     global_ba_radius: int = 2            # temporal edges: k <-> k-1, k -> k-2 .. k-radius
     global_ba_thresh: float = 12.0       # spatial edges: induced mean flow below (BA px)
     global_ba_max_edges: int = 2         # spatial edge pairs per new keyframe at most
     merge_flow: float = 4.0              # merge a settled revisit keyframe into an older one this close (ref BA px, 0 = off)
     edge_gate_px: float = 16.0           # temporal edges: drop cells this far from the estimate (tracking px)
-    final_ba_iters: tuple = (7, 12)
-    keyframe_buffer: int = 512
+    final_ba_iters: tuple = (7, 12)      # final global BA at the end: iterations of each pass
+    keyframe_buffer: int = 512           # newest keyframes whose images the loop closure keeps
     # DSPO (paper Eq. 2); only active when a mono depth model is configured
     dspo: bool = True
-    dspo_alpha1: float = 0.01
-    dspo_alpha2: float = 0.1
-    dspo_mono_thresh: float = 0.1
+    dspo_alpha1: float = 0.01            # a1: mono prior weight on high-error disparities
+    dspo_alpha2: float = 0.1             # a2: mono prior weight on low-error disparities
+    dspo_mono_thresh: float = 0.1        # skip DSPO where the mono fit errs more (x mean disparity)
 
     def processing_size(self, camera: CameraConfig, width: int, height: int) -> tuple:
         """(width, height) of the tracking image for a cropped ``width`` x ``height`` input;
@@ -150,9 +159,12 @@ class TrackingConfig:
 
 @dataclass
 class DepthConfig:
+    """Proxy depth of each keyframe (paper 3.2): multi-view filtered BA depth, optionally
+    completed by a monocular depth model or a dense multi-view layer."""
+
     mono_model: str = ""                 # path to an .onnx (or torch) mono depth model; "" = none
     mono_provider: str = "auto"          # onnxruntime provider: cpu | cuda | auto
-    mv_eta: float = 0.01                 # eta in Eq. 5 (fraction of mean depth)
+    mv_eta: float = 0.01                 # eta in Eq. 6 (fraction of mean depth)
     mv_min_views: int = 2                # n_c
     mv_max_depth_ratio: float = 3.0      # reject depth > ratio x median
     mv_min_parallax_deg: float = 1.0     # a view counts only with a baseline >= tan(this) x
@@ -160,7 +172,7 @@ class DepthConfig:
     fill_small_holes: int = 0            # max hole size (px) filled when no mono model
     fill_holes_from_ba: bool = True      # no mono model: multi-view holes take the BA depth
     device: str = "auto"                 # "cpu", "cuda" or "auto" (torch part of proxy depth)
-    mv_neighbors: int = 8                # other keyframes used by Eq. 5 (nearest by kf id)
+    mv_neighbors: int = 8                # other keyframes used by Eq. 6 (nearest by kf id)
     upsample_disc: float = 0.1           # upsampling: a 2x2 BA cell spanning more than this
                                          # (relative disparity) is interpolated only if
                                          # continuous with its neighbours, else nearest
@@ -171,7 +183,7 @@ class DepthConfig:
     # dense multi-view depth at processing resolution (depth/dense_depth.py): DIS flow to up
     # to dense_views neighbouring keyframes, triangulated with the BA poses (0 = off)
     dense_views: int = 0                 # off by default: see README (helps fr2/desk, hurts fr1/xyz)
-    dense_eta: float = 0.02              # views agree within this x depth (Eq. 5 per pixel)
+    dense_eta: float = 0.02              # views agree within this x depth (Eq. 6 per pixel)
     dense_min_views: int = 3             # >= this many agree: replaces the BA-grid depth
     dense_fill_views: int = 2            # >= this many agree: fills BA-grid holes (0 = no fill)
     dense_min_parallax_deg: float = 1.0  # a view is used at a pixel with at least this parallax
@@ -179,9 +191,19 @@ class DepthConfig:
 
 @dataclass
 class MappingConfig:
-    # Defaults: a schedule sized for a 2-core CPU (README "Defaults"); the paper's GPU schedule
-    # (60 / 1050 / 2000 iterations, whole window per step) is config/paper.yaml (--preset paper).
+    """The 3D Gaussian map (paper 3.3): rasterizer, optimisation budgets, keyframe window,
+    losses, pruning / densification, learning rates and the mesh export.
+
+    The defaults are a schedule sized for a 2-core CPU (README "Defaults"); the paper's GPU
+    schedule (60 / 1050 / 2000 iterations, whole window per step) is config/paper.yaml
+    (``--preset paper``)."""
+
     device: str = "auto"                 # "auto" (CUDA when torch sees it), "cpu" or "cuda"
+    # rasterizer (README "Rasterizer"): auto = gsplat on CUDA when installed, else the C++
+    # kernel on CPU when it builds, else pure torch (~30x slower; a warning says why); cpp /
+    # torch / gsplat: exactly that one, an error when it cannot run (no silent fallback).
+    # The backend that ran and why: metrics.json "map" raster_backend(_reason)
+    raster_backend: str = field(default="auto", metadata={"choices": RASTER_BACKENDS})
     # Budgets (mapping/budget.py, README "Mapping budgets"): offline (lockstep replay,
     # splat-slam-run) in optimisation steps, the same whatever the load; with time_budget (live
     # input: the launcher turns it on for realtime input) wall-clock caps come on top.
@@ -202,39 +224,43 @@ class MappingConfig:
     keep_up: float = 0.0                 # time_budget, > 0: also cap a keyframe's steps at this
                                          # fraction of the stream time since the last mapped
                                          # keyframe (realtime: steps are dropped, never keyframes)
-    window_size: int = 8
-    rgb_weight: float = 0.8              # lambda in Eq. 8
+    # time_budget: while no keyframe or depth waits, the mapper goes on optimising (window +
+    # random older views, a few steps at a time, new input first) for at most this many steps
+    # after each mapped keyframe (0 = off); offline (step budgets) there are none
+    background_steps: int = 300
+    window_size: int = 8                 # keyframes in the mapping window (optimised together)
+    rgb_weight: float = 0.8              # lambda in Eq. 11
     ba_depth_weight: float = 0.6         # depth-loss weight of BA-filled holes (source 3), 0..1
-                                         # (0.3 in earlier versions: README "Defaults")
-    isotropy_weight: float = 1.0         # lambda_reg in Eq. 8 (paper and --preset paper: 10; 1
+                                         # (README "Defaults")
+    isotropy_weight: float = 1.0         # lambda_reg in Eq. 11 (paper and --preset paper: 10; 1
                                          # lets Gaussians follow edges: +0.3-0.7 dB; README)
     downsample: int = 32                 # theta
-    downsample_first: int = 16
-    init_opacity: float = 0.5
+    downsample_first: int = 16           # ... for the first keyframe (empty map)
+    init_opacity: float = 0.5            # opacity of new Gaussians
     kf_covisibility: float = 0.90        # k_fcov
     kf_translation: float = 0.08         # k_fm
     kf_cutoff: float = 0.3               # k_fc
     prune_every: int = 50                # (paper: 150)
     densify_every: int = 50              # (paper: 150)
-    prune_opacity: float = 0.7
-    # beta, at most (the paper's 2000 in --preset paper): 1400 steps are the former 60 s
-    # wall-clock cap on 2 cores (0.044 s a step on a 110-keyframe map), now a step budget
+    prune_opacity: float = 0.7           # remove Gaussians (old enough) below this opacity
+    # final refinement steps beta, at most (the paper's 2000 in --preset paper): 1400 steps
+    # take about 60 s on 2 cores (0.044 s a step on a 110-keyframe map)
     final_refine_iters: int = 1400
     final_refine_per_keyframe: int = 20  # refinement = min(beta, this x keyframes) (0 = beta)
     final_refine_s: float = 60.0         # time_budget: wall-second cap of the refinement (0 = none)
     lr_means: float = 0.0016              # 10x 3DGS: +0.6 dB, -0.4 cm depth L1 on ICL (bench_mapping)
-    lr_colors: float = 0.0025
-    lr_opacity: float = 0.05
-    lr_scales: float = 0.001
-    lr_rotations: float = 0.001
-    lr_exposure: float = 0.01
+    lr_colors: float = 0.0025            # learning rate of the Gaussians' colours
+    lr_opacity: float = 0.05             # ... opacities
+    lr_scales: float = 0.001             # ... (log) scales
+    lr_rotations: float = 0.001          # ... rotations
+    lr_exposure: float = 0.01            # ... per-keyframe exposures (a, b)
     # the camera's radial vignetting V = 1 + v1 r^2 + v2 r^4 (r: distance from the principal
     # point / half the image diagonal), one for all keyframes, learned with the exposures and
     # applied with them (colour a V C + b) in the loss and the keyframe metrics (README "Mapping")
     vignetting: bool = True
-    lr_vignetting: float = 0.01
+    lr_vignetting: float = 0.01          # learning rate of the vignetting (v1, v2)
     render_every: int = 1                # publish / save a render every N keyframes
-    # views per iteration: the window (Eq. 8 sums over it; 0 = all) + random older keyframes
+    # views per iteration: the window (Eq. 11 sums over it; 0 = all) + random older keyframes
     window_views_per_iter: int = 3       # (paper: 0, the whole window)
     random_views_per_iter: int = 1       # MonoGS practice against forgetting (paper/MonoGS: 2)
     # pruning / densification (supplementary "Pruning and Densification", MonoGS / 3DGS)
@@ -258,7 +284,7 @@ class MappingConfig:
     # densification stops for a keyframe's Gaussians at this x the number a keyframe anchors
     # when mapped (pixels / downsample; 0 = no limit): a bounded map when views conflict
     densify_max_per_view: float = 0.0
-    seed: int = 0
+    seed: int = 0                        # random seed of the mapper (initialisation, view picks)
     # map_mesh.ply: TSDF fusion of rendered depth + colour at the keyframe poses (mapping/mesh.py)
     mesh: bool = True                    # write map_mesh.ply with the other outputs / on save
     mesh_voxel_m: float = 0.0            # 0 = auto: 0.005 x median rendered depth (~1 cm indoors)
@@ -280,22 +306,35 @@ class MappingConfig:
 
 @dataclass
 class RosConfig:
-    map_frame: str = "map"
+    """ROS 2 frame names and input topics of the nodes."""
+
+    map_frame: str = "map"               # fixed world frame of the map, poses and TF
     odom_frame: str = "odom"             # map -> odom: loop closure / global BA corrections
     camera_frame: str = "camera"         # odom -> camera: tracking (ROS body axes, REP-103)
     optical_frame: str = "camera_optical"  # static camera -> optical (OpenCV axes, images)
-    image_topic: str = "image"
-    camera_info_topic: str = "camera_info"
+    image_topic: str = "image"           # input sensor_msgs/Image topic
+    camera_info_topic: str = "camera_info"  # input sensor_msgs/CameraInfo topic
+
+
+@dataclass
+class EvaluationConfig:
+    """Extra metrics of a run (metrics.json)."""
+
+    # LPIPS of the mapped keyframes in metrics.json (``lpips``): a backbone file you supply
+    # (TorchScript or torch.export, see evaluation.lpips); "" = no LPIPS (``lpips: null``)
+    lpips_backbone: str = ""
+    lpips_weights: str = ""              # optional per-layer channel weights file ("" = none)
 
 
 @dataclass
 class SlamConfig:
-    dataset: str = "default"
+    dataset: str = "default"             # label of the data set a config file is written for
     camera: CameraConfig = field(default_factory=CameraConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     ros: RosConfig = field(default_factory=RosConfig)
+    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
 
     # ------------------------------------------------------------------ I/O
     def to_dict(self) -> Dict[str, Any]:
@@ -357,6 +396,9 @@ def _assign(obj, name: str, value: Any, dotted: str) -> None:
     except (TypeError, ValueError):
         raise ConfigError(
             f"'{dotted}' expects {type(current).__name__}, got {value!r}") from None
+    choices = known[name].metadata.get("choices")
+    if choices and value not in choices:
+        raise ConfigError(f"'{dotted}' must be one of {', '.join(choices)}, got {value!r}")
     setattr(obj, name, value)
 
 

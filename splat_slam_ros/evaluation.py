@@ -398,28 +398,42 @@ def depth_l1_cm(depth, ref, mask=None) -> float:
     return float(100.0 * (d[valid] - r[valid]).abs().mean())
 
 
+def _jumps_along_rows(lg: np.ndarray, ok: np.ndarray, jump: float, edge: np.ndarray) -> None:
+    """Mark in ``edge`` both pixels of every pair of valid pixels of a row with nothing but
+    invalid pixels between them (none for neighbours) whose log depths differ by more than
+    ``jump`` per pixel of distance."""
+    H, W = lg.shape
+    last = np.maximum.accumulate(np.where(ok, np.arange(W)[None, :], -1), axis=1)
+    prev = np.concatenate([np.full((H, 1), -1), last[:, :-1]], axis=1)  # previous valid column
+    rows, cols = np.nonzero(ok & (prev >= 0))
+    pcols = prev[rows, cols]
+    hit = np.abs(lg[rows, cols] - lg[rows, pcols]) > jump * (cols - pcols)
+    edge[rows[hit], cols[hit]] = True
+    edge[rows[hit], pcols[hit]] = True
+
+
 def depth_edge_band(ref, radius: int, jump: float = 0.05) -> torch.Tensor:
     """(H, W) bool: pixels within ``radius`` px (square window) of a depth discontinuity of
-    ``ref``, i.e. of a 4-neighbour pair, both valid, whose depths differ by more than
-    ``jump`` in log depth (5 %). Splits depth errors into "at object boundaries" (where a
+    ``ref``: two valid pixels of a row or column, neighbours or with only invalid pixels
+    between them, whose depths differ by more than ``jump`` in log depth (5 %) per pixel of
+    distance. The invalid gap matters: depth sensors and many renderers leave no depth on
+    the pixels along a silhouette (mixed or occluded pixels), and a test of neighbours only
+    would find no edge there. Splits depth errors into "at object boundaries" (where a
     coarse depth bleeds from one surface onto the other) and "on surfaces"."""
-    r = torch.as_tensor(_np64(ref, "reference depth")).squeeze()
+    r = _np64(ref, "reference depth").squeeze()
     if r.ndim != 2:
         raise MetricError(f"reference depth must be H x W, got {tuple(r.shape)}")
-    ok = torch.isfinite(r) & (r > 0)
-    lg = torch.log(torch.where(ok, r, torch.ones_like(r)))
-    edge = torch.zeros_like(ok)
-    jx = ((lg[:, 1:] - lg[:, :-1]).abs() > jump) & ok[:, 1:] & ok[:, :-1]
-    jy = ((lg[1:] - lg[:-1]).abs() > jump) & ok[1:] & ok[:-1]
-    edge[:, 1:] |= jx
-    edge[:, :-1] |= jx
-    edge[1:] |= jy
-    edge[:-1] |= jy
+    ok = np.isfinite(r) & (r > 0)
+    lg = np.log(np.where(ok, r, 1.0))
+    edge = np.zeros(r.shape, bool)
+    _jumps_along_rows(lg, ok, jump, edge)
+    _jumps_along_rows(lg.T, ok.T, jump, edge.T)          # columns (edge.T is a view)
+    out = torch.from_numpy(edge)
     if radius > 0:
         k = 2 * int(radius) + 1
-        edge = torch.nn.functional.max_pool2d(edge[None, None].float(), k, 1,
-                                              int(radius))[0, 0] > 0
-    return edge
+        out = torch.nn.functional.max_pool2d(out[None, None].float(), k, 1,
+                                             int(radius))[0, 0] > 0
+    return out
 
 
 # -------------------------------------------------------------------- LPIPS
@@ -563,6 +577,21 @@ def lpips(img, ref, model_path, weights_path=None, layer_reduce: str = "sum") ->
         dists.append(d2.sum(0).mean())
     d = torch.stack(dists)
     return float(d.sum() if layer_reduce == "sum" else d.mean())
+
+
+def check_lpips(model_path, weights_path=None) -> None:
+    """Load an LPIPS backbone file (and weights file) as :func:`lpips` does, then drop it:
+    MetricError at once when a file is missing or is no backbone / weights file (before a
+    run whose LPIPS would fail at its end)."""
+    try:
+        _load_lpips(model_path, weights_path or None, "cpu")
+    finally:
+        release_lpips()
+
+
+def release_lpips() -> None:
+    """Free the backbone :func:`lpips` keeps loaded between calls."""
+    _LPIPS_CACHE.clear()
 
 
 def image_metrics(img, ref, depth=None, ref_depth=None, lpips_model=None,

@@ -40,8 +40,8 @@ class RunResult:
 
 
 # the metrics.json entries a finished run prints, in this order (splat-slam-run, -launch)
-SUMMARY_METRICS = ("ate_rmse_cm_full", "ate_rmse_cm_keyframes", "psnr", "ssim", "depth_l1_cm",
-                   "depth_l1_edges_cm", "depth_l1_surfaces_cm")
+SUMMARY_METRICS = ("ate_rmse_cm_full", "ate_rmse_cm_keyframes", "psnr", "ssim", "lpips",
+                   "depth_l1_cm", "depth_l1_edges_cm", "depth_l1_surfaces_cm")
 
 
 def frame_counts(received: int, dropped: int, posed: int, skipped: int = 0,
@@ -182,6 +182,69 @@ def evaluate_map_depth(dataset, out: Path, cfg: SlamConfig, metrics: dict) -> No
         metrics["depth_edge_band_fraction"] = round(float(share), 4)
 
 
+def check_lpips_config(cfg: SlamConfig) -> None:
+    """ConfigError before a run when ``evaluation.lpips_backbone`` / ``lpips_weights`` name
+    a file that is missing or is no backbone / weights file (the run's LPIPS would fail)."""
+    from splat_slam_ros import evaluation as ev
+    from splat_slam_ros.config import ConfigError
+    ec = cfg.evaluation
+    if not ec.lpips_backbone:
+        if ec.lpips_weights:
+            raise ConfigError("evaluation.lpips_weights is set but evaluation.lpips_backbone "
+                              "is not (the weights belong to a backbone)")
+        return
+    try:
+        ev.check_lpips(Path(ec.lpips_backbone).expanduser(),
+                       Path(ec.lpips_weights).expanduser() if ec.lpips_weights else None)
+    except ev.MetricError as e:
+        raise ConfigError(f"evaluation.lpips_backbone / lpips_weights: {e}") from None
+
+
+def _keyframe_lpips(renders: Path, cfg: SlamConfig) -> float:
+    import cv2
+    from splat_slam_ros import evaluation as ev
+    from splat_slam_ros.mapping.keyframe_views import KEYFRAMES_JSON
+    ec = cfg.evaluation
+    weights = Path(ec.lpips_weights).expanduser() if ec.lpips_weights else None
+    try:
+        ids = [int(k["kf_id"]) for k in
+               json.loads((renders / KEYFRAMES_JSON).read_text())["keyframes"]]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ev.MetricError(f"no keyframe views in {renders} ({type(e).__name__})") from None
+    values = []
+    for k in ids:
+        names = [renders / f"kf_{k:05d}{s}.png" for s in ("", "_input")]
+        pair = [cv2.imread(str(n), cv2.IMREAD_COLOR) for n in names]
+        if pair[0] is None or pair[1] is None:
+            raise ev.MetricError(f"cannot read {names[0].name} / {names[1].name} in {renders}")
+        values.append(ev.lpips(pair[0][..., ::-1], pair[1][..., ::-1],
+                               Path(ec.lpips_backbone).expanduser(), weights))
+    if not values:
+        raise ev.MetricError(f"no keyframe views in {renders}")
+    return float(np.mean(values))
+
+
+def evaluate_lpips(out: Path, cfg: SlamConfig, metrics: dict) -> None:
+    """``lpips``: mean LPIPS over the mapped keyframes, each keyframe's render
+    (renders/kf_<id>.png) against its input image (kf_<id>_input.png), the pairs PSNR and
+    SSIM compare, with the backbone file ``evaluation.lpips_backbone`` (:func:`evaluation.lpips`).
+    None when no backbone is configured. When one is and LPIPS fails (a file gone or not a
+    backbone, a backbone that fails on the images): None, ``lpips_error`` says why, and an
+    ``error:`` line goes to stderr. Used for in-process and graph runs alike (it reads
+    ``out``'s renders/)."""
+    from splat_slam_ros import evaluation as ev
+    metrics["lpips"] = None
+    if not cfg.evaluation.lpips_backbone:
+        return
+    try:
+        metrics["lpips"] = round(_keyframe_lpips(out / "renders", cfg), 6)
+    except ev.MetricError as e:
+        metrics["lpips_error"] = str(e)
+        print(f"error: no LPIPS in metrics.json: {e}", file=sys.stderr)
+    finally:
+        ev.release_lpips()
+
+
 def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool = True,
         max_frames: Optional[int] = None) -> RunResult:
     """Run the in-process pipeline over a dataset and write the standard outputs to ``out``.
@@ -189,8 +252,11 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
     mode: "full" (tracking + depth + mapping), "tracking" (--tracking-only),
     "gt_mapping" (--gt-poses --gt-depth: the mapper alone on ground truth).
     Raises :class:`NotInitializedError` (after writing metrics.json) when the tracker made no
-    keyframe, or a full run's map has no Gaussian (:func:`no_result_reason`).
+    keyframe, or a full run's map has no Gaussian (:func:`no_result_reason`); ConfigError
+    before any work when a configured LPIPS backbone file is missing or invalid.
     """
+    if mode != "tracking":
+        check_lpips_config(cfg)
     out.mkdir(parents=True, exist_ok=True)
     (out / "renders").mkdir(exist_ok=True)
     t_start = time.perf_counter()
@@ -219,6 +285,8 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
             reason = no_result_reason(cfg, metrics)
             if reason:
                 metrics["error"] = reason
+    if mode != "tracking" and "error" not in metrics:
+        evaluate_lpips(out, cfg, metrics)                # lpips (null without a backbone)
     metrics["warnings"] = warnings.close()
     _write_json(out / "metrics.json", metrics)
     write_report(out, cfg)                               # report.html, report.png, config.yaml

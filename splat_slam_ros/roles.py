@@ -374,7 +374,7 @@ class LoopRole:
 
 # ============================================================================ proxy depth
 class DepthRole:
-    """Keyframes + updates -> proxy depth (Eq. 4-5), one ordered stream per keyframe (§3.2)."""
+    """Keyframes + updates -> proxy depth (Eq. 4-6, 10), one ordered stream per keyframe (§3.2)."""
     name = "depth"
     update_sources = ("tracker", "loop")
 
@@ -453,7 +453,7 @@ class DepthRole:
             self.kf_stamp[k.kf_id] = k.timestamp
         if self.est is None:
             self.est = ProxyDepthEstimator(self.cfg, batch[0].intrinsics)
-        results = self.est.add_keyframes(batch)       # each sees the others as views (Eq. 5)
+        results = self.est.add_keyframes(batch)       # each sees the others as views (Eq. 6)
         out = flushed
         # earlier keyframes that gained a view: their deformation before the new mapping
         out.proxy_depths += [self._send(new, True) for _old, new in self.est.take_refreshed()]
@@ -504,7 +504,7 @@ class DepthRole:
 
 # ============================================================================ mapper
 class MapperRole:
-    """Keyframes + proxy depths -> Gaussian map (Eq. 8), deformed by every newer depth (§3.2)."""
+    """Keyframes + proxy depths -> Gaussian map (Eq. 11), deformed by every newer depth (§3.2)."""
     name = "mapper"
     update_sources = ("tracker", "loop")
 
@@ -526,6 +526,8 @@ class MapperRole:
         self.loop_seen = False                      # a loop closer's updates arrive
         self.settled: set = set()                   # keyframes loop closure has corrected
         self.newest_kf = -1
+        self.background_mark = 0                    # Mapper.background_iters at the last keyframe
+        self.input_waiting: Optional[Callable[[], bool]] = None  # the node's queue (live)
         self.snapshot_every = max(1, int(snapshot_every))
         self.n_since_snapshot = 0
         self.timings: Dict[str, float] = {"mapping": 0.0, "deformation": 0.0, "refine": 0.0}
@@ -673,14 +675,11 @@ class MapperRole:
         return out.extend(self._check_final())
 
     def _unsettled(self, k: int) -> bool:
-        """Revisit mode (``mapping.revisit_cull_deg``) with a loop closer running: a new
-        keyframe comes with the tracker's drifting pose, and mapped like that a revisit looks
-        like a new place (duplicate Gaussians, a view that conflicts with the map and drives
-        densification until a later merge). Such a keyframe waits, acked, for a depth
-        revision made after a loop-closure update (its pose corrected), for at most
-        ``mapping.window_size`` newer keyframes (a live map must not lag further: mapped
-        then, a revisit is merged later), or the final digest; the map's first keyframe never
-        waits."""
+        """Revisit mode (``mapping.revisit_cull_deg``) with a loop closer: mapped with the
+        tracker's drifting pose a revisit looks like a new place (duplicate Gaussians). Such a
+        keyframe waits, acked, for a depth revision made after a loop-closure update, for at
+        most ``mapping.window_size`` newer keyframes (then mapped, merged later if need be),
+        or the final digest; the map's first keyframe never waits."""
         return (self.cfg.mapping.revisit_cull_deg > 0 and self.loop_seen and
                 self.mapper is not None and bool(self.mapper.keyframes) and
                 k not in self.settled and
@@ -734,6 +733,7 @@ class MapperRole:
             from splat_slam_ros.mapping.mapper import Mapper
             self.intr = kf.intrinsics
             self.mapper = Mapper(self.cfg, kf.intrinsics)
+        self.mapper.yield_to = self.input_waiting
         twin = self._revisit(pd)
         cov = 0.0                           # a render, only when the pose test found no twin
         if twin is None and self.cfg.mapping.revisit_cull_deg > 0:
@@ -749,6 +749,7 @@ class MapperRole:
                                           timestamp=kf.timestamp)
         self.timings["mapping"] += time.perf_counter() - t0
         mapped = bool(st.get("mapped"))
+        self.background_mark = self.mapper.background_iters     # a new allowance
         self.offered[kf.kf_id] = mapped
         self.taken[kf.kf_id] = int(pd.revision)
         if mapped:
@@ -763,6 +764,19 @@ class MapperRole:
         held = kf.kf_id in self.held
         self.held.discard(kf.kf_id)
         return Outbox(acks=[] if held else [_ack(kf)], mapped=[info])
+
+    def wants_background(self) -> bool:
+        """Live input (``mapping.time_budget``): steps left of ``mapping.background_steps``
+        since the last mapped keyframe, until the final refinement. The node runs them
+        (:meth:`background`) while no input waits, and sets ``mapper.yield_to`` (via
+        ``input_waiting``): input that arrives cuts a keyframe's or the background's steps."""
+        m = self.mapper
+        return (self.cfg.mapping.time_budget and m is not None and not self.finalized and
+                m.background_iters - self.background_mark < self.cfg.mapping.background_steps)
+
+    def background(self, steps: int = 4) -> None:
+        self.mapper.yield_to = self.input_waiting
+        self.mapper.background(steps)
 
     def lacking(self) -> List[int]:
         """Keyframes whose revision in the depth stage's final digest this stage has not taken

@@ -6,8 +6,10 @@ import contextlib
 import cv2
 import torch
 
+from splat_slam_ros.config import ConfigError
 
-class DeviceError(ValueError):
+
+class DeviceError(ConfigError):
     """A device setting that is not a torch device or asks for CUDA where there is none."""
 
 

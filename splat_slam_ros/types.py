@@ -136,7 +136,7 @@ class KeyframeData:
     mono_depth: Optional[np.ndarray] = None   # H x W float32 relative depth, optional
     # Keyframes published together (the end of the tracker's warm-up) form one batch: the
     # same batch_id (the first one's kf_id), batch_size of them. Consumers process a batch
-    # as a whole, so that each keyframe sees the others (Eq. 5 views, loop candidates).
+    # as a whole, so that each keyframe sees the others (Eq. 6 views, loop candidates).
     batch_id: int = -1                        # -1: a batch of its own
     batch_size: int = 1
 

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from dataclasses import replace
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -125,6 +126,60 @@ def test_mapper_role_skips_old_revisions_and_waits_for_the_digest():
     assert role.lacking() == []
 
 
+def test_mapper_role_background_steps_only_on_live_input_and_within_the_allowance():
+    """Live input (mapping.time_budget): between keyframes the mapper goes on optimising, at
+    most mapping.background_steps after each mapped keyframe and never after the final
+    refinement; offline (step budgets) never, so a replay stays reproducible."""
+    role, k0, depth, f = mapper_role_inputs()
+    pd = ProxyDepth(0, depth, np.ones_like(depth, np.uint8), f.gt_pose, revision=0)
+    role.on_keyframe(k0)
+    role.on_proxy_depth(pd)
+    assert role.mapper is not None and not role.wants_background()      # offline: never
+    role, k0, depth, f = mapper_role_inputs()
+    role.cfg.mapping.time_budget = True
+    role.cfg.mapping.background_steps = 6
+    assert not role.wants_background()                                  # no map yet
+    role.on_keyframe(k0)
+    role.on_proxy_depth(pd)
+    it0 = role.mapper.iteration
+    while role.wants_background():
+        role.background(4)
+    assert role.mapper.iteration - it0 == 8 == role.mapper.background_iters   # 4 + 4 >= 6
+    assert role.mapper.stats()["background_iterations"] == 8
+    role.on_final("depth", {"digest": {"0": 0}})
+    assert role.finalized and not role.wants_background()
+
+
+def test_node_worker_runs_idle_work_only_while_nothing_is_queued():
+    """The node worker runs queued jobs first and the idle work (the mapper's background
+    steps) in pieces while the queue is empty and the work is wanted."""
+    pytest.importorskip("rclpy", reason="the node worker needs rclpy (./run.sh setup)")
+    import threading
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from nodes.node_common import Worker
+
+    class Owner:
+        name = "t"
+    w = Worker(Owner())
+    log, left, done = [], [3], threading.Event()
+
+    def idle_work():
+        left[0] -= 1
+        log.append("idle")
+        if left[0] == 0:
+            done.set()
+    w.idle = (lambda: left[0] > 0, idle_work)
+    w.submit(log.append, "job1")
+    w.submit(log.append, "job2")
+    w.start()
+    assert done.wait(10)
+    last = threading.Event()
+    w.submit(lambda: (log.append("job3"), last.set()))
+    assert last.wait(10)
+    w.stop()
+    assert log[:2] == ["job1", "job2"] and log.count("idle") == 3 and log[-1] == "job3"
+
+
 def test_consumers_ack_a_replayed_keyframe_again():
     """A keyframe replayed to a restarted consumer that had consumed it (its ack may have died
     with the old process) is acked again, so a lockstep player waiting for it goes on; it is
@@ -204,7 +259,7 @@ def test_depth_role_handles_a_warmup_batch_as_one():
     co, _, _ = full_run()
     est = co.depth.est
     first = sorted(co.tracker.tracker.published)[:4]
-    # each warm-up keyframe was filtered against the others of its batch (Eq. 5 views)
+    # each warm-up keyframe was filtered against the others of its batch (Eq. 6 views)
     assert all(len(est.neighbours(k)) >= 2 for k in first)
     # replaying the stage's inputs changes nothing
     k0 = first[0]

@@ -195,8 +195,8 @@ def test_preset_paper_restores_the_paper_schedule():
     assert (m.iters_per_keyframe, m.iters_first, m.final_refine_iters) == (60, 1050, 2000)
     assert m.budget_s_per_keyframe == 0 and m.final_refine_per_keyframe == 0
     assert m.window_views_per_iter == 0 and c.camera.max_pixels == 0
-    assert not m.vignetting and SlamConfig().mapping.vignetting   # Eq. 8's exposure alone
-    assert c.depth.dense_views == 0                    # the BA grid only (Eq. 4-5)
+    assert not m.vignetting and SlamConfig().mapping.vignetting   # Eq. 11's exposure alone
+    assert c.depth.dense_views == 0                    # the BA grid only (Eq. 4-6)
     assert m.isotropy_weight == 10.0 and SlamConfig().mapping.isotropy_weight == 1.0
     # --config and --set apply on top of the preset
     c = load_config(REPO / "config" / "tum.yaml", {"mapping.iters_first": 5}, preset="paper")
@@ -267,6 +267,14 @@ def test_launcher_keeps_the_mapper_at_pace_on_realtime_input(tmp_path, monkeypat
     assert not lock.keep_up_note
     rt = planned("--bag", str(tmp_path / "b.mcap"), "--mode", "realtime")
     assert rt.cfg.mapping.time_budget and rt.cfg.mapping.keep_up > 0
+    # the first keyframe's and the refinement's wall caps, one step a keyframe while input
+    # waits (README "Live camera"); a value the user set stays, lockstep keeps the defaults
+    for key, value in launch.REALTIME_MAPPING.items():
+        assert getattr(rt.cfg.mapping, key) == value and f"mapping.{key}" in rt.overrides
+        assert getattr(lock.cfg.mapping, key) == getattr(MappingConfig(), key) != value
+    mine = planned("--bag", str(tmp_path / "b.mcap"), "--mode", "realtime",
+                   "--set", "mapping.final_refine_s=30")
+    assert mine.cfg.mapping.final_refine_s == 30 and mine.cfg.mapping.budget_s_first == 4.0
 
 
 # --------------------------------------------------------------- resolution
@@ -351,3 +359,23 @@ def test_launcher_never_discards_the_state_of_an_unfinished_run(tmp_path, monkey
     (st).mkdir(parents=True)
     planned()                                                  # replaced silently
     assert not (tmp_path / "state").exists()
+
+
+def test_live_steps_yield_to_waiting_input_but_offline_steps_never_do():
+    """mapping.time_budget (live): input that waits (``yield_to``) cuts a keyframe's steps at
+    min_iters_per_keyframe, except the first keyframe's (the map's start gets its budget);
+    offline the same waiting input changes nothing: a replay stays reproducible."""
+    for live in (True, False):
+        mp = _mapper(iters_first=12, iters_per_keyframe=10, min_iters_per_keyframe=2,
+                     time_budget=live)
+        mp.yield_to = lambda: True                      # input always waiting
+        views = _views(2)
+        st0 = mp.add_keyframe(0, *views[0], force=True, timestamp=0.0)
+        st1 = mp.add_keyframe(1, *views[1], force=True, timestamp=1.0)
+        assert st0["steps"] == 12
+        assert st1["steps"] == (2 if live else 10), live
+        if live:
+            assert mp.background(5) == 0                # yields at once: input first
+            mp.yield_to = lambda: False
+            assert mp.background(5) == 5 and mp.stats()["background_iterations"] == 5
+

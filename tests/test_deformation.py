@@ -1,4 +1,4 @@
-"""Map deformation (Eq. 9): hand-computed values and rendering after pose/depth updates."""
+"""Map deformation (Eq. 12): hand-computed values and rendering after pose/depth updates."""
 import math
 
 import numpy as np

@@ -1,5 +1,5 @@
 """Dense multi-view proxy depth (depth/dense_depth.py): triangulation from flow, the per-pixel
-agreement of Eq. 5, and the estimator using it, on a textured plane seen from known poses."""
+agreement of Eq. 6, and the estimator using it, on a textured plane seen from known poses."""
 import cv2
 import numpy as np
 import torch

@@ -1,4 +1,4 @@
-"""Multi-view consistency filter (Eq. 4-5), upsampling, scale/shift fit (Eq. 3), proxy depth
+"""Multi-view consistency filter (Eq. 4-6), upsampling, scale/shift fit (Eq. 3), proxy depth
 (§3.2) and the stateful estimator, on an analytic multi-view scene with known depth."""
 import numpy as np
 import pytest
@@ -50,7 +50,7 @@ def raycast(T, intr, H, W, planes=ROOM, uv=None):
 
 
 def visible_views(poses, depth, intr, i):
-    """Ground-truth Eq. 5 count of keyframe i: other views that see its points unoccluded."""
+    """Ground-truth Eq. 6 count of keyframe i: other views that see its points unoccluded."""
     h, w = depth.shape[1:]
     fx, fy, cx, cy = intr
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -99,7 +99,7 @@ def keyframe(i, disp, T, img=None):
                         confidence=np.ones_like(disp, np.float32))
 
 
-# ------------------------------------------------------------ Eq. 4-5 filter
+# ------------------------------------------------------------ Eq. 4-6 filter
 def test_filter_keeps_true_depth_rejects_corruption():
     FILT = TRACK.scaled(1 / 4)                                  # 80 x 60 (paper BA size)
     poses, depth = scene(6, FILT)
@@ -131,7 +131,7 @@ def test_filter_keeps_true_depth_rejects_corruption():
 
 
 def test_views_without_parallax_confirm_no_depth():
-    """Eq. 4 under a pure rotation: every depth reprojects consistently, so views that only
+    """Eq. 4-5 under a pure rotation: every depth reprojects consistently, so views that only
     rotated would "confirm" a depth 100x too far (what BA leaves on keyframes it cannot
     triangulate). With ``min_parallax_deg`` such views do not count; views with a baseline
     keep the true depth valid."""
@@ -143,7 +143,7 @@ def test_views_without_parallax_confirm_no_depth():
     wrong = torch.from_numpy((100.0 * depth).astype(np.float32))
     P = torch.from_numpy(rot)
     v_any, _ = multiview_filter(wrong, P, ivec(BA), max_depth_ratio=0)
-    assert v_any.numpy().mean() > 0.8                    # the wrong depth passes Eq. 5 ...
+    assert v_any.numpy().mean() > 0.8                    # the wrong depth passes Eq. 6 ...
     v_par, count = multiview_filter(wrong, P, ivec(BA), max_depth_ratio=0, min_parallax_deg=1.0)
     assert not v_par.any() and not count.any()           # ... not without parallax
     pairs = all_pairs(4)

@@ -14,7 +14,8 @@ modes:
   --gt-poses --gt-depth     the Gaussian mapper alone, on ground-truth poses and depth
 
 outputs in --out: trajectory_full.txt, trajectory_keyframes.txt (TUM format), map.ply,
-metrics.json (ATE when the input has ground truth, PSNR/SSIM/depth L1 on keyframes),
+metrics.json (ATE when the input has ground truth, PSNR/SSIM/depth L1 on keyframes, LPIPS
+with --set evaluation.lpips_backbone=FILE),
 renders/ (rendered keyframes), config.yaml (the configuration used), groundtruth.txt,
 report.html + report.png (the run report; splat-slam-report rebuilds them).
 

@@ -1,16 +1,16 @@
-"""Dense multi-view proxy depth at processing resolution (§3.2, Eq. 4-5 per pixel).
+"""Dense multi-view proxy depth at processing resolution (§3.2, Eq. 4-6 per pixel).
 
 The tracker's BA disparity lives on a 1/8 grid (40x30 at 320x240) and is often several
 centimetres off; the keyframe poses are much better (ATE well under 1 cm). This module
 triangulates a depth for every pixel of a keyframe from dense optical flow (OpenCV DIS)
 towards a few neighbouring keyframes, using the BA poses, and keeps a pixel only where at
-least ``min_views`` views agree on its depth - the multi-view consistency filter of Eq. 5,
+least ``min_views`` views agree on its depth - the multi-view consistency filter of Eq. 6,
 evaluated at the processing resolution instead of the BA grid.
 
 * :func:`dense_flow`: DIS flow between two grey images (OpenCV, CPU).
 * :func:`triangulate_flow`: depth along the rays of view i from a flow i -> k and the
   relative pose (linear two-view triangulation), with the parallax angle of every pixel.
-* :func:`fuse_views`: per-pixel agreement of the per-view depths (Eq. 5: count of views
+* :func:`fuse_views`: per-pixel agreement of the per-view depths (Eq. 6: count of views
   within ``eta`` x depth of the parallax-weighted median) and their weighted mean.
 * :func:`select_views`: which neighbours to use (largest baseline / depth ratio, capped).
 * :class:`FlowCache`: flows do not depend on the poses, so BA updates reuse them.
@@ -78,7 +78,7 @@ def triangulate_flow(flow: torch.Tensor, pose_i: torch.Tensor, pose_k: torch.Ten
 @torch.no_grad()
 def fuse_views(depths: torch.Tensor, parallax: torch.Tensor, eta: float, min_views: int,
                min_parallax: float) -> Tuple[torch.Tensor, torch.Tensor]:
-    """Multi-view agreement of per-view depths (Eq. 5 per pixel).
+    """Multi-view agreement of per-view depths (Eq. 6 per pixel).
 
     depths, parallax (V, H, W) from :func:`triangulate_flow`; views with parallax below
     ``min_parallax`` (radians) are not used at that pixel. Every usable view is a candidate
@@ -92,7 +92,7 @@ def fuse_views(depths: torch.Tensor, parallax: torch.Tensor, eta: float, min_vie
     d = torch.where(use, depths, torch.zeros_like(depths))
     best = torch.full_like(d[0], -1.0)
     sel = torch.zeros_like(use)
-    for a in range(d.shape[0]):             # Eq. 5 per pixel: views agreeing with candidate a
+    for a in range(d.shape[0]):             # Eq. 6 per pixel: views agreeing with candidate a
         agree_a = use & ((d - d[a]).abs() <= eta * d[a])
         score = torch.where(use[a], (w * agree_a).sum(0), torch.full_like(best, -1.0))
         better = score > best
@@ -201,7 +201,7 @@ class DenseProxy:
         n_min = max(1, min(dc.dense_min_views, dc.dense_fill_views or dc.dense_min_views))
         dd, cnt = dense_depth(grey, pose, views, self.intr, dc.dense_eta, n_min,
                               np.radians(dc.dense_min_parallax_deg), self.flows, k, device)
-        if dc.mv_max_depth_ratio > 0:                         # the Eq. 5 outlier bound
+        if dc.mv_max_depth_ratio > 0:                         # the Eq. 6 outlier bound
             dd = torch.where(dd <= dc.mv_max_depth_ratio * med, dd, torch.zeros_like(dd))
         self._last[k] = (sel, poses, dd, cnt)
         while len(self._last) > self.keep:

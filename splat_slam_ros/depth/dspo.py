@@ -11,7 +11,7 @@ optimised alternately "to avoid the scale ambiguity"):
       sum_E ||p~_ij - pi(d^h)||^2_Sigma + a1 sum ||d^h - (theta m + gamma)||^2
                                         + a2 sum ||d^l - (theta m + gamma)||^2,  a1 < a2
 
-  High/low error = the multi-view consistency of Eq. 4-5 (:func:`proxy_depth.multiview_filter`)
+  High/low error = the multi-view consistency of Eq. 4-6 (:func:`proxy_depth.multiview_filter`)
   evaluated on the window: consistent pixels are ``d^l`` (kept fixed), the rest ``d^h``.
 
 Solution of Eq. 2 per Gauss-Newton step: with the poses fixed every disparity only meets
@@ -201,7 +201,7 @@ class DspoPrior:
             return None
         mono = torch.stack([mo if mo is not None else torch.zeros(h, w, device=dev)
                             for mo in monos]).to(st.disps.dtype)
-        # high / low error split: Eq. 4-5 of each keyframe against the keyframes it shares
+        # high / low error split: Eq. 4-6 of each keyframe against the keyframes it shares
         # flow edges with plus its DSPO_NEIGHBORS nearest window keyframes (the newest
         # keyframe has few edges yet), which keeps the cost well below all pairs
         k = max(1, min(DSPO_NEIGHBORS, N - 1))

@@ -43,13 +43,16 @@ from typing import List, Optional, Tuple
 
 import cv2
 import numpy as np
-import onnxruntime as ort
 import torch
 import yaml
 
+from splat_slam_ros.config import ConfigError
+from splat_slam_ros.extras import missing_extra_message
 
-class MonoDepthError(ValueError):
-    """A user-supplied monocular depth model or its sidecar is missing, unreadable or unusable."""
+
+class MonoDepthError(ConfigError):
+    """A user-supplied monocular depth model or its sidecar is missing, unreadable or unusable
+    (a configuration error: ``depth.mono_model``; a graph node stops on it, exit status 2)."""
 
 
 TORCH_SUFFIXES = (".pt", ".pth", ".ts", ".torchscript", ".jit")
@@ -244,6 +247,7 @@ class OnnxMonoDepth(_NetworkMonoDepth):
         self.name = self.path.name
         self.sc = sidecar
         self.kind = sidecar.output
+        ort = _import_onnxruntime()
         self.providers = _ort_providers(ort, provider)
         opts = ort.SessionOptions()
         opts.log_severity_level = 3
@@ -355,6 +359,16 @@ def _dry_run(model) -> None:
         raise MonoDepthError(f"{model.name}: model produced an empty output")
 
 
+def _import_onnxruntime():
+    """onnxruntime (the [onnx] extra) serves .onnx models only: imported on use."""
+    try:
+        import onnxruntime
+    except ImportError as e:
+        raise MonoDepthError(missing_extra_message("onnx", "an .onnx mono depth model", e)) \
+            from None
+    return onnxruntime
+
+
 def _ort_providers(ort, provider: str) -> List[str]:
     avail = ort.get_available_providers()
     provider = (provider or "auto").lower()
@@ -372,6 +386,20 @@ def _ort_providers(ort, provider: str) -> List[str]:
         ["CPUExecutionProvider"]
 
 
+def check_mono_model(path) -> MonoSidecar:
+    """The checks that need no network: the file exists, has a model suffix and a valid
+    sidecar (its MonoSidecar; raises :class:`MonoDepthError`). Nodes run it at start."""
+    p = Path(str(path)).expanduser()
+    if not str(path):
+        raise MonoDepthError("no mono depth model path given")
+    if not p.is_file():
+        raise MonoDepthError(f"mono depth model not found: {p}")
+    if p.suffix.lower() not in (".onnx",) + TORCH_SUFFIXES:
+        raise MonoDepthError(f"unsupported mono depth model file {p.name}: expected .onnx or a "
+                             f"TorchScript file ({', '.join(TORCH_SUFFIXES)})")
+    return read_sidecar(p)
+
+
 def load_mono_depth(path, provider: str = "auto") -> MonoDepthModel:
     """Load a user-supplied relative-depth model (.onnx or TorchScript) with its sidecar.
 
@@ -379,15 +407,7 @@ def load_mono_depth(path, provider: str = "auto") -> MonoDepthModel:
     missing/invalid sidecar or an incompatible model (checked with one dry run).
     """
     p = Path(str(path)).expanduser()
-    if not str(path):
-        raise MonoDepthError("no mono depth model path given")
-    if not p.is_file():
-        raise MonoDepthError(f"mono depth model not found: {p}")
-    suffix = p.suffix.lower()
-    if suffix not in (".onnx",) + TORCH_SUFFIXES:
-        raise MonoDepthError(f"unsupported mono depth model file {p.name}: expected .onnx or a "
-                             f"TorchScript file ({', '.join(TORCH_SUFFIXES)})")
-    sc = read_sidecar(p)
-    if suffix == ".onnx":
+    sc = check_mono_model(path)
+    if p.suffix.lower() == ".onnx":
         return OnnxMonoDepth(p, sc, provider)
     return TorchScriptMonoDepth(p, sc, provider)

@@ -1,12 +1,12 @@
-"""Proxy depth (paper §3.2 "Map Initialization") and the multi-view consistency filter (Eq. 4-5).
+"""Proxy depth (paper §3.2 "Map Initialization", Eq. 10) and the multi-view filter (Eq. 4-6).
 
 For every keyframe the tracker hands on a disparity map at BA resolution (1/8 of the tracking
 image). The mapper needs a depth map at the tracking resolution that it can trust:
 
-1. Multi-view filter (Eq. 4-5, :func:`multiview_filter`): every pixel of keyframe i is
+1. Multi-view filter (Eq. 4-6, :func:`multiview_filter`): every pixel of keyframe i is
    warped with its depth into the other keyframes k, the depth of k is read there and
-   back-projected (Eq. 4); the pixel is consistent with k when the two 3D points are closer
-   than ``eta * mean depth of i``. It is valid when consistent in ``>= n_c`` views (Eq. 5)
+   back-projected (Eq. 4-5); the pixel is consistent with k when the two 3D points are closer
+   than ``eta * mean depth of i``. It is valid when consistent in ``>= n_c`` views (Eq. 6)
    and its depth is ``<= 3x`` the median valid depth. Only views with parallax count
    (baseline >= tan(``mv_min_parallax_deg``) x median depth, :func:`parallax_pairs`): without
    it every depth reprojects consistently. Done at BA resolution (the disparity carries no
@@ -22,7 +22,7 @@ image). The mapper needs a depth map at the tracking resolution that it can trus
    (per-pixel triangulation from DIS flow to neighbouring keyframes with the BA poses, kept
    where ``dense_min_views`` views agree) replaces it, and fills its holes where
    ``dense_fill_views`` agree.
-3. Fill (:func:`compose_proxy_depth`):
+3. Fill (:func:`compose_proxy_depth`, Eq. 10):
    - with a mono model: invalid pixels take the mono depth mapped by a least-squares
      scale/shift fitted on the valid pixels (Eq. 3, in depth as §3.2 says, or in disparity
      for disparity-output models, ``depth.mono_fit_space``); fitted values outside
@@ -50,7 +50,7 @@ import cv2
 import numpy as np
 import torch
 
-from splat_slam_ros.config import SlamConfig
+from splat_slam_ros.config import ConfigError, SlamConfig
 from splat_slam_ros.depth.dense_depth import DenseProxy
 from splat_slam_ros.depth.upsample import corner_preference, upsample_disparity
 from splat_slam_ros.geometry import intr_tensor, pixel_grid, se3_inverse
@@ -94,7 +94,7 @@ def _disp_to_depth(disp: torch.Tensor) -> torch.Tensor:
                        torch.zeros_like(disp))
 
 
-# ------------------------------------------------------- Eq. 4-5 filter
+# ------------------------------------------------------- Eq. 4-6 filter
 def all_pairs(n: int, device=None) -> torch.Tensor:
     """(P, 2) (target, view) pairs over all ordered pairs i != k."""
     t, k = torch.meshgrid(torch.arange(n, device=device), torch.arange(n, device=device),
@@ -137,13 +137,13 @@ def _sample_depth(depth_flat: torch.Tensor, k: torch.Tensor, u: torch.Tensor, v:
 def consistency_count(depths: torch.Tensor, poses: torch.Tensor, intr, eta: float,
                       pairs: Optional[torch.Tensor] = None,
                       valid: Optional[torch.Tensor] = None) -> torch.Tensor:
-    """Two-view consistency count n_i(u, v) of Eq. 5 for every keyframe that is a target.
+    """Two-view consistency count n_i(u, v) of Eq. 6 for every keyframe that is a target.
 
     depths (N, h, w) metres (<= 0 or non-finite = missing); poses (N, 4, 4) camera-to-world;
     intr (fx, fy, cx, cy) of the (h, w) grid; pairs (P, 2) long (target, view), default all
     ordered pairs. Returns (N, h, w) int32 (0 for keyframes that are no target).
 
-    Eq. 4: p_i = T_i D_i(u,v) K^-1[u,v,1]; (u^,v^) = pi(T_k^-1 p_i); p_k = T_k D_k(u^,v^)
+    Eq. 4-5: p_i = T_i D_i(u,v) K^-1[u,v,1]; (u^,v^) = pi(T_k^-1 p_i); p_k = T_k D_k(u^,v^)
     K^-1[u^,v^,1] with D_k read at the continuous (u^,v^) (bilinear where its 4 neighbours
     are valid, else nearest). p_i and p_k lie on the same ray of camera k, so
     ||p_i - p_k|| = |z_ik - D_k(u^,v^)| * ||X_ik|| / z_ik, which is what is evaluated.
@@ -162,7 +162,7 @@ def consistency_count(depths: torch.Tensor, poses: torch.Tensor, intr, eta: floa
     if len(pairs) == 0:
         return count.reshape(N, h, w)
     intr = intr_tensor(intr, torch.float32, device)
-    # threshold per target: eta * average depth (Eq. 5)
+    # threshold per target: eta * average depth (Eq. 6)
     nvalid = ok.flatten(1).sum(1)
     mean_d = D.flatten(1).sum(1) / nvalid.clamp_min(1)
     thresh = eta * mean_d
@@ -199,7 +199,7 @@ def consistency_count(depths: torch.Tensor, poses: torch.Tensor, intr, eta: floa
 def parallax_pairs(depths: torch.Tensor, poses: torch.Tensor, pairs: torch.Tensor,
                    min_deg: float) -> torch.Tensor:
     """The (target, view) pairs whose baseline is at least tan(``min_deg``) x the target's
-    median depth. Eq. 4 cannot test a depth without parallax: under a pure rotation every
+    median depth. Eq. 4-6 cannot test a depth without parallax: under a pure rotation every
     depth reprojects consistently, so such views would "confirm" any depth, including the
     near-zero disparities that BA leaves on keyframes it cannot triangulate."""
     if min_deg <= 0 or len(pairs) == 0:
@@ -219,7 +219,7 @@ def multiview_filter(depths: torch.Tensor, poses: torch.Tensor, intr, eta: float
                      pairs: Optional[torch.Tensor] = None,
                      valid: Optional[torch.Tensor] = None,
                      min_parallax_deg: float = 0.0) -> Tuple[torch.Tensor, torch.Tensor]:
-    """Eq. 5 validity: consistent in >= ``min_views`` other keyframes and depth <=
+    """Eq. 6 validity: consistent in >= ``min_views`` other keyframes and depth <=
     ``max_depth_ratio`` x the median of the consistent depths; only views with a baseline
     of at least ``min_parallax_deg`` at the target's median depth count
     (:func:`parallax_pairs`). Returns (valid (N,h,w) bool, count (N,h,w) int32)."""
@@ -367,7 +367,7 @@ def compose_proxy_depth(mv_depth: torch.Tensor, mv_valid: torch.Tensor,
                         max_depth_ratio: float = 3.0,
                         scale_shift: Optional[Tuple[float, float]] = None,
                         ba_depth: Optional[torch.Tensor] = None):
-    """§3.2: D = multi-view depth where valid, else theta * D_mono + gamma (Eq. 3 in depth;
+    """§3.2, Eq. 10: D = multi-view depth where valid, else theta * D_mono + gamma (Eq. 3 in depth;
     or in disparity for disparity models); without mono, the holes take ``ba_depth`` (the
     BA-grid depth upsampled over every cell, source 3) when given and some pixel is
     multi-view consistent (a keyframe without any waits for its views), then the optional
@@ -432,7 +432,7 @@ class ProxyDepthEstimator:
 
     Keeps the pose, BA disparity, mono depth (float16), colour guide and last result of
     each keyframe (up to ``tracking.keyframe_buffer``; about 0.6 MB per keyframe at
-    320x240 with a mono model); the other views of keyframe i in Eq. 5 are the
+    320x240 with a mono model); the other views of keyframe i in Eq. 6 are the
     ``depth.mv_neighbors`` stored keyframes nearest to i in keyframe id.
     """
 
@@ -457,16 +457,13 @@ class ProxyDepthEstimator:
             # have run it for DSPO and passed the result along)
             from pathlib import Path
 
-            from splat_slam_ros.depth.mono_depth import MonoDepthError, read_sidecar
-            p = Path(self.dc.mono_model).expanduser()
-            if not p.is_file():
-                raise MonoDepthError(f"mono depth model not found: {p}")
-            self.mono_kind = read_sidecar(p).output
-            self._mono_path = p
+            from splat_slam_ros.depth.mono_depth import check_mono_model
+            self.mono_kind = check_mono_model(self.dc.mono_model).output   # MonoDepthError
+            self._mono_path = Path(self.dc.mono_model).expanduser()
         fs = (self.dc.mono_fit_space or "auto").lower()
         if fs not in ("auto", "depth", "disparity"):
-            raise ProxyDepthError(f"depth.mono_fit_space must be auto, depth or disparity, "
-                                  f"got {fs!r}")
+            raise ConfigError(f"depth.mono_fit_space must be auto, depth or disparity, "
+                              f"got {fs!r}")
         self.fit_space = self.mono_kind if fs == "auto" else fs
         self.timings: Dict[str, float] = {"filter_ms": 0.0, "mono_ms": 0.0, "dense_ms": 0.0,
                                           "n": 0}
@@ -485,7 +482,7 @@ class ProxyDepthEstimator:
         return int(kf_id) in self._kfs
 
     def neighbours(self, kf_id: int) -> List[int]:
-        """The other keyframes used for ``kf_id`` in Eq. 5 (nearest kf ids, older first on ties)."""
+        """The other keyframes used for ``kf_id`` in Eq. 6 (nearest kf ids, older first on ties)."""
         others = [k for k in self._kfs if k != kf_id and k not in self.followers]
         others.sort(key=lambda k: (abs(k - kf_id), k))
         return sorted(others[: max(0, int(self.dc.mv_neighbors))])

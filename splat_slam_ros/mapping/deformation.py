@@ -1,4 +1,4 @@
-"""Map deformation (§3.2 "Map Deformation", Eq. 9 of the paper).
+"""Map deformation (§3.2 "Map Deformation", Eq. 12 of the paper).
 
 When a keyframe's camera-to-world pose changes omega -> omega' and its proxy depth D -> D'
 (local BA, loop closure, global BA), every Gaussian anchored by that keyframe is moved:
@@ -42,7 +42,7 @@ def deform_gaussians(means: torch.Tensor, quats: torch.Tensor, log_scales: torch
                      old_valid: Optional[torch.Tensor] = None,
                      new_valid: Optional[torch.Tensor] = None,
                      min_factor: float = 0.05) -> Deformed:
-    """Apply Eq. 9 to Gaussians anchored by one keyframe (see the module docstring).
+    """Apply Eq. 12 to Gaussians anchored by one keyframe (see the module docstring).
 
     Poses are camera-to-world 4x4; intrinsics (fx, fy, cx, cy) of the depth maps; depth 0 or
     non-finite = missing. Without depth maps the update is rigid. Computed in float64.
@@ -78,12 +78,12 @@ def deform_gaussians(means: torch.Tensor, quats: torch.Tensor, log_scales: torch
         ok &= f > min_factor                                    # never flip/collapse a Gaussian
         factor = torch.where(ok, f, factor)
         nonrigid = ok
-    # Eq. 9: mu' = omega' [(1 + dD/z) omega^-1 mu]
+    # Eq. 12: mu' = omega' [(1 + dD/z) omega^-1 mu]
     new_means = transform_points(T_new, X * factor[:, None])
-    # Eq. 9: R_i' = R' R^-1 R_i
+    # Eq. 12: R_i' = R' R^-1 R_i
     q_rel = matrix_to_quat(T_new[:3, :3] @ T_old[:3, :3].T)
     new_quats = quat_multiply(q_rel.expand(len(mu), 4), quats.detach().to(**f64))
-    # Eq. 9: s' = (1 + dD/z) s
+    # Eq. 12: s' = (1 + dD/z) s
     new_log_scales = log_scales.detach().to(**f64) + factor.log()[:, None]
     return Deformed(new_means.to(dt), new_quats.to(dt), new_log_scales.to(dt), nonrigid,
                     factor.to(dt))

@@ -194,3 +194,10 @@ class GaussianMap:
         """Overwrite parameter values in place for rows ``idx`` (deformation)."""
         for name, v in values.items():
             self.params[name].data[idx] = v.to(self.params[name].dtype)
+
+
+def warm_up() -> None:
+    """One-off costs of a process's first map, paid before input arrives (a live mapper would
+    pay them while keyframes queue): torch loads ``torch._dynamo`` when the first optimiser
+    is made (about 1 s on 2 cores)."""
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)])

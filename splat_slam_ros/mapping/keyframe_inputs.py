@@ -22,7 +22,7 @@ class MappedKeyframe:
     image: torch.Tensor             # (H, W, 3) uint8
     depth: torch.Tensor             # (H, W) float32 proxy depth, 0 where invalid
     valid: torch.Tensor             # (H, W) bool
-    exposure: torch.Tensor          # (2,) (log a, b): colour a * C + b (Eq. 8)
+    exposure: torch.Tensor          # (2,) (log a, b): colour a * C + b (Eq. 11)
     weight: Optional[torch.Tensor] = None   # (H, W) depth-loss weight; None: 1 where valid
 
 

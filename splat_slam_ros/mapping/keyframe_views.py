@@ -2,7 +2,7 @@
 
 For every mapped keyframe ``write_keyframe_views`` stores, in the renders folder:
 
-- ``kf_<id>.png``        rendered colour (with the keyframe's learned exposure, Eq. 8)
+- ``kf_<id>.png``        rendered colour (with the keyframe's learned exposure, Eq. 11)
 - ``kf_<id>_input.png``  the keyframe's input image (what the map was fitted to)
 - ``kf_<id>_depth.png``  rendered depth, 16-bit, ``depth_scale`` units per map unit
 - ``kf_<id>_proxy.png``  the proxy depth the mapper used (0 = no depth), same encoding
@@ -57,7 +57,7 @@ def _view_metrics(rgb: np.ndarray, ref: np.ndarray, depth: torch.Tensor,
     m["proxy_valid"] = float(valid.float().mean())
     both = rendered & valid
     if bool(both.any()):
-        # mean |D^r - D| over pixels with both (the Eq. 8 depth term, unweighted), map units
+        # mean |D^r - D| over pixels with both (the Eq. 11 depth term, unweighted), map units
         m["depth_l1_proxy"] = float((depth[both] - proxy[both]).abs().mean())
     if gt_depth is not None:
         try:

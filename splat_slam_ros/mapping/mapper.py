@@ -6,7 +6,7 @@ Per tracker keyframe (``Mapper.add_keyframe``):
    with the last mapped keyframe is low or the camera moved enough (keyframe_window.py);
 2. new Gaussians are anchored from its proxy depth (map_init.py) and it joins the window;
 3. ``iters_per_keyframe`` Adam iterations (``iters_first`` for the first keyframe) on the
-   Eq. 8 loss summed over the window keyframes (+ a few random older ones);
+   Eq. 11 loss summed over the window keyframes (+ a few random older ones);
 4. every ``densify_every`` / ``prune_every`` iterations: 3DGS densification and opacity /
    size pruning; when the window is full, visibility pruning of the newest Gaussians.
 
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Dict, Iterable, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, Iterable, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -35,7 +35,7 @@ from splat_slam_ros.mapping.keyframe_views import history_entry, write_keyframe_
 from splat_slam_ros.mapping.keyframe_window import KeyframeDecision, KeyframeWindow
 from splat_slam_ros.mapping.map_init import init_gaussians
 from splat_slam_ros.mapping.ply_io import load_gaussians_ply, save_gaussians_ply
-from splat_slam_ros.mapping.rasterizer import rasterize
+from splat_slam_ros.mapping.rasterizer import rasterize, select_backend
 from splat_slam_ros.runtime import resolve_device
 from splat_slam_ros.types import Intrinsics
 
@@ -79,11 +79,13 @@ class Mapper:
         self._next_index = 0           # MappedKeyframe.index of the next mapped keyframe
         self.last_ms = 0.0
         self.skipped_iters = 0         # steps a wall-clock budget cut (mapping.time_budget)
+        self.background_iters = 0      # steps between keyframes (live: mapping.background_steps)
+        self.yield_to: Optional[Callable[[], bool]] = None   # live: input waits -> stop steps
         self.refine_info: Dict[str, float] = {}   # the final refinement's steps (final_refine)
         self._last_mapped_ts: Optional[float] = None
         self.last_loss = float("nan")
         self._scene_depth = 0.0
-        self.backend = "auto"
+        self.raster = select_backend(m.raster_backend, self.device, announce=True)  # logs it
         self.progress = False          # tqdm bar for long optimisations (first keyframe)
         self.history: List[dict] = []  # one entry per add_keyframe (the run report's map size)
 
@@ -97,7 +99,7 @@ class Mapper:
         return rasterize(
             g.means if means is None else means, g.normalized_quats(), g.scales(),
             g.opacities(), g.colors, self._viewmat(pose), intr or self.intr,
-            int(width or self.W), int(height or self.H), backend=self.backend)
+            int(width or self.W), int(height or self.H), backend=self.raster.name)
 
     @torch.no_grad()
     def render(self, pose, width: Optional[int] = None, height: Optional[int] = None,
@@ -138,11 +140,11 @@ class Mapper:
         return float((self._raster(check_pose(pose)).alpha > 0.5).float().mean())
 
     def _expose(self, rgb: torch.Tensor, kf: MappedKeyframe, intr=None) -> torch.Tensor:
-        """The camera's response to rendered colour: a_k V C_k + b_k (Eq. 8's exposure, with
+        """The camera's response to rendered colour: a_k V C_k + b_k (Eq. 11's exposure, with
         the learned vignetting V when ``mapping.vignetting``)."""
         if self.mcfg.vignetting:
             rgb = rgb * self._vignetting(rgb.shape[0], rgb.shape[1], intr or self.intr)
-        return rgb * kf.exposure[0].exp() + kf.exposure[1]      # a_k C_k + b_k (Eq. 8)
+        return rgb * kf.exposure[0].exp() + kf.exposure[1]      # a_k C_k + b_k (Eq. 11)
 
     def _vignetting(self, H: int, W: int, intr) -> torch.Tensor:
         """(H, W, 1) radial falloff 1 + v1 r^2 + v2 r^4, r = distance from the principal
@@ -233,7 +235,7 @@ class Mapper:
 
         b = self.keyframe_budget(empty, kf.timestamp)
         done = self._optimize(b.steps, densify=True, progress=self.progress and b.steps >= 200,
-                              budget_s=b.wall_s, min_iters=b.min_steps)
+                              budget_s=b.wall_s, min_iters=b.min_steps, yielding=not empty)
         stats.update({"steps": done, "steps_skipped": b.steps - done})
         self._last_mapped_ts = kf.timestamp
         n_vis_pruned = self._visibility_prune() if self._enough_views() else 0
@@ -258,7 +260,7 @@ class Mapper:
         return final_refine_budget(self.mcfg, len(self.keyframes))
 
     def _add_keyframe_record(self, kf: MappedKeyframe) -> None:
-        """Store a mapped keyframe; its exposure (Eq. 8 affine a, b) joins the exposure
+        """Store a mapped keyframe; its exposure (Eq. 11 affine a, b) joins the exposure
         optimiser except for the first keyframe, which fixes the gauge (a = 1, b = 0)."""
         if kf.index > 0:
             kf.exposure.requires_grad_(True)
@@ -289,7 +291,7 @@ class Mapper:
         return win
 
     def _view_loss(self, kf: MappedKeyframe, out) -> torch.Tensor:
-        """Eq. 8 data terms of one keyframe: lambda/N |aC+b - C_gt|_1 + (1-lambda)/N |D^r - D|_1."""
+        """Eq. 11 data terms per keyframe: lambda/N |aC+b - C_gt|_1 + (1-lambda)/N |D^r - D|_1."""
         lam = self.mcfg.rgb_weight
         gt = kf.image.to(torch.float32) / 255.0
         l_rgb = (self._expose(out.rgb, kf) - gt).abs().mean()
@@ -299,14 +301,16 @@ class Mapper:
         return lam * l_rgb + (1 - lam) * l_depth
 
     def _isotropy(self) -> torch.Tensor:
-        """Eq. 8 regulariser: 1/|G| sum_i |s_i - mean(s_i)|_1 (scales, not log-scales)."""
+        """Eq. 11 regulariser: 1/|G| sum_i |s_i - mean(s_i)|_1 (scales, not log-scales)."""
         s = self.map.scales()
         return (s - s.mean(1, keepdim=True)).abs().sum(1).mean()
 
     def _optimize(self, iters: int, densify: bool = True, single_random: bool = False,
-                  progress: bool = False, budget_s: float = 0.0, min_iters: int = 0) -> int:
+                  progress: bool = False, budget_s: float = 0.0, min_iters: int = 0,
+                  yielding: bool = False) -> int:
         """Up to ``iters`` Adam steps; with ``budget_s`` > 0 it stops (after ``min_iters``)
-        before the next step would end past the budget. Returns the steps run."""
+        before the next step would end past the budget; ``yielding`` on live input
+        (``mapping.time_budget``) as soon as ``yield_to()`` says input waits. Returns the steps run."""
         if iters <= 0 or len(self.map) == 0:
             return 0
         m = self.mcfg
@@ -321,6 +325,9 @@ class Mapper:
             spent = time.perf_counter() - t0
             if done == iters or (budget_s > 0 and done >= max(min_iters, 1)
                                  and spent * (done + 1) / done > budget_s):
+                break
+            if yielding and m.time_budget and done >= min_iters and self.yield_to is not None \
+                    and self.yield_to():
                 break
             views = self._pick_views(single_random)
             self.map.zero_grad()
@@ -515,7 +522,7 @@ class Mapper:
     # ============================================================ deformation
     @torch.no_grad()
     def apply_update(self, kf_id: int, pose, depth=None, valid=None) -> int:
-        """A keyframe's pose (and proxy depth) changed: deform its Gaussians (Eq. 9), then
+        """A keyframe's pose (and proxy depth) changed: deform its Gaussians (Eq. 12), then
         store the new pose/depth. Returns the number of Gaussians moved (0 for a keyframe
         that was never mapped). Without ``depth`` the keyframe's Gaussians move rigidly."""
         kf = self.keyframes.get(int(kf_id))
@@ -546,7 +553,7 @@ class Mapper:
         keyframes (a bounded map in a revisited room), as if it had been recognised as a
         revisit when it arrived: its Gaussians inside the older keyframe's view duplicate
         that view's and are removed; the rest (what only it saw) are anchored to ``into``
-        and follow its deformations (Eq. 9). Its view leaves the window and the optimiser.
+        and follow its deformations (Eq. 12). Its view leaves the window and the optimiser.
         Returns (Gaussians removed, Gaussians re-anchored). The first keyframe (exposure
         gauge) stays."""
         kf_id, into = int(kf_id), int(into)
@@ -589,6 +596,13 @@ class Mapper:
                                        None if valids is None else valids[i])
         return total
 
+    def background(self, iters: int) -> int:
+        """Live input, while no keyframe waits: ``iters`` more steps of the keyframe
+        optimisation (window + random views, densify / prune on schedule)."""
+        done = self._optimize(int(iters), densify=True, yielding=True) if self.keyframes else 0
+        self.background_iters += done
+        return done
+
     # ============================================================== refinement
     def final_refine(self, iters: Optional[int] = None, progress: bool = False) -> dict:
         """Supplementary "Final Refinement": beta iterations on random single keyframes,
@@ -613,6 +627,8 @@ class Mapper:
                 "last_ms": round(self.last_ms, 2), "deformations": self.n_deformations,
                 "deformed_gaussians": self.n_deformed_gaussians, "iterations": self.iteration,
                 "skipped_iterations": self.skipped_iters,
+                "background_iterations": self.background_iters,
+                "raster_backend": self.raster.name, "raster_backend_reason": self.raster.reason,
                 "budget": "time" if self.mcfg.time_budget else "steps",
                 "steps_per_keyframe": steps_summary(self.history),
                 **{k: v for k, v in self.refine_info.items() if k != "refine_s"},

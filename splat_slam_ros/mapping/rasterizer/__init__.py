@@ -7,29 +7,52 @@ projects in C++ too, unless ``viewmat`` needs a gradient (the torch projection g
 
 Backends: ``"cpp"`` (CPU, tile-based C++/OpenMP kernel, hand-written backward), ``"torch"``
 (pure torch, any device, slow), ``"gsplat"`` (CUDA, needs ``pip install gsplat``), ``"auto"``.
+:func:`select_backend` turns a requested backend (``mapping.raster_backend``) into the one that
+runs and why; an explicit backend that cannot run raises :class:`RasterBackendError`.
 """
 from __future__ import annotations
 
+import logging
 import warnings
 from dataclasses import dataclass
 from typing import Optional, Sequence, Union
 
 import torch
 
+from splat_slam_ros.config import ConfigError
 from splat_slam_ros.mapping.rasterizer.kernel import (ProjectCpp, RasterizerBuildError, RasterizerError,
                                                      RasterizeCpp, load_extension)
 from splat_slam_ros.mapping.rasterizer.projection import Projected, project_gaussians
 from splat_slam_ros.mapping.rasterizer.reference import rasterize_reference
 
 __all__ = ["rasterize", "RasterOutput", "RasterizerError", "RasterizerBuildError",
-           "RasterizerInputError", "project_gaussians", "available_backends"]
+           "RasterizerInputError", "RasterBackendError", "BackendChoice", "select_backend",
+           "project_gaussians", "available_backends"]
 
 BACKENDS = ("auto", "cpp", "torch", "gsplat")
 _warned_fallback = False
+log = logging.getLogger(__name__)
 
 
 class RasterizerInputError(RasterizerError, ValueError):
     """Bad arguments to :func:`rasterize` (shapes, backend name, device)."""
+
+
+class RasterBackendError(RasterizerError, ConfigError):
+    """A requested backend (``mapping.raster_backend``) that cannot run here: unknown name, C++
+    extension not loadable, gsplat not installed, or the wrong device. Never a fallback."""
+
+
+@dataclass(frozen=True)
+class BackendChoice:
+    """The backend that runs (``name``: cpp, torch or gsplat), why, and what was asked."""
+    name: str
+    reason: str
+    requested: str = "auto"
+    fallback: bool = False     # auto settled on the slow torch path (no faster one available)
+
+    def __str__(self) -> str:
+        return f"{self.name} ({self.reason})"
 
 
 @dataclass
@@ -42,12 +65,17 @@ class RasterOutput:
     means2d: Optional[torch.Tensor] = None  # (N, 2) projected centres (call .retain_grad())
 
 
-def _gsplat_available() -> bool:
+def _gsplat_error() -> Optional[str]:
+    """None when gsplat imports, else why not."""
     try:
         import gsplat  # noqa: F401
-        return True
-    except Exception:
-        return False
+        return None
+    except Exception as e:
+        return f"{type(e).__name__}: {e}"
+
+
+def _gsplat_available() -> bool:
+    return _gsplat_error() is None
 
 
 def available_backends() -> list[str]:
@@ -62,25 +90,86 @@ def available_backends() -> list[str]:
     return out
 
 
+def _auto_backend(device: torch.device) -> BackendChoice:
+    """``auto``: gsplat on CUDA when it imports, the C++ kernel on CPU when it loads, else torch."""
+    if device.type == "cuda":
+        err = _gsplat_error()
+        if err is None:
+            return BackendChoice("gsplat", "auto: CUDA device, gsplat installed")
+        return BackendChoice("torch", f"auto: CUDA device without gsplat ({err}); "
+                             "pip install gsplat for the fast CUDA rasterizer", fallback=True)
+    if device.type != "cpu":
+        return BackendChoice("torch", f"auto: no dedicated rasterizer for {device.type} devices",
+                             fallback=True)
+    try:
+        load_extension()
+    except RasterizerBuildError as e:
+        return BackendChoice("torch", f"auto: C++ extension unavailable: {e}", fallback=True)
+    return BackendChoice("cpp", "auto: C++ OpenMP extension loaded")
+
+
+def _explicit_backend(name: str, device: torch.device, key: str) -> BackendChoice:
+    """An explicitly requested backend, or RasterBackendError saying why it cannot run."""
+    if name == "torch":
+        return BackendChoice("torch", f"{key}: torch (pure torch, slow)", name)
+    if name == "cpp":
+        if device.type != "cpu":
+            raise RasterBackendError(
+                f"{key} is 'cpp' but the map is on {device}: the C++ rasterizer runs on CPU "
+                f"only; set mapping.device: cpu, or {key}: gsplat or auto on CUDA")
+        try:
+            load_extension()
+        except RasterizerBuildError as e:
+            raise RasterBackendError(
+                f"{key} is 'cpp' but the C++ rasterizer extension cannot be loaded ({e}); "
+                f"install g++ and ninja (./run.sh does) so it builds, or set {key}: torch "
+                f"(about 30x slower) or auto (torch with a warning)") from None
+        return BackendChoice("cpp", f"{key}: cpp (C++ OpenMP extension loaded)", name)
+    if device.type != "cuda":
+        raise RasterBackendError(
+            f"{key} is 'gsplat' but the map is on {device}: gsplat needs a CUDA device; set "
+            f"mapping.device: cuda on a CUDA machine, or {key}: cpp or auto on CPU")
+    err = _gsplat_error()
+    if err is not None:
+        raise RasterBackendError(
+            f"{key} is 'gsplat' but gsplat cannot be imported ({err}); pip install gsplat, "
+            f"or set {key}: torch or auto")
+    return BackendChoice("gsplat", f"{key}: gsplat (CUDA device, gsplat installed)", name)
+
+
+def select_backend(requested: str, device, key: str = "mapping.raster_backend",
+                   announce: bool = False) -> BackendChoice:
+    """The backend that ``requested`` (auto, cpp, torch, gsplat) runs on ``device``, and why.
+
+    An explicit backend that cannot run there raises :class:`RasterBackendError` naming ``key``
+    and the fix (never a silent fallback). ``auto`` picks as :func:`rasterize` does. With
+    ``announce`` the choice is logged: a warning when auto fell back to the slow torch path."""
+    device = torch.device(device)
+    if requested not in BACKENDS:
+        raise RasterBackendError(f"{key}: unknown rasterizer backend {requested!r} "
+                                 f"(use one of {', '.join(BACKENDS)})")
+    choice = (_auto_backend(device) if requested == "auto"
+              else _explicit_backend(requested, device, key))
+    if announce and choice.fallback:
+        log.warning("rasterizer backend: %s; the pure-torch rasterizer is about 30x slower "
+                    "(set %s: cpp or gsplat to make this an error)", choice, key)
+    elif announce:
+        log.info("rasterizer backend: %s", choice)
+    return choice
+
+
 def _resolve_backend(backend: str, device: torch.device) -> str:
     global _warned_fallback
     if backend not in BACKENDS:
         raise RasterizerInputError(f"unknown rasterizer backend '{backend}' (use one of {BACKENDS})")
     if backend != "auto":
         return backend
-    if device.type == "cuda" and _gsplat_available():
-        return "gsplat"
-    if device.type != "cpu":
-        return "torch"
-    try:
-        load_extension()
-        return "cpp"
-    except RasterizerBuildError as e:
-        if not _warned_fallback:
-            warnings.warn(f"{e}; falling back to the slow pure-torch rasterizer", RuntimeWarning,
-                          stacklevel=3)
-            _warned_fallback = True
-        return "torch"
+    choice = _auto_backend(device)
+    if choice.fallback and not _warned_fallback:
+        warnings.warn(f"{choice.reason.removeprefix('auto: ')}; falling back to the slow "
+                      "pure-torch rasterizer", RuntimeWarning, stacklevel=3)
+        _warned_fallback = True
+    return choice.name
 
 
 def _check(means, quats, scales, opacities, colors, viewmat, width, height, near, tile_size):
@@ -120,6 +209,8 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
     bg = (torch.zeros(3, dtype=dtype, device=dev) if background is None
           else torch.as_tensor(background, dtype=dtype, device=dev).reshape(3))
     which = _resolve_backend(backend, dev)
+    if which == "gsplat" and dev.type != "cuda":
+        raise RasterizerInputError(f"rasterize: backend 'gsplat' needs CUDA tensors, got {dev}")
     if which == "gsplat":
         return _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat,
                                  (fx, fy, cx, cy), width, height, near, bg, tile_size)

@@ -5,12 +5,12 @@ differentiated by autograd:
 
 * Gaussians are sorted front to back by float32 depth, ties broken by index;
 * Gaussian ``i`` touches pixel ``x`` only inside its footprint (``Projected.ranges``);
-* ``alpha_i = min(0.99, o_i exp(max(-12, -0.5 d^T Sigma'^-1 d)))`` (paper Eq. for alpha),
+* ``alpha_i = min(0.99, o_i exp(max(-12, -0.5 d^T Sigma'^-1 d)))`` (paper Eq. 9),
   ignored when ``< 1/255``;
 * a pixel stops at the first Gaussian that would bring its transmittance below 1e-4
   (that Gaussian and all later ones are ignored);
 * ``C = sum c_i alpha_i T_i + T_N bg``, ``D = sum z_i alpha_i T_i``, ``A = 1 - T_N``
-  (paper Eq. for C and D^r);
+  (paper Eq. 8);
 * visible: ``alpha_i T_i > 0`` at some pixel with ``T_i >= 0.5`` (supplementary, covisibility).
 
 The image is cut into tiles only to bound memory (the result does not depend on the tile
