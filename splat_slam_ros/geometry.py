@@ -293,3 +293,30 @@ def interpolate_pose(T0: torch.Tensor, T1: torch.Tensor, a) -> torch.Tensor:
     out[..., :3, 3] = (1 - a_t[..., None]) * T0[..., :3, 3] + a_t[..., None] * T1[..., :3, 3]
     out[..., 3, 3] = 1
     return out
+
+
+def disparity_through_flow(d_ref: torch.Tensor, grid: torch.Tensor, flow: torch.Tensor,
+                           weight: torch.Tensor, intr: torch.Tensor, T_ref: torch.Tensor,
+                           T_new: torch.Tensor) -> torch.Tensor:
+    """(h, w) disparity of a new view from the reference view's ``d_ref``: each new pixel
+    samples the reference at the end of its flow new -> ref (``grid + flow``), is
+    back-projected with that disparity and moved into the new camera (poses camera-to-world).
+    Pixels whose flow leaves the image, lands behind the camera or has a mean ``weight``
+    <= 0.05 take the median of the others (of ``d_ref`` when none is left)."""
+    h, w = d_ref.shape
+    coords = grid + flow
+    gxy = torch.stack([2 * coords[..., 0] / (w - 1) - 1, 2 * coords[..., 1] / (h - 1) - 1], -1)
+    d = torch.nn.functional.grid_sample(d_ref[None, None], gxy[None], mode="bilinear",
+                                        padding_mode="border", align_corners=True)[0, 0]
+    fx, fy, cx, cy = intr
+    q = torch.stack([(coords[..., 0] - cx) / fx, (coords[..., 1] - cy) / fy,
+                     torch.ones_like(d)], -1)
+    G = (se3_inverse(T_new) @ T_ref).to(torch.float32)
+    X = q @ G[:3, :3].T + G[:3, 3] * d[..., None]               # homogeneous (scale d)
+    z = X[..., 2] / d.clamp_min(1e-6)                            # metric depth in new
+    inside = (coords[..., 0] >= 0) & (coords[..., 0] <= w - 1) & (coords[..., 1] >= 0) & \
+        (coords[..., 1] <= h - 1)
+    valid = inside & (z > 1e-3) & (weight.mean(-1) > 0.05)
+    out = torch.where(valid, 1.0 / z.clamp_min(1e-3), torch.zeros_like(z))
+    fill = float(out[valid].median()) if bool(valid.any()) else float(d_ref.median())
+    return torch.where(valid, out, torch.full_like(out, fill)).clamp(1e-3, 1e3)

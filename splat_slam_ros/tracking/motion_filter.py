@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 import torch
 
+from splat_slam_ros.geometry import se3_exp, se3_log
 from splat_slam_ros.tracking.flow_frontend import mean_flow
 
 
@@ -94,3 +95,14 @@ class MotionFilter:
 
     def is_candidate(self, fc: FlowCheck) -> bool:
         return fc.ok and fc.mean_flow >= self.thresh
+
+
+def predict_pose(last_pose: torch.Tensor, velocity: torch.Tensor, spacing, index: int):
+    """Constant velocity across the frames since the last pose: ``velocity`` (the motion of
+    the last tracked step, ``spacing`` = (its first, its last frame index)) scaled to the
+    frames from ``spacing[1]`` to ``index`` (frames skipped on live input, a gap)."""
+    prev, last = spacing
+    if prev is None or last is None or last <= prev or index <= last:
+        return last_pose @ velocity
+    s = (index - last) / (last - prev)
+    return last_pose @ se3_exp(se3_log(velocity) * s)

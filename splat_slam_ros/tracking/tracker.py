@@ -32,8 +32,8 @@ from splat_slam_ros.tracking.factor_graph import FactorGraph, proximity_pairs
 from splat_slam_ros.tracking.keyframe_set import KeyframeSet, KeyframeState
 from splat_slam_ros.tracking.flow_frontend import (ImagePreprocessor, compose_flows, image_is_degenerate,
                             make_flow_predictor, mapping_preprocessor, predict_both)
-from splat_slam_ros.geometry import intr_tensor, pixel_grid, pose_from_tq, pose_to_tq, se3_exp, se3_inverse, se3_log
-from splat_slam_ros.tracking.motion_filter import MotionFilter, flow_scale, parallax
+from splat_slam_ros.geometry import disparity_through_flow, intr_tensor, pixel_grid, pose_from_tq, pose_to_tq, se3_exp, se3_inverse, se3_log
+from splat_slam_ros.tracking.motion_filter import MotionFilter, flow_scale, parallax, predict_pose
 from splat_slam_ros.depth.dspo import make_depth_prior
 from splat_slam_ros.runtime import limit_threads, resolve_device
 from splat_slam_ros.tracking.trajectory_filler import FrameRecord, fill_trajectory
@@ -149,6 +149,7 @@ class Tracker:
         self._seq = itertools.count(seq_start)      # update numbers (types.TRACKER_SEQ_START)
         self.last_pose = torch.eye(4, dtype=torch.float64, device=self.device)
         self.velocity = torch.eye(4, dtype=torch.float64, device=self.device)
+        self._spacing = (None, None)   # frame indices of the velocity's step (predict_pose)
         self.lost_count = self.n_lost = 0
         self.n_skipped = 0              # frames skip() posed without tracking (live, busy)
         self.on_pose_estimate: Optional[Callable] = None   # (index, stamp, pose) before BA
@@ -266,6 +267,7 @@ class Tracker:
         self.lost_count += 1
         self.n_lost += 1
         self.velocity = torch.eye(4, dtype=torch.float64, device=self.device)
+        self._spacing = (None, None)
         if self.lost_count == 1 or self.lost_count % 30 == 0:
             log.warning("frame %d: tracking lost (%s)%s", frame.index, why,
                         "" if self.lost_count == 1 else f", {self.lost_count} frames so far")
@@ -411,6 +413,7 @@ class Tracker:
         self.initialized = True
         self.last_pose = poses[-1].clone()
         self.velocity = torch.eye(4, dtype=torch.float64, device=self.device)
+        self._spacing = (None, None)
         kds = []
         for k in ids:
             kds.append(self._keyframe_data(k))
@@ -453,6 +456,19 @@ class Tracker:
         was_lost = self.lost_count > 0
         pred = self.last_pose @ self.velocity
         flows, fc = self._try_reference(ref, prep, not was_lost)
+        if not fc.ok and not was_lost:
+            # a large motion since the last tracked frame (skipped frames on live input, fast
+            # motion): DIS again, pre-warped by the flow the constant-velocity pose induces
+            T_p = predict_pose(self.last_pose, self.velocity, self._spacing, frame.index)
+            if self._spacing[0] is None and len(self.window) > 1:   # no step since init / loss
+                a, b = self.kfs[self.window[-2]], self.kfs[self.window[-1]]   # keyframes' motion
+                T_p = predict_pose(b.pose, se3_inverse(a.pose) @ b.pose,
+                                   (a.frame_index, b.frame_index), frame.index)
+            init = self._induced(self.kfs[ref].pose, self.kfs[ref].disp, T_p)
+            fl = self._flows(self.kfs[ref].prep, prep, init)
+            fc_p = self.motion.check(fl[0], fl[1])
+            if fc_p.ok:
+                flows, fc, pred = fl, fc_p, T_p
         if not fc.ok:
             self._last_flow = None
             # relocalise against the other recent keyframes
@@ -480,7 +496,7 @@ class Tracker:
             if self.on_pose_estimate is not None:      # a keyframe's pose before its local BA
                 self.on_pose_estimate(frame.index, float(frame.timestamp), T.cpu().numpy())
             return self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, info)
-        self._set_pose(T)
+        self._set_pose(T, frame.index)
         sf, sw = self._store_flow(f, w)
         rec = self._record(frame, ref_kf=ref, rel_pose=(se3_inverse(T_ref) @ T).cpu().numpy(),
                            ref_scale=float(self.kfs[ref].disp.mean()), flow=sf, weight=sw,
@@ -489,33 +505,12 @@ class Tracker:
         return TrackStep(frame.index, float(frame.timestamp), False, None,
                          T.cpu().numpy().copy(), info=info)
 
-    def _set_pose(self, T):
+    def _set_pose(self, T, index: int):
+        self._spacing = (self._spacing[1], int(index))
         T = orthonormalize(T)
         # constant-velocity model in the tangent space (exp keeps it a rigid motion)
         self.velocity = se3_exp(se3_log(se3_inverse(self.last_pose) @ T))
         self.last_pose = T.clone()
-
-    def _init_disparity(self, ref, T_ref, T_new, fb, wb) -> torch.Tensor:
-        """Disparity of a new keyframe from the reference's via the flow new -> ref."""
-        d_ref = self.kfs[ref].disp
-        h, w = self.h, self.w
-        coords = self.grid + fb
-        gxy = torch.stack([2 * coords[..., 0] / (w - 1) - 1, 2 * coords[..., 1] / (h - 1) - 1],
-                          -1)
-        d = torch.nn.functional.grid_sample(d_ref[None, None], gxy[None], mode="bilinear",
-                                            padding_mode="border", align_corners=True)[0, 0]
-        fx, fy, cx, cy = self.intr
-        q = torch.stack([(coords[..., 0] - cx) / fx, (coords[..., 1] - cy) / fy,
-                         torch.ones_like(d)], -1)
-        G = (se3_inverse(T_new) @ T_ref).to(torch.float32)
-        X = q @ G[:3, :3].T + G[:3, 3] * d[..., None]               # homogeneous (scale d)
-        z = X[..., 2] / d.clamp_min(1e-6)                            # metric depth in new
-        inside = (coords[..., 0] >= 0) & (coords[..., 0] <= w - 1) & (coords[..., 1] >= 0) & \
-            (coords[..., 1] <= h - 1)
-        valid = inside & (z > 1e-3) & (wb.mean(-1) > 0.05)
-        out = torch.where(valid, 1.0 / z.clamp_min(1e-3), torch.zeros_like(z))
-        fill = float(out[valid].median()) if bool(valid.any()) else float(d_ref.median())
-        return torch.where(valid, out, torch.full_like(out, fill)).clamp(1e-3, 1e3)
 
     def _add_radius_edges(self, kid: int) -> None:
         """Edges to the keyframes 2 .. frontend_radius before the new one (the one
@@ -601,8 +596,8 @@ class Tracker:
                       force: bool = False) -> TrackStep:
         tc = self.tc
         before = self._snapshot(self.window)
-        kid = self._add_keyframe(frame, img, prep, T, self._init_disparity(
-            ref, self.kfs[ref].pose, T, fb, wb))
+        kid = self._add_keyframe(frame, img, prep, T, disparity_through_flow(
+            self.kfs[ref].disp, self.grid, fb, wb, self.intr, self.kfs[ref].pose, T))
         self.kfs[kid].conf = wb.mean(-1)
         self.graph.add(ref, kid, f, w)
         self.graph.add(kid, ref, fb, wb)
@@ -621,7 +616,7 @@ class Tracker:
         info = {**info, "kf_dist": dist, "ba_rms": binfo.rms if binfo else float("nan")}
         if dist < tc.keyframe_thresh * self.px_scale and len(self.window) > 3 and not force:
             self._drop_keyframe(kid)
-            self._set_pose(T_new)
+            self._set_pose(T_new, frame.index)
             sf, sw = self._store_flow(f, w)
             T_ref = self.kfs[ref].pose
             rec = self._record(frame, ref_kf=ref,
@@ -631,7 +626,7 @@ class Tracker:
             self._add_pending(rec, frame, img, prep)
             return TrackStep(frame.index, float(frame.timestamp), False, None,
                              T_new.cpu().numpy().copy(), events=events, info=info)
-        self._set_pose(T_new)
+        self._set_pose(T_new, frame.index)
         self._record(frame, replace=force, kf_id=kid)
         self._next_keyframe_flows(kid)
         kd = self._keyframe_data(kid)
