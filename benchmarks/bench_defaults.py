@@ -29,7 +29,7 @@ run's keyframes, in the keyframes' camera (crop, processing size), after the bes
 keyframe (the exposure model of Eq. 11): the true scene, without vignetting or blur, seen
 through the exposure model. A reference for the map's keyframe PSNR, not a bound: a map fitted
 to the frames also learns their vignetting (``mapping.vignetting``) and, where the motion
-repeats, much of their blur (README "Defaults on a 2-core CPU").
+repeats, much of their blur (docs/benchmarks.md "Defaults end to end").
 """
 from __future__ import annotations
 

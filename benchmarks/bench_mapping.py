@@ -89,7 +89,7 @@ def main(argv=None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--only", choices=("icl", "synth"), help="run one dataset")
     ap.add_argument("--preset", default="paper", help="config preset (config/NAME.yaml; default "
-                    "paper: the paper's schedule, the numbers in the README; '' = defaults)")
+                    "paper: the paper's schedule, the numbers in docs/benchmarks.md; '' = defaults)")
     ap.add_argument("--scale", type=float, default=1.0, help="resize factor (speed)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override, e.g. mapping.iters_first=300")

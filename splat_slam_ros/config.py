@@ -58,7 +58,8 @@ class TrackingConfig:
     # than the mapping image; 0 = the input size, -1 = the mapping size. Keyframes are handed
     # on at the mapping size (image + intrinsics) with the disparity at this size's BA grid.
     # 110592 (640x480 -> 384x288): with the default flow settings little better (fr2/desk 0.176 cm
-    # either way, measured with stride 8) for ~25 % more tracking CPU (README "Tracking"): opt-in.
+    # either way, measured with stride 8) for ~25 % more tracking CPU: opt-in
+    # (docs/tracking.md "Tracking size").
     max_pixels: int = -1
     ba_downsample: int = 8               # BA resolution = tracking image / this (paper: 1/8)
     # flow front end (classical stand-in for the paper's learned flow, see flow_frontend.py)
@@ -70,7 +71,7 @@ class TrackingConfig:
     # DIS settings over the preset (-1 = the preset's). The defaults compute the flow at the
     # DIS input's own resolution (finest scale 0; the medium preset stops one level coarser)
     # from 8x8 patches every 4 px without the variational smoothing: 2-6x lower ATE than the
-    # medium preset (README "Tracking", flow settings). Stride 8 (independent patches) is
+    # medium preset (docs/tracking.md "Flow settings"). Stride 8 (independent patches) is
     # faster and more accurate on smooth renders but loses real 1 Hz frames (fr3 sample)
     flow_finest_scale: int = 0
     flow_patch_stride: int = 4           # DIS patch stride (px at the DIS input; -1 = the preset's)
@@ -182,7 +183,7 @@ class DepthConfig:
                                          # (paper §3.2) | disparity
     # dense multi-view depth at processing resolution (depth/dense_depth.py): DIS flow to up
     # to dense_views neighbouring keyframes, triangulated with the BA poses (0 = off)
-    dense_views: int = 0                 # off by default: see README (helps fr2/desk, hurts fr1/xyz)
+    dense_views: int = 0                 # off by default: docs/depth.md "Dense layer (opt-in)"
     dense_eta: float = 0.02              # views agree within this x depth (Eq. 6 per pixel)
     dense_min_views: int = 3             # >= this many agree: replaces the BA-grid depth
     dense_fill_views: int = 2            # >= this many agree: fills BA-grid holes (0 = no fill)
@@ -194,17 +195,17 @@ class MappingConfig:
     """The 3D Gaussian map (paper 3.3): rasterizer, optimisation budgets, keyframe window,
     losses, pruning / densification, learning rates and the mesh export.
 
-    The defaults are a schedule sized for a 2-core CPU (README "Defaults"); the paper's GPU
-    schedule (60 / 1050 / 2000 iterations, whole window per step) is config/paper.yaml
-    (``--preset paper``)."""
+    The defaults are a schedule sized for a 2-core CPU (docs/mapping.md "Defaults"); the
+    paper's GPU schedule (60 / 1050 / 2000 iterations, whole window per step) is
+    config/paper.yaml (``--preset paper``)."""
 
     device: str = "auto"                 # "auto" (CUDA when torch sees it), "cpu" or "cuda"
-    # rasterizer (README "Rasterizer"): auto = gsplat on CUDA when installed, else the C++
+    # rasterizer (docs/mapping.md "Rasterizer"): auto = gsplat on CUDA when installed, else the C++
     # kernel on CPU when it builds, else pure torch (~30x slower; a warning says why); cpp /
     # torch / gsplat: exactly that one, an error when it cannot run (no silent fallback).
     # The backend that ran and why: metrics.json "map" raster_backend(_reason)
     raster_backend: str = field(default="auto", metadata={"choices": RASTER_BACKENDS})
-    # Budgets (mapping/budget.py, README "Mapping budgets"): offline (lockstep replay,
+    # Budgets (mapping/budget.py, docs/mapping.md "Budgets"): offline (lockstep replay,
     # splat-slam-run) in optimisation steps, the same whatever the load; with time_budget (live
     # input: the launcher turns it on for realtime input) wall-clock caps come on top.
     iters_per_keyframe: int = 45         # steps per keyframe, at most (paper: 60)
@@ -231,9 +232,10 @@ class MappingConfig:
     window_size: int = 8                 # keyframes in the mapping window (optimised together)
     rgb_weight: float = 0.8              # lambda in Eq. 11
     ba_depth_weight: float = 0.6         # depth-loss weight of BA-filled holes (source 3), 0..1
-                                         # (README "Defaults")
+                                         # (docs/depth.md "Holes: BA depth at a lower weight")
     isotropy_weight: float = 1.0         # lambda_reg in Eq. 11 (paper and --preset paper: 10; 1
-                                         # lets Gaussians follow edges: +0.3-0.7 dB; README)
+                                         # lets Gaussians follow edges: +0.3-0.7 dB;
+                                         # docs/mapping.md "Defaults")
     downsample: int = 32                 # theta
     downsample_first: int = 16           # ... for the first keyframe (empty map)
     init_opacity: float = 0.5            # opacity of new Gaussians
@@ -256,7 +258,8 @@ class MappingConfig:
     lr_exposure: float = 0.01            # ... per-keyframe exposures (a, b)
     # the camera's radial vignetting V = 1 + v1 r^2 + v2 r^4 (r: distance from the principal
     # point / half the image diagonal), one for all keyframes, learned with the exposures and
-    # applied with them (colour a V C + b) in the loss and the keyframe metrics (README "Mapping")
+    # applied with them (colour a V C + b) in the loss and the keyframe metrics
+    # (docs/mapping.md "Vignetting")
     vignetting: bool = True
     lr_vignetting: float = 0.01          # learning rate of the vignetting (v1, v2)
     render_every: int = 1                # publish / save a render every N keyframes

@@ -3,7 +3,7 @@
 # three times in a row, (1) as CI runs it, (2) with a CPU-busy process on one core beside it,
 # (3) with OMP_NUM_THREADS=1 (other reduction orders and SIMD paths in torch / OpenMP).
 # A test that passes in (1) and fails in (2) or (3) asserts on timing or on float reduction
-# order; fix the test (README "Testing"). Extra arguments pass to pytest in every run, e.g.
+# order; fix the test (docs/development.md "Stress runs"). Extra arguments pass to pytest in every run, e.g.
 #   tests/run_stress.sh tests/test_graph_e2e.py
 # Prints one line per run (result, wall seconds, load average) and exits non-zero when any
 # run failed. Takes about three times as long as ./run.sh test.

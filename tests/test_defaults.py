@@ -268,7 +268,8 @@ def test_launcher_keeps_the_mapper_at_pace_on_realtime_input(tmp_path, monkeypat
     rt = planned("--bag", str(tmp_path / "b.mcap"), "--mode", "realtime")
     assert rt.cfg.mapping.time_budget and rt.cfg.mapping.keep_up > 0
     # the first keyframe's and the refinement's wall caps, one step a keyframe while input
-    # waits (README "Live camera"); a value the user set stays, lockstep keeps the defaults
+    # waits (docs/live-camera.md "What the graph does on live input"); a value the user set
+    # stays, lockstep keeps the defaults
     for key, value in launch.REALTIME_MAPPING.items():
         assert getattr(rt.cfg.mapping, key) == value and f"mapping.{key}" in rt.overrides
         assert getattr(lock.cfg.mapping, key) == getattr(MappingConfig(), key) != value

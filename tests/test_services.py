@@ -2,7 +2,6 @@
 default, render sizes bounded, bad requests answered with an error (node keeps running)."""
 import json
 import math
-from pathlib import Path
 from types import SimpleNamespace as NS
 
 import pytest
@@ -75,7 +74,7 @@ def call(srv, name, req):
     return [r.success, r.message]
 res = {}
 res["reset"] = call(Trigger, "reset_map", Trigger.Request())
-for k, d in (("abs", "/tmp/splat_evil"), ("dotdot", "../evil"), ("rel", "snap")):
+for k, d in (("abs", sys.argv[1]), ("dotdot", "../evil"), ("rel", "snap")):
     res["save_" + k] = call(SaveMap, "save_map", SaveMap.Request(directory=d))
 rq = RenderPose.Request(); rq.pose.position.x = math.nan; rq.pose.orientation.w = 1.0
 res["render_nan"] = call(RenderPose, "render", rq)
@@ -92,7 +91,8 @@ def test_mapper_services_refuse_bad_requests(tmp_path):
     env = isolated_env()
     mapper = start([PY, "-m", "splat_slam_nodes.mapper_node", "--ros-args", "-p",
                     f"node.output_dir:={out}"], env, tmp_path / "mapper.log")
-    caller = start([PY, "-c", CALLER], env, tmp_path / "caller.log")
+    evil = tmp_path / "evil_abs"                      # absolute, outside the output dir
+    caller = start([PY, "-c", CALLER, str(evil)], env, tmp_path / "caller.log")
     try:
         assert caller.wait(timeout=240) == 0, (tmp_path / "caller.log").read_text()[-3000:]
         alive = mapper.poll() is None
@@ -109,7 +109,7 @@ def test_mapper_services_refuse_bad_requests(tmp_path):
     assert r["save_rel"] == [False, "the map is empty: nothing to save"]
     assert r["render_nan"][0] is False and "NaN" in r["render_nan"][1]
     assert r["render_huge"][0] is False       # the map is empty: refused before any allocation
-    assert not Path("/tmp/splat_evil").exists() and not (tmp_path / "evil").exists()
+    assert not evil.exists() and not (tmp_path / "evil").exists()
 
 
 def test_launcher_passes_allow_reset_to_the_mapper_only():

@@ -13,7 +13,7 @@ directory's files only, so rebuilding it gives the same bytes.
 
 examples:
   splat-slam-report out/demo/run
-  splat-slam-report runs/fr1 --out /tmp/fr1_report --max-keyframes 12
+  splat-slam-report runs/fr1 --out runs/fr1_report --max-keyframes 12
 """
 
 

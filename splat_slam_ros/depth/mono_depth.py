@@ -90,7 +90,7 @@ def read_sidecar(model_path) -> MonoSidecar:
         raise MonoDepthError(
             f"no sidecar for mono depth model {model_path}: expected one of "
             f"{', '.join(c.name for c in cands[:1] + cands[3:4])} (YAML/JSON with at least "
-            "'output: depth|disparity'; see README 'Depth: proxy depth and monocular models')")
+            "'output: depth|disparity'; see docs/depth.md 'Monocular depth models')")
     try:
         text = path.read_text()
         data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)

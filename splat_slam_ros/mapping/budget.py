@@ -1,6 +1,6 @@
 """How many optimisation steps the mapper spends per keyframe and on the final refinement.
 
-Two kinds of budget (README "Mapping budgets: steps offline, time live"):
+Two kinds of budget (docs/mapping.md "Budgets"):
 
 - **Steps** (offline: lockstep bag replay, ``splat-slam-run``; the default). A keyframe gets
   ``iters_first`` / ``iters_per_keyframe`` steps, shrunk to ``stream_pace_steps`` x the stream
