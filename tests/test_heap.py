@@ -2,28 +2,38 @@
 import sys
 
 import pytest
+
+
+FRAGMENT = """
 import torch
-
 from splat_slam_ros.heap import release_free_memory
-
-
-def rss_mb() -> float:
+def rss_mb():
     with open("/proc/self/status") as f:
         return int(next(l for l in f if l.startswith("VmRSS")).split()[1]) / 1024
+keep = []
+for i in range(100):          # growing tensors freed between smaller ones that stay
+    churn = [torch.ones(100000 + 997 * i) for _ in range(20)]
+    keep.append(torch.ones(30000))
+    del churn
+before = rss_mb()
+ok = release_free_memory()
+after = rss_mb()
+print(ok, before, after, float(sum(k.sum() for k in keep)))
+"""
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc_trim: Linux only")
 def test_freed_fragmented_heap_is_given_back():
-    keep = []
-    for i in range(100):          # growing tensors freed between smaller ones that stay
-        churn = [torch.ones(100000 + 997 * i) for _ in range(20)]
-        keep.append(torch.ones(30000))
-        del churn
-    before = rss_mb()
-    assert release_free_memory() is True
-    after = rss_mb()
+    """In a fresh interpreter: what the heap looks like, and so what a trim can give back,
+    depends on everything the process allocated before (glibc moves its mmap threshold up
+    after large frees), so in the test process it would depend on the tests run before."""
+    import subprocess
+    out = subprocess.run([sys.executable, "-c", FRAGMENT], check=True, capture_output=True,
+                         text=True, timeout=120).stdout.split()
+    ok, before, after, kept = out[0] == "True", float(out[1]), float(out[2]), float(out[3])
+    assert ok
     assert after < before - 10, (before, after)
-    assert float(sum(k.sum() for k in keep)) == 100 * 30000          # what is in use stays
+    assert kept == 100 * 30000                                        # what is in use stays
 
 
 def child_rss_mb(script: str, flags) -> dict:

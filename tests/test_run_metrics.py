@@ -17,32 +17,14 @@ from splat_slam_ros.io.trajectory_io import write_tum
 from splat_slam_ros.mapping.mapper import Mapper
 from splat_slam_ros.tracking.flow_frontend import mapping_preprocessor
 from splat_slam_ros.types import Intrinsics
+from test_evaluation import _TinyNet
+from test_evaluation import _manual_lpips as _lpips_formula
 
 
 # ------------------------------------------------------------------------------ LPIPS
-class _TinyNet(torch.nn.Module):
-    def __init__(self):
-        super().__init__()
-        torch.manual_seed(0)
-        self.c1 = torch.nn.Conv2d(3, 6, 3, padding=1)
-        self.c2 = torch.nn.Conv2d(6, 8, 3, stride=2, padding=1)
-
-    def forward(self, x):
-        f1 = torch.relu(self.c1(x))
-        return [f1, torch.relu(self.c2(f1))]
-
-
 def _manual_lpips(net, img_u8, ref_u8) -> float:
     """The LPIPS formula written out (all channel weights 1), RGB uint8 inputs."""
-    x = torch.from_numpy(np.stack([img_u8, ref_u8])).permute(0, 3, 1, 2).double() / 255.0
-    with torch.no_grad():
-        feats = net(x.float() * 2 - 1)
-    total = 0.0
-    for f in feats:
-        f = f.double()
-        f = f / (f.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
-        total += float(((f[0] - f[1]) ** 2).sum(0).mean())
-    return total
+    return _lpips_formula(net, img_u8 / 255.0, ref_u8 / 255.0)
 
 
 @pytest.fixture
