@@ -16,7 +16,9 @@ driver; reliable for the bag player), node.max_queue (frames in flight, waiting 
 tracked; 1: a frame is tracked only when the tracker is free, so a live camera stays current;
 the others are skipped: posed at once by constant velocity and placed between their tracked
 neighbours in the final trajectory; the launcher sets 0 = track every frame in lockstep), node.max_backlog (worker jobs waiting beyond which a frame is dropped),
-node.camera_info_timeout, node.intrinsics_file (when no camera_info is published).
+node.camera_info_timeout, node.intrinsics_file (when no camera_info is published),
+node.path_every (the trajectory Path is published at every keyframe and every N frames),
+node.loop_closure / node.mapping (which stages the graph runs; set by the launcher).
 """
 from __future__ import annotations
 
