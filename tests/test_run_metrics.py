@@ -8,7 +8,6 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 import pytest
-import torch
 
 from splat_slam_ros import evaluation as ev
 from splat_slam_ros import pipeline
@@ -17,7 +16,7 @@ from splat_slam_ros.io.trajectory_io import write_tum
 from splat_slam_ros.mapping.mapper import Mapper
 from splat_slam_ros.tracking.flow_frontend import mapping_preprocessor
 from splat_slam_ros.types import Intrinsics
-from test_evaluation import _TinyNet
+from test_evaluation import lpips_files  # noqa: F401 (the tiny backbone fixture)
 from test_evaluation import _manual_lpips as _lpips_formula
 
 
@@ -25,14 +24,6 @@ from test_evaluation import _manual_lpips as _lpips_formula
 def _manual_lpips(net, img_u8, ref_u8) -> float:
     """The LPIPS formula written out (all channel weights 1), RGB uint8 inputs."""
     return _lpips_formula(net, img_u8 / 255.0, ref_u8 / 255.0)
-
-
-@pytest.fixture
-def backbone(tmp_path):
-    net = _TinyNet().eval()
-    path = tmp_path / "backbone.pt"
-    torch.jit.save(torch.jit.script(net), str(path))
-    return net, path
 
 
 def _write_views(renders, n=3, h=24, w=32, seed=0):
@@ -69,8 +60,8 @@ def test_lpips_in_metrics_is_null_without_a_backbone(tmp_path):
     pipeline.check_lpips_config(SlamConfig())                  # nothing to check
 
 
-def test_lpips_in_metrics_is_the_keyframe_mean_with_a_backbone(tmp_path, backbone):
-    net, path = backbone
+def test_lpips_in_metrics_is_the_keyframe_mean_with_a_backbone(tmp_path, lpips_files):
+    net, path = lpips_files
     pairs = _write_views(tmp_path / "renders")
     cfg = load_config(overrides={"evaluation.lpips_backbone": str(path)})
     pipeline.check_lpips_config(cfg)
@@ -82,8 +73,8 @@ def test_lpips_in_metrics_is_the_keyframe_mean_with_a_backbone(tmp_path, backbon
     assert not ev._LPIPS_CACHE                                 # the backbone is let go
 
 
-def test_lpips_backbone_missing_or_invalid_is_a_clear_error(tmp_path, backbone, capsys):
-    _, path = backbone
+def test_lpips_backbone_missing_or_invalid_is_a_clear_error(tmp_path, lpips_files, capsys):
+    _, path = lpips_files
     missing = tmp_path / "nope.pt"
     junk = tmp_path / "junk.pt"
     junk.write_text("not a model")
@@ -116,10 +107,10 @@ def _fake_gt_mapping(pairs_seed=1):
     return fake
 
 
-def test_in_process_run_writes_lpips_to_metrics_json(tmp_path, backbone, monkeypatch):
+def test_in_process_run_writes_lpips_to_metrics_json(tmp_path, lpips_files, monkeypatch):
     """splat-slam-run's pipeline: ``lpips`` in metrics.json (null without a backbone); a
     missing backbone stops the run before it starts (the CLI: ``error:``, status 2)."""
-    net, path = backbone
+    net, path = lpips_files
     monkeypatch.setattr(pipeline, "_run_gt_mapping", _fake_gt_mapping())
     monkeypatch.setattr(pipeline, "write_report", lambda out, cfg: None)
     ds = SimpleNamespace(name="fake")
@@ -156,10 +147,10 @@ def test_splat_slam_run_rejects_a_missing_backbone_before_running(tmp_path, caps
     assert "not found" in err and "Traceback" not in err
 
 
-def test_launcher_writes_lpips_with_the_shared_evaluation(tmp_path, backbone, monkeypatch):
+def test_launcher_writes_lpips_with_the_shared_evaluation(tmp_path, lpips_files, monkeypatch):
     """splat-slam-launch: the same check before the run and the same ``lpips`` entry."""
     from splat_slam_nodes import launch
-    net, path = backbone
+    net, path = lpips_files
     monkeypatch.setenv("SPLAT_SLAM_DDS_RANGE", "localhost")
     bad = launch.Launcher(launch.build_parser().parse_args(
         ["--out", str(tmp_path / "bad"), "--set",
