@@ -111,6 +111,10 @@ class TrackingConfig:
     reloc_keyframes: int = 4             # recent keyframes tried when the last one fails
     filler_iters: int = 3                # pose-only iterations per non-keyframe at the end
     max_stored_flows: int = 20000        # newest frames whose flow is kept for that refinement
+    # at the keyframe that ends the warm-up, the newest this many warm-up frames also get a
+    # flow from it (aligned against both keyframes at the end; 0 = all): after a long slow
+    # start the tracker's initialisation step stays short (live input skips less)
+    next_kf_flows: int = 16
     event_pose_thresh: float = 1e-4      # report a keyframe if it moved more (scene units / rad)
     event_disp_thresh: float = 1e-3      # ... or its mean relative disparity change exceeds this
     # loop closure (paper 3.1 "Loop Closure")

@@ -561,3 +561,27 @@ def test_constant_velocity_prediction_spans_the_frames_since_the_last_pose():
     assert torch.allclose(predict_pose(last, vel, (5, 6), 7), last @ vel, atol=1e-12)
     # no step known (just initialised or lost): one step of the velocity
     assert torch.equal(predict_pose(last, vel, (None, 6), 10), last @ vel)
+
+
+def test_a_long_warm_up_gives_second_flows_to_its_newest_frames_only():
+    """tracking.next_kf_flows: at the keyframe that ends a long slow start, only the newest
+    warm-up frames also get a flow from it (two DIS calls each): the step stays short on
+    live input. 0 = all of them."""
+    from dataclasses import replace as dc_replace
+
+    from splat_slam_ros.tracking.tracker import Tracker
+    frames, gt = sequence(30)
+    still = [dc_replace(frames[0], index=i, timestamp=i / 30.0) for i in range(30)]
+    moving = [dc_replace(f, index=30 + f.index, timestamp=(30 + f.index) / 30.0)
+              for f in frames]
+    seen = {}
+    for cap in (5, 0):
+        cfg = small_cfg(next_kf_flows=cap)
+        tr = Tracker(cfg, INTR)
+        for f in still + moving:
+            tr.track(f)
+        first_kf = sorted(r.index for r in tr.records if r.kf_id is not None)[1]
+        warm = [r for r in tr.records if 0 < r.index < first_kf and r.kf_id is None]
+        seen[cap] = (len(warm), sum(r.ref2_kf is not None for r in warm))
+    assert seen[0][0] >= 20 and seen[0][1] >= 20, seen        # the static start: all of them
+    assert 0 < seen[5][1] <= 5, seen

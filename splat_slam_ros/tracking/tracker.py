@@ -657,6 +657,10 @@ class Tracker:
                     rec.rel_pose, dtype=torch.float64, device=self.device)
                 init = self._induced(ks.pose, ks.disp, T)
             todo.append((rec, prep, init))
+        warm = [t for t in todo if t[2] is None]          # warm-up frames: two DIS calls each
+        if 0 < self.tc.next_kf_flows < len(warm):
+            drop = {id(t[0]) for t in warm[:-self.tc.next_kf_flows]}
+            todo = [t for t in todo if id(t[0]) not in drop]
         fwd = [t for t in todo if t[2] is not None] \
             if hasattr(self.flow, "predict_forward_many") else []      # one DIS call each
         flows = dict(zip((id(t[0]) for t in fwd), self.flow.predict_forward_many(
