@@ -108,8 +108,12 @@ def intrinsics_to_camera_info(intr: Intrinsics, stamp: float = 0.0,
 
 # ------------------------------------------------------------------ poses
 def _poses_to_tq(T: np.ndarray) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.ndim == 2:                 # one pose (a frame's, at the camera's rate): plain floats
+        from splat_slam_ros.geometry import rotation_to_quat_np
+        return np.concatenate([T[:3, 3], rotation_to_quat_np(T[:3, :3])])
     from splat_slam_ros.geometry import pose_to_tq   # lazy: torch only when poses are used
-    return pose_to_tq(np.asarray(T, dtype=np.float64)).numpy()
+    return pose_to_tq(T).numpy()
 
 
 def _tq_to_poses(tq: np.ndarray) -> np.ndarray:

@@ -22,7 +22,7 @@ from typing import List, Optional, Sequence
 import numpy as np
 import torch
 
-from splat_slam_ros.geometry import matrix_to_quat, se3_inverse
+from splat_slam_ros.geometry import rotation_to_quat_np, se3_inverse
 
 # T_camera_optical: the optical frame's axes in the camera body frame (REP-103):
 # optical x (right) = -y body, optical y (down) = -z body, optical z (forward) = +x body.
@@ -92,7 +92,7 @@ def transform_stamped(T, stamp: float, parent: str, child: str):
 
     from .convert import to_stamp
     T = np.asarray(T, np.float64)
-    q = matrix_to_quat(torch.as_tensor(T[:3, :3])).numpy()          # x, y, z, w
+    q = rotation_to_quat_np(T[:3, :3])                               # x, y, z, w
     m = TransformStamped()
     m.header.stamp = to_stamp(stamp)
     m.header.frame_id = parent

@@ -76,6 +76,24 @@ def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
     return torch.where(q[..., 3:4] < 0, -q, q)
 
 
+def rotation_to_quat_np(R) -> np.ndarray:
+    """(3, 3) -> (4,) (x, y, z, w) with w >= 0: :func:`matrix_to_quat` (same candidates,
+    same choice) for ONE rotation in plain floats, for poses published at the camera's rate
+    (the tensor version's ~40 small ops cost far more than the arithmetic)."""
+    m = np.asarray(R, dtype=np.float64)
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    cand = ((m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1], 1 + tr),
+            (1 + m[0, 0] - m[1, 1] - m[2, 2], m[0, 1] + m[1, 0], m[0, 2] + m[2, 0],
+             m[2, 1] - m[1, 2]),
+            (m[0, 1] + m[1, 0], 1 - m[0, 0] + m[1, 1] - m[2, 2], m[1, 2] + m[2, 1],
+             m[0, 2] - m[2, 0]),
+            (m[0, 2] + m[2, 0], m[1, 2] + m[2, 1], 1 - m[0, 0] - m[1, 1] + m[2, 2],
+             m[1, 0] - m[0, 1]))
+    q = np.array(cand[int(np.argmax((tr, m[0, 0], m[1, 1], m[2, 2])))])
+    q /= max(float(np.sqrt(q @ q)), _EPS)
+    return -q if q[3] < 0 else q
+
+
 def quat_to_axis_angle(q: torch.Tensor) -> torch.Tensor:
     q = torch.where(q[..., 3:4] < 0, -q, q)
     v = q[..., :3]

@@ -98,3 +98,18 @@ def test_slerp_and_pose_interpolation():
         assert torch.allclose(Ta[:3, 3], (1 - a) * T0[:3, 3] + a * T1[:3, 3], atol=1e-12)
     q0 = g.matrix_to_quat(T0[:3, :3])
     assert torch.allclose(g.quat_slerp(q0, -q0, torch.tensor(0.5, dtype=torch.float64)).abs(), q0.abs())
+
+
+def test_one_rotation_to_quaternion_in_plain_floats_matches_the_tensor_version():
+    """rotation_to_quat_np (poses published per frame) = matrix_to_quat, including the
+    branches near 180 degrees about each axis and the w >= 0 convention."""
+    from splat_slam_ros.geometry import matrix_to_quat, rotation_to_quat_np, so3_exp
+    rng = np.random.default_rng(3)
+    ws = [rng.normal(size=3) * s for s in (1e-9, 0.1, 1.0, 3.0) for _ in range(25)]
+    ws += [np.array(a) * (np.pi - 1e-4) for a in ((1, 0, 0), (0, 1, 0), (0, 0, 1))]
+    for w in ws:
+        R = so3_exp(torch.as_tensor(w, dtype=torch.float64))
+        ref = matrix_to_quat(R).numpy()
+        got = rotation_to_quat_np(R.numpy())
+        assert np.allclose(got, ref, atol=1e-12, rtol=0), (w, got, ref)
+        assert got[3] >= 0 and abs(np.linalg.norm(got) - 1) < 1e-12
