@@ -182,6 +182,13 @@ def evaluate_map_depth(dataset, out: Path, cfg: SlamConfig, metrics: dict) -> No
         metrics["depth_edge_band_fraction"] = round(float(share), 4)
 
 
+def _lpips_files(cfg: SlamConfig):
+    """(backbone, weights or None) paths of ``evaluation.lpips_backbone`` / ``lpips_weights``."""
+    ec = cfg.evaluation
+    return (Path(ec.lpips_backbone).expanduser(),
+            Path(ec.lpips_weights).expanduser() if ec.lpips_weights else None)
+
+
 def check_lpips_config(cfg: SlamConfig) -> None:
     """ConfigError before a run when ``evaluation.lpips_backbone`` / ``lpips_weights`` name
     a file that is missing or is no backbone / weights file (the run's LPIPS would fail)."""
@@ -194,8 +201,7 @@ def check_lpips_config(cfg: SlamConfig) -> None:
                               "is not (the weights belong to a backbone)")
         return
     try:
-        ev.check_lpips(Path(ec.lpips_backbone).expanduser(),
-                       Path(ec.lpips_weights).expanduser() if ec.lpips_weights else None)
+        ev.check_lpips(*_lpips_files(cfg))
     except ev.MetricError as e:
         raise ConfigError(f"evaluation.lpips_backbone / lpips_weights: {e}") from None
 
@@ -204,8 +210,7 @@ def _keyframe_lpips(renders: Path, cfg: SlamConfig) -> float:
     import cv2
     from splat_slam_ros import evaluation as ev
     from splat_slam_ros.mapping.keyframe_views import KEYFRAMES_JSON
-    ec = cfg.evaluation
-    weights = Path(ec.lpips_weights).expanduser() if ec.lpips_weights else None
+    backbone, weights = _lpips_files(cfg)
     try:
         ids = [int(k["kf_id"]) for k in
                json.loads((renders / KEYFRAMES_JSON).read_text())["keyframes"]]
@@ -217,8 +222,7 @@ def _keyframe_lpips(renders: Path, cfg: SlamConfig) -> float:
         pair = [cv2.imread(str(n), cv2.IMREAD_COLOR) for n in names]
         if pair[0] is None or pair[1] is None:
             raise ev.MetricError(f"cannot read {names[0].name} / {names[1].name} in {renders}")
-        values.append(ev.lpips(pair[0][..., ::-1], pair[1][..., ::-1],
-                               Path(ec.lpips_backbone).expanduser(), weights))
+        values.append(ev.lpips(pair[0][..., ::-1], pair[1][..., ::-1], backbone, weights))
     if not values:
         raise ev.MetricError(f"no keyframe views in {renders}")
     return float(np.mean(values))

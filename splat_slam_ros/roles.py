@@ -733,7 +733,6 @@ class MapperRole:
             from splat_slam_ros.mapping.mapper import Mapper
             self.intr = kf.intrinsics
             self.mapper = Mapper(self.cfg, kf.intrinsics)
-        self.mapper.yield_to = self.input_waiting
         twin = self._revisit(pd)
         cov = 0.0                           # a render, only when the pose test found no twin
         if twin is None and self.cfg.mapping.revisit_cull_deg > 0:
@@ -746,7 +745,7 @@ class MapperRole:
         else:
             st = self.mapper.add_keyframe(kf.kf_id, kf.image, pd.pose, pd.depth,
                                           pd.depth_weight(self.cfg.mapping.ba_depth_weight),
-                                          timestamp=kf.timestamp)
+                                          timestamp=kf.timestamp, yield_to=self.input_waiting)
         self.timings["mapping"] += time.perf_counter() - t0
         mapped = bool(st.get("mapped"))
         self.background_mark = self.mapper.background_iters     # a new allowance
@@ -768,15 +767,14 @@ class MapperRole:
     def wants_background(self) -> bool:
         """Live input (``mapping.time_budget``): steps left of ``mapping.background_steps``
         since the last mapped keyframe, until the final refinement. The node runs them
-        (:meth:`background`) while no input waits, and sets ``mapper.yield_to`` (via
-        ``input_waiting``): input that arrives cuts a keyframe's or the background's steps."""
+        (:meth:`background`) while no input waits, and sets ``input_waiting``: input that
+        arrives cuts a keyframe's or the background's steps."""
         m = self.mapper
         return (self.cfg.mapping.time_budget and m is not None and not self.finalized and
                 m.background_iters - self.background_mark < self.cfg.mapping.background_steps)
 
     def background(self, steps: int = 4) -> None:
-        self.mapper.yield_to = self.input_waiting
-        self.mapper.background(steps)
+        self.mapper.background(steps, self.input_waiting)
 
     def lacking(self) -> List[int]:
         """Keyframes whose revision in the depth stage's final digest this stage has not taken

@@ -369,14 +369,14 @@ def test_live_steps_yield_to_waiting_input_but_offline_steps_never_do():
     for live in (True, False):
         mp = _mapper(iters_first=12, iters_per_keyframe=10, min_iters_per_keyframe=2,
                      time_budget=live)
-        mp.yield_to = lambda: True                      # input always waiting
+        waiting = lambda: True                          # noqa: E731 (input always waiting)
         views = _views(2)
-        st0 = mp.add_keyframe(0, *views[0], force=True, timestamp=0.0)
-        st1 = mp.add_keyframe(1, *views[1], force=True, timestamp=1.0)
+        st0 = mp.add_keyframe(0, *views[0], force=True, timestamp=0.0, yield_to=waiting)
+        st1 = mp.add_keyframe(1, *views[1], force=True, timestamp=1.0, yield_to=waiting)
         assert st0["steps"] == 12
         assert st1["steps"] == (2 if live else 10), live
         if live:
-            assert mp.background(5) == 0                # yields at once: input first
-            mp.yield_to = lambda: False
-            assert mp.background(5) == 5 and mp.stats()["background_iterations"] == 5
+            assert mp.background(5, waiting) == 0       # yields at once: input first
+            assert mp.background(5, lambda: False) == 5
+            assert mp.stats()["background_iterations"] == 5
 

@@ -80,7 +80,6 @@ class Mapper:
         self.last_ms = 0.0
         self.skipped_iters = 0         # steps a wall-clock budget cut (mapping.time_budget)
         self.background_iters = 0      # steps between keyframes (live: mapping.background_steps)
-        self.yield_to: Optional[Callable[[], bool]] = None   # live: input waits -> stop steps
         self.refine_info: Dict[str, float] = {}   # the final refinement's steps (final_refine)
         self._last_mapped_ts: Optional[float] = None
         self.last_loss = float("nan")
@@ -178,12 +177,14 @@ class Mapper:
         return self.window.decide(vis, pose, med, poses)
 
     def add_keyframe(self, kf_id: int, image, pose, depth, valid=None,
-                     timestamp: Optional[float] = None, force: bool = False) -> dict:
+                     timestamp: Optional[float] = None, force: bool = False,
+                     yield_to: Optional[Callable[[], bool]] = None) -> dict:
         """Offer a tracker keyframe to the map. Returns statistics of this step.
 
         image (H,W,3) uint8 RGB; pose 4x4 camera-to-world; depth (H,W) float32 metres (proxy
         depth, 0 = missing); valid (H,W) bool, or float depth-loss weights in [0, 1] (0 = no
-        depth), or None. ``force`` maps it regardless of the covisibility rules."""
+        depth), or None. ``force`` maps it regardless of the covisibility rules; ``yield_to``
+        (live input) cuts the steps when input waits (not the first keyframe's)."""
         t0 = time.perf_counter()
         kf_id = int(kf_id)
         if kf_id in self.keyframes:
@@ -235,7 +236,8 @@ class Mapper:
 
         b = self.keyframe_budget(empty, kf.timestamp)
         done = self._optimize(b.steps, densify=True, progress=self.progress and b.steps >= 200,
-                              budget_s=b.wall_s, min_iters=b.min_steps, yielding=not empty)
+                              budget_s=b.wall_s, min_iters=b.min_steps,
+                              yield_to=None if empty else yield_to)
         stats.update({"steps": done, "steps_skipped": b.steps - done})
         self._last_mapped_ts = kf.timestamp
         n_vis_pruned = self._visibility_prune() if self._enough_views() else 0
@@ -307,10 +309,9 @@ class Mapper:
 
     def _optimize(self, iters: int, densify: bool = True, single_random: bool = False,
                   progress: bool = False, budget_s: float = 0.0, min_iters: int = 0,
-                  yielding: bool = False) -> int:
-        """Up to ``iters`` Adam steps; with ``budget_s`` > 0 it stops (after ``min_iters``)
-        before the next step would end past the budget; ``yielding`` on live input
-        (``mapping.time_budget``) as soon as ``yield_to()`` says input waits. Returns the steps run."""
+                  yield_to: Optional[Callable[[], bool]] = None) -> int:
+        """Up to ``iters`` Adam steps (returns the number run); after ``min_iters`` they stop
+        before one would end past ``budget_s`` (> 0) and, live, once ``yield_to()`` is true."""
         if iters <= 0 or len(self.map) == 0:
             return 0
         m = self.mcfg
@@ -326,8 +327,7 @@ class Mapper:
             if done == iters or (budget_s > 0 and done >= max(min_iters, 1)
                                  and spent * (done + 1) / done > budget_s):
                 break
-            if yielding and m.time_budget and done >= min_iters and self.yield_to is not None \
-                    and self.yield_to():
+            if yield_to is not None and m.time_budget and done >= min_iters and yield_to():
                 break
             views = self._pick_views(single_random)
             self.map.zero_grad()
@@ -596,10 +596,10 @@ class Mapper:
                                        None if valids is None else valids[i])
         return total
 
-    def background(self, iters: int) -> int:
+    def background(self, iters: int, yield_to: Optional[Callable[[], bool]] = None) -> int:
         """Live input, while no keyframe waits: ``iters`` more steps of the keyframe
-        optimisation (window + random views, densify / prune on schedule)."""
-        done = self._optimize(int(iters), densify=True, yielding=True) if self.keyframes else 0
+        optimisation (window + random views, densify / prune on schedule), cut by ``yield_to``."""
+        done = self._optimize(int(iters), densify=True, yield_to=yield_to) if self.keyframes else 0
         self.background_iters += done
         return done
 

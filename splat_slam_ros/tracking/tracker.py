@@ -459,11 +459,12 @@ class Tracker:
         if not fc.ok and not was_lost:
             # a large motion since the last tracked frame (skipped frames on live input, fast
             # motion): DIS again, pre-warped by the flow the constant-velocity pose induces
-            T_p = predict_pose(self.last_pose, self.velocity, self._spacing, frame.index)
             if self._spacing[0] is None and len(self.window) > 1:   # no step since init / loss
                 a, b = self.kfs[self.window[-2]], self.kfs[self.window[-1]]   # keyframes' motion
                 T_p = predict_pose(b.pose, se3_inverse(a.pose) @ b.pose,
                                    (a.frame_index, b.frame_index), frame.index)
+            else:
+                T_p = predict_pose(self.last_pose, self.velocity, self._spacing, frame.index)
             init = self._induced(self.kfs[ref].pose, self.kfs[ref].disp, T_p)
             fl = self._flows(self.kfs[ref].prep, prep, init)
             fc_p = self.motion.check(fl[0], fl[1])
