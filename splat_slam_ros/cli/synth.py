@@ -6,8 +6,19 @@ import sys
 from typing import List, Optional
 
 from splat_slam_ros.cli.common import run_main
+from splat_slam_ros.io.synth.options import REALISM_PRESETS, SCENES
+
+
+def _scene_lines() -> str:
+    import textwrap
+    return "\n".join(textwrap.fill(desc, 92, initial_indent=f"  {name:<13}",
+                                    subsequent_indent=" " * 15) for name, desc in SCENES.items())
+
 
 EPILOG = """\
+scenes (--scene NAME; for one seed and trajectory all but deep share the room's size):
+""" + _scene_lines() + """
+
 output (TUM RGB-D layout):
   OUT/rgb/<t>.png, OUT/depth/<t>.png (uint16, 5000 per metre, 0 = beyond 13.1 m),
   OUT/rgb.txt, OUT/depth.txt, OUT/groundtruth.txt (camera-to-world, the exact pose each
@@ -20,6 +31,7 @@ examples:
   splat-slam-synth --trajectory ../shared/data/trajectories/fr2_desk_groundtruth.txt \\
       --frames 1500 --start 47 --realism realistic --out synth/fr2_desk_real
   splat-slam-synth --trajectory builtin --frames 90 --size 320x240 --noise 3 --out synth/tiny
+  splat-slam-synth --frames 300 --scene repetitive --realism harsh --seed 3 --out synth/rep_harsh
 """
 
 
@@ -58,6 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--textures", default=None, metavar="DIR",
                    help="folder of .png/.jpg images used as wall/box textures (e.g. real photos); "
                         "default: procedural textures (wood, tiles, bricks, posters, fabric...)")
+    c.add_argument("--scene", default=None, metavar="NAME",
+                   help="scene variant: " + ", ".join(SCENES) + " (default room; each is "
+                        "described under 'scenes' below)")
     c.add_argument("--seed", type=int, default=0, help="scene, texture and noise seed (default 0)")
     c.add_argument("--up", default=None, choices=["+x", "-x", "+y", "-y", "+z", "-z"],
                    help="world up axis for the room (default: +z for TUM/EuRoC/builtin, -y for "
@@ -70,9 +85,11 @@ def build_parser() -> argparse.ArgumentParser:
     r = p.add_argument_group(
         "camera realism (RGB only; depth and poses stay exact)",
         "Each effect is off by default; --realism realistic turns on a sensible mix "
-        "(motion blur 5 x 15 ms, auto-exposure 0.08, vignetting 0.25, noise 2, JPEG 90). "
+        "(motion blur 5 x 15 ms, auto-exposure 0.08, vignetting 0.25, noise 2, JPEG 90), "
+        "--realism harsh a much stronger one (motion blur 7 x 20 ms, auto-exposure 0.25, "
+        "vignetting 0.5, noise 4, JPEG 75, rolling shutter 20 ms). "
         "Explicit options override the preset.")
-    r.add_argument("--realism", default=None, choices=["clean", "realistic"],
+    r.add_argument("--realism", default=None, choices=list(REALISM_PRESETS),
                    help="preset (default clean)")
     r.add_argument("--motion-blur", type=int, default=None, metavar="K",
                    help="average K sub-exposure renders spread over --exposure before each frame "
@@ -92,6 +109,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--jpeg", type=int, default=None, metavar="Q",
                    help="JPEG-compress and decompress each frame at quality Q (1-100) before "
                         "saving it as PNG")
+    r.add_argument("--rolling-shutter", dest="rolling_shutter_ms", type=float, default=None,
+                   metavar="MS",
+                   help="rolling-shutter readout time from the top to the bottom row in "
+                        "milliseconds (0 = global shutter, the default; at most the frame "
+                        "period): row r is read out MS*(1 - r/(H-1)) before the frame stamp, so "
+                        "the bottom row is at the stamp and its ground-truth pose; rendered in "
+                        "row bands <= 0.5 ms apart, each with its --motion-blur sub-exposures")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -108,7 +132,8 @@ def main(argv: Optional[List[str]] = None) -> int:
             intrinsics=args.intrinsics, up=args.up, realism=args.realism,
             motion_blur=args.motion_blur, exposure_ms=args.exposure_ms,
             auto_exposure=args.auto_exposure, vignetting=args.vignetting, noise=args.noise,
-            jpeg=args.jpeg, device=args.device, overwrite=args.overwrite, threads=args.threads or None,
+            jpeg=args.jpeg, rolling_shutter_ms=args.rolling_shutter_ms, scene=args.scene,
+            device=args.device, overwrite=args.overwrite, threads=args.threads or None,
             progress=not args.quiet, stats=stats)
         w, h = stats["size"]
         print(f"wrote {stats['frames']} frames {w}x{h} to {out} "

@@ -10,8 +10,11 @@ and writes::
     OUT/groundtruth.txt (TUM, camera-to-world, the exact pose each frame was rendered with)
     OUT/intrinsics.yaml (Intrinsics.to_yaml + depth_scale, fps, generation record)
 
-Camera realism (motion blur, auto-exposure drift, vignetting, shot/read noise, JPEG) is
-applied to RGB only; depth stays clean for evaluation.
+``scene`` picks the content (``SCENES``): the default furnished ``room`` or a variant made
+to stress flow / depth (``low_texture``, ``tiled``, ``repetitive``, ``thin``, ``deep``; see
+the ``variants`` module). Camera realism (motion blur, rolling shutter, auto-exposure drift,
+vignetting, shot/read noise, JPEG; presets ``realistic`` and ``harsh``) is applied to RGB
+only; depth stays clean for evaluation.
 
 Conventions follow ``types.py``: poses camera-to-world, OpenCV camera axes (x right,
 y down, z forward), pixel centres at integer coordinates. Internally the scene lives in a
@@ -20,24 +23,28 @@ world points into it.
 
 Modules: ``options`` (constants, errors, realism settings), ``trajectories`` (built-in path,
 file loading, interpolation), ``textures``, ``scene`` (room + boxes fitted to a trajectory),
+``variants`` (the other scenes),
 ``render`` (ray casting), ``camera`` (photometric effects) and ``sequence`` (plan + write).
 """
 from splat_slam_ros.io.synth.camera import CameraEffects
-from splat_slam_ros.io.synth.options import (DEPTH_SCALE, GAP_WARN_S, REALISM_PRESETS, TEX_LEVELS,
-                                            TEX_SIZE, RealismOptions, SynthError,
-                                            default_intrinsics, parse_size, resolve_realism)
+from splat_slam_ros.io.synth.options import (DEPTH_SCALE, GAP_WARN_S, REALISM_PRESETS, SCENES,
+                                            TEX_LEVELS, TEX_SIZE, RealismOptions, SynthError,
+                                            check_scene, default_intrinsics, parse_size,
+                                            resolve_realism)
 from splat_slam_ros.io.synth.render import render_frame
-from splat_slam_ros.io.synth.scene import Scene, build_scene, make_scene
+from splat_slam_ros.io.synth.scene import Scene, make_scene
+from splat_slam_ros.io.synth.variants import build_scene
 from splat_slam_ros.io.synth.sequence import (SequencePlan, depth_to_png16, generate_sequence,
-                                             plan_sequence)
+                                             plan_sequence, rolling_shutter_bands)
 from splat_slam_ros.io.synth.textures import PROCEDURAL, procedural_texture
 from splat_slam_ros.io.synth.trajectories import (PoseInterpolator, builtin_trajectory, estimate_up,
                                                  frame_stamps, load_trajectory)
 
 __all__ = [
     "CameraEffects", "DEPTH_SCALE", "GAP_WARN_S", "REALISM_PRESETS", "TEX_LEVELS", "TEX_SIZE",
-    "RealismOptions", "SynthError", "default_intrinsics", "parse_size", "resolve_realism",
-    "render_frame", "Scene", "build_scene", "make_scene", "SequencePlan", "depth_to_png16",
-    "generate_sequence", "plan_sequence", "PROCEDURAL", "procedural_texture", "PoseInterpolator",
+    "RealismOptions", "SCENES", "SynthError", "check_scene", "default_intrinsics", "parse_size",
+    "resolve_realism", "render_frame", "Scene", "build_scene", "make_scene", "SequencePlan",
+    "depth_to_png16", "generate_sequence", "plan_sequence", "rolling_shutter_bands",
+    "PROCEDURAL", "procedural_texture", "PoseInterpolator",
     "builtin_trajectory", "estimate_up", "frame_stamps", "load_trajectory",
 ]

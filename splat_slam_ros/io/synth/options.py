@@ -29,15 +29,30 @@ class RealismOptions:
     vignetting: float = 0.0       # brightness loss in the image corners (0.3 = -30 %)
     noise: float = 0.0            # noise std at mid-grey, 8-bit units (shot + read)
     jpeg: int = 0                 # JPEG quality 1..100 (0 = off)
+    rolling_shutter_ms: float = 0.0   # readout time from the top to the bottom row (0 = off)
 
-    def validate(self, fps: float) -> "RealismOptions":
+    def validate(self, fps: float, preset: Optional[str] = None) -> "RealismOptions":
+        """Range checks (SynthError); ``preset`` names the --realism preset in the messages
+        about values that depend on the frame rate."""
         if int(self.motion_blur) != self.motion_blur or not 1 <= self.motion_blur <= 64:
             raise SynthError(f"--motion-blur must be an integer in 1..64, got {self.motion_blur}")
         self.motion_blur = int(self.motion_blur)
         frame_ms = 1000.0 / fps
+
+        def hint(key: str) -> str:
+            ref = REALISM_PRESETS.get(preset or "clean")
+            if preset and ref is not None and getattr(ref, key) == getattr(self, key):
+                return f" (set by --realism {preset}; give the option to override it)"
+            return ""
         if not 0.0 < self.exposure_ms <= frame_ms + 1e-9:
             raise SynthError(f"--exposure must be in (0, {frame_ms:.3g}] ms (the frame period at "
-                             f"{fps:g} fps), got {self.exposure_ms:g}")
+                             f"{fps:g} fps), got {self.exposure_ms:g}{hint('exposure_ms')}")
+        rs = self.rolling_shutter_ms
+        if not (math.isfinite(rs) and 0.0 <= rs <= frame_ms + 1e-9):
+            raise SynthError(f"--rolling-shutter must be in [0, {frame_ms:.3g}] ms (0 = off, at "
+                             f"most the frame period at {fps:g} fps), got {rs:g}"
+                             f"{hint('rolling_shutter_ms')}")
+        self.rolling_shutter_ms = float(rs)
         if not 0.0 <= self.auto_exposure <= 0.9:
             raise SynthError(f"--auto-exposure must be in [0, 0.9], got {self.auto_exposure:g}")
         if not 0.0 <= self.vignetting < 1.0:
@@ -52,7 +67,7 @@ class RealismOptions:
     @property
     def any(self) -> bool:
         return (self.motion_blur > 1 or self.auto_exposure > 0 or self.vignetting > 0
-                or self.noise > 0 or self.jpeg > 0)
+                or self.noise > 0 or self.jpeg > 0 or self.rolling_shutter_ms > 0)
 
 
 REALISM_PRESETS: Dict[str, RealismOptions] = {
@@ -61,7 +76,37 @@ REALISM_PRESETS: Dict[str, RealismOptions] = {
     # sensor noise and light JPEG artefacts (the TUM Kinect streams were compressed too).
     "realistic": RealismOptions(motion_blur=5, exposure_ms=15.0, auto_exposure=0.08,
                                 vignetting=0.25, noise=2.0, jpeg=90),
+    # A cheap webcam / phone in a dim room moved fast: long blur, strong AE pumping, heavy
+    # vignetting and noise, visible JPEG blocks and a rolling-shutter skew.
+    "harsh": RealismOptions(motion_blur=7, exposure_ms=20.0, auto_exposure=0.25,
+                            vignetting=0.5, noise=4.0, jpeg=75, rolling_shutter_ms=20.0),
 }
+
+# Scene variants of the generator (--scene): name -> one-line description. "room" is the
+# original furnished room; the others stress optical flow / depth in one way each.
+SCENES: Dict[str, str] = {
+    "room": "furnished room: mixed procedural textures, 8-32 furniture-like boxes (default)",
+    "low_texture": "plain low-contrast paint on walls, floor, ceiling and the 0-2 boxes: "
+                   "little for optical flow to lock on to",
+    "tiled": "textures stretched to a low texel density (blurry) on some surfaces and small "
+             "repeating tiles (a tile every 12-30 cm) on the others",
+    "repetitive": "strictly periodic checkerboards, stripes, grids and bricks on most "
+                  "surfaces: aliasing / wrong matches for flow",
+    "thin": "the room plus thin structures (poles, shelf boards, tables with 4 cm legs) in "
+            "front of the walls, away from the camera path",
+    "deep": "a hall along the main viewing direction, its far wall 10-18 m beyond the camera "
+            "path (for cameras looking down the floor is lowered so that the mean view ray "
+            "runs as far), with near boxes 0.5-1.5 m from the path (depth PNGs store 0 beyond "
+            "13.1 m)",
+}
+
+
+def check_scene(name: Optional[str]) -> str:
+    """The scene variant name (None -> 'room'); SynthError when unknown."""
+    name = "room" if name is None else name
+    if not isinstance(name, str) or name not in SCENES:
+        raise SynthError(f"unknown --scene '{name}' (use one of {', '.join(SCENES)})")
+    return name
 
 
 def parse_size(size) -> Tuple[int, int]:
@@ -98,7 +143,8 @@ def default_intrinsics(width: int, height: int, fov_deg: Optional[float] = None)
 
 
 def resolve_realism(realism: Optional[str] = None, **overrides) -> RealismOptions:
-    """Preset (``clean`` | ``realistic``) with explicit options (not None) on top."""
+    """Preset (``clean`` | ``realistic`` | ``harsh``) with explicit options (not None) on
+    top."""
     name = realism or "clean"
     if name not in REALISM_PRESETS:
         raise SynthError(f"unknown --realism '{name}' (use one of {sorted(REALISM_PRESETS)})")

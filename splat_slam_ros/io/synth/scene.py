@@ -324,17 +324,9 @@ def _shrink_clear(b_lo, b_hi, allp: np.ndarray, clearance: float) -> bool:
     return False
 
 
-def build_scene(poses: np.ndarray, *, seed: int = 0, textures=None, up=None, fmt=None,
-                positions: Optional[np.ndarray] = None, clearance: float = 0.5,
-                n_boxes: Optional[int] = None) -> Scene:
-    """Fit a room with furniture-like boxes around camera-to-world ``poses`` (world frame).
-
-    All camera positions (``poses`` plus the optional dense ``positions``, e.g. the whole
-    exposure windows) lie inside the room with >= 1.1 m margin, and every box keeps
-    ``clearance`` metres from every position. Boxes are placed around points the cameras
-    look at (0.9-3.2 m along central view rays), so they give parallax and occlusion.
-    """
-    rng = np.random.default_rng([int(seed), 5])
+def _fit_context(poses, up, fmt, positions):
+    """(unit world up, T_room_world, room-frame camera positions, every position the camera
+    passes through (room frame), room-from-camera rotations)."""
     P = np.asarray(poses, float)
     up_v, T_rw = _room_frame(P, up, fmt)
     R_rw = T_rw[:3, :3]
@@ -342,38 +334,86 @@ def build_scene(poses: np.ndarray, *, seed: int = 0, textures=None, up=None, fmt
     allp = cams if positions is None else np.concatenate(
         [cams, np.asarray(positions, float).reshape(-1, 3) @ R_rw.T + T_rw[:3, 3]], 0)
     R_rc = np.einsum("ij,njk->nik", R_rw, P[:, :3, :3])
+    return up_v, T_rw, cams, allp, R_rc
+
+
+def _room_reach(rng, kind: str, tw: float) -> Optional[float]:
+    """Distance along a view ray (wall at ``tw``) at which a box of ``kind`` is placed; None
+    to skip the ray: cabinets stand at the wall, the rest 0.9-3.2 m away."""
+    if kind == "cabinet":
+        return tw - 0.05
+    s = min(max(rng.uniform(0.35, 0.85) * tw, 0.9), 3.2, tw - 0.4)
+    return None if s < 0.9 else s
+
+
+def _overlaps(b_lo, b_hi, blo, bhi) -> bool:
+    return any(np.all(b_lo < h - 1e-3) and np.all(b_hi > l + 1e-3) for l, h in zip(blo, bhi))
+
+
+def _place_boxes(rng, cams, R_rc, allp, room_lo, room_hi, n: int, clearance: float,
+                 blo: List[np.ndarray], bhi: List[np.ndarray], kinds: List[str], *,
+                 kind_names=("furniture", "cabinet", "object"), kind_p=(0.45, 0.2, 0.35),
+                 reach=_room_reach, accept=None) -> int:
+    """Append up to ``n`` boxes (to ``blo``, ``bhi``, ``kinds``) around points the cameras
+    look at: a random camera, a ray in its central field of view, a point ``reach`` along
+    it. Every box keeps ``clearance`` from every position in ``allp``; boxes never
+    interpenetrate; ``accept(lo, hi)`` (optional) can veto a box. Returns how many were
+    added."""
+    added = tries = 0
+    while added < n and tries < 60 * max(n, 1):
+        tries += 1
+        i = int(rng.integers(len(cams)))
+        o = cams[i]
+        d = R_rc[i] @ np.array([rng.uniform(-0.45, 0.45), rng.uniform(-0.34, 0.34), 1.0])
+        d /= np.linalg.norm(d)
+        tw = _exit_dist(room_lo, room_hi, o, d)
+        kind = str(rng.choice(list(kind_names), p=list(kind_p)))
+        s = reach(rng, kind, tw)
+        if s is None:
+            continue
+        b_lo, b_hi = _box_at(rng, o + s * d, kind, room_lo, room_hi, blo, bhi)
+        if not _shrink_clear(b_lo, b_hi, allp, clearance):
+            continue
+        if _overlaps(b_lo, b_hi, blo, bhi):
+            continue                           # no interpenetrating boxes
+        if accept is not None and not accept(b_lo, b_hi):
+            continue
+        blo.append(b_lo)
+        bhi.append(b_hi)
+        kinds.append(kind)
+        added += 1
+    return added
+
+
+def _scene_info(name: str, up_v, kinds: List[str], allp, blo, bhi) -> Dict:
+    return {"name": name, "up_world": [float(x) for x in up_v],
+            "box_kinds": {k: kinds.count(k) for k in sorted(set(kinds))},
+            "min_camera_box_distance_m": round(float(min(
+                [_point_box_distance(allp, l, h).min() for l, h in zip(blo, bhi)] or [np.inf])),
+                3)}
+
+
+def build_room(poses: np.ndarray, *, seed: int = 0, textures=None, up=None, fmt=None,
+               positions: Optional[np.ndarray] = None, clearance: float = 0.5,
+               n_boxes: Optional[int] = None) -> Scene:
+    """Fit a room with furniture-like boxes around camera-to-world ``poses`` (world frame):
+    the default scene (``variants.build_scene`` picks the others).
+
+    All camera positions (``poses`` plus the optional dense ``positions``, e.g. the whole
+    exposure windows) lie inside the room with >= 1.1 m margin, and every box keeps
+    ``clearance`` metres from every position. Boxes are placed around points the cameras
+    look at (0.9-3.2 m along central view rays), so they give parallax and occlusion.
+    """
+    name = "room"
+    rng = np.random.default_rng([int(seed), 5])
+    up_v, T_rw, cams, allp, R_rc = _fit_context(poses, up, fmt, positions)
     room_lo, room_hi = _fit_room(rng, allp)
     area = float(np.prod(room_hi[:2] - room_lo[:2]))
     target = int(np.clip(area / 2.0 + 6, 8, 32)) if n_boxes is None else int(n_boxes)
     blo: List[np.ndarray] = []
     bhi: List[np.ndarray] = []
     kinds: List[str] = []
-    tries = 0
-    while len(blo) < target and tries < 60 * max(target, 1):
-        tries += 1
-        i = int(rng.integers(len(P)))
-        o = cams[i]
-        d = R_rc[i] @ np.array([rng.uniform(-0.45, 0.45), rng.uniform(-0.34, 0.34), 1.0])
-        d /= np.linalg.norm(d)
-        tw = _exit_dist(room_lo, room_hi, o, d)
-        kind = str(rng.choice(["furniture", "cabinet", "object"], p=[0.45, 0.2, 0.35]))
-        if kind == "cabinet":
-            s = tw - 0.05
-        else:
-            s = min(max(rng.uniform(0.35, 0.85) * tw, 0.9), 3.2, tw - 0.4)
-            if s < 0.9:
-                continue
-        b_lo, b_hi = _box_at(rng, o + s * d, kind, room_lo, room_hi, blo, bhi)
-        if not _shrink_clear(b_lo, b_hi, allp, clearance):
-            continue
-        if any(np.all(b_lo < h - 1e-3) and np.all(b_hi > l + 1e-3) for l, h in zip(blo, bhi)):
-            continue                           # no interpenetrating boxes
-        blo.append(b_lo)
-        bhi.append(b_hi)
-        kinds.append(kind)
-    info = {"up_world": [float(x) for x in up_v], "box_kinds": {k: kinds.count(k) for k in
-                                                                 sorted(set(kinds))},
-            "min_camera_box_distance_m": round(float(min(
-                [_point_box_distance(allp, l, h).min() for l, h in zip(blo, bhi)] or [np.inf])), 3)}
+    _place_boxes(rng, cams, R_rc, allp, room_lo, room_hi, target, clearance, blo, bhi, kinds)
     return make_scene(room_lo, room_hi, np.array(blo).reshape(-1, 3), np.array(bhi).reshape(-1, 3),
-                      seed=seed, T_room_world=T_rw, textures=textures, info=info)
+                      seed=seed, T_room_world=T_rw, textures=textures,
+                      info=_scene_info(name, up_v, kinds, allp, blo, bhi))

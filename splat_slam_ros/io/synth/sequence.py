@@ -1,10 +1,11 @@
 """Planning and writing a synthetic TUM-layout RGB-D sequence (see the package docstring)."""
 from __future__ import annotations
 
+import math
 import shutil
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
@@ -15,9 +16,11 @@ from tqdm import tqdm
 
 from splat_slam_ros.io.synth.camera import CameraEffects
 from splat_slam_ros.io.synth.options import (DEPTH_SCALE, GAP_WARN_S, RealismOptions, SynthError,
-                                            default_intrinsics, parse_size, resolve_realism)
+                                            check_scene, default_intrinsics, parse_size,
+                                            resolve_realism)
 from splat_slam_ros.io.synth.render import render_view
-from splat_slam_ros.io.synth.scene import Scene, build_scene
+from splat_slam_ros.io.synth.scene import Scene
+from splat_slam_ros.io.synth.variants import build_scene
 from splat_slam_ros.io.synth.trajectories import PoseInterpolator, frame_stamps, load_trajectory
 from splat_slam_ros.io.trajectory_io import write_tum
 from splat_slam_ros.runtime import DeviceError, limit_threads, resolve_device
@@ -64,12 +67,15 @@ class SequencePlan:
 
     def render(self, k: int, effects: Optional["CameraEffects"] = None
                ) -> Tuple[np.ndarray, np.ndarray]:
-        """Frame ``k`` exactly as written: (rgb uint8 with the realism effects, clean depth)."""
+        """Frame ``k`` exactly as written: (rgb uint8 with the realism effects, clean depth).
+        Depth is always the global-shutter view at the frame's pose (the ground truth)."""
         effects = effects or CameraEffects(self.realism, self.intrinsics, self.seed)
         with torch.no_grad():
             rgb, depth = render_view(self.scene, self.poses[k], self.intrinsics, self.device)
             n_sub = self.realism.motion_blur
-            if n_sub > 1:   # sub-exposures over [t - E, t]; the last one is the frame's pose
+            if self.realism.rolling_shutter_ms > 0:
+                rgb = self._render_rolling(k)
+            elif n_sub > 1:   # sub-exposures over [t - E, t]; the last one is the frame's pose
                 E = self.realism.exposure_ms * 1e-3
                 sub_t = self.stamps[k] - E * (1.0 - np.arange(n_sub - 1) / (n_sub - 1))
                 acc = rgb.clone()
@@ -79,12 +85,46 @@ class SequencePlan:
         img = effects(rgb.cpu().numpy(), k, float(self.stamps[k] - self.stamps[0]))
         return img, depth.cpu().numpy().astype(np.float32)
 
+    def _render_rolling(self, k: int) -> torch.Tensor:
+        """Rolling-shutter RGB of frame ``k``: each row band rendered (with its motion-blur
+        sub-exposures) at the readout time of its centre row (:func:`rolling_shutter_bands`)."""
+        K, ro = self.intrinsics, self.realism
+        out = torch.empty((K.height, K.width, 3), dtype=torch.float32,
+                          device=torch.device(self.device))
+        n_sub, E = ro.motion_blur, ro.exposure_ms * 1e-3
+        for r0, r1, dt in rolling_shutter_bands(K.height, ro.rolling_shutter_ms):
+            t_row = self.stamps[k] - dt
+            sub_t = np.array([t_row]) if n_sub == 1 else \
+                t_row - E * (1.0 - np.arange(n_sub) / (n_sub - 1))
+            Kb = replace(K, cy=K.cy - r0, height=r1 - r0)     # the band's rows only
+            acc = None
+            for T_sub in self.interpolator(sub_t):
+                x = render_view(self.scene, T_sub, Kb, self.device)[0]
+                acc = x if acc is None else acc + x
+            out[r0:r1] = acc / n_sub
+        return out
+
     def frames(self, n: Optional[int] = None) -> List[Frame]:
         """The first ``n`` frames (all by default) rendered in memory as the tracker's input:
         :class:`Frame` (index, stamp, the RGB image exactly as written, intrinsics)."""
         effects = CameraEffects(self.realism, self.intrinsics, self.seed)
         return [Frame(k, float(self.stamps[k]), self.render(k, effects)[0], self.intrinsics)
                 for k in range(len(self.stamps) if n is None else n)]
+
+
+def rolling_shutter_bands(height: int, readout_ms: float, max_step_ms: float = 0.5
+                          ) -> List[Tuple[int, int, float]]:
+    """Row bands of a rolling-shutter frame: (first row, end row, seconds before the frame
+    stamp). Convention: row ``r`` is read out (its exposure ends) ``readout * (1 - r/(H-1))``
+    before the stamp, so the top row at ``stamp - readout`` and the bottom row at the stamp
+    (the ground-truth pose); each band is rendered at the time of its centre row, with bands
+    at most ``max_step_ms`` of readout apart (and one row at least)."""
+    H = int(height)
+    n = int(min(H, max(2, math.ceil(readout_ms / max_step_ms))))
+    edges = np.round(np.linspace(0, H, n + 1)).astype(int)
+    span = max(H - 1, 1)
+    return [(int(a), int(b), readout_ms * 1e-3 * (1.0 - 0.5 * (a + b - 1) / span))
+            for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
 def _resolve_intrinsics(size, intrinsics, fov) -> Intrinsics:
@@ -117,7 +157,8 @@ def plan_sequence(trajectory, frames: int, size="640x480", *, fps: float = 30.0,
                   realism: Optional[str] = None, motion_blur: Optional[int] = None,
                   exposure_ms: Optional[float] = None, auto_exposure: Optional[float] = None,
                   vignetting: Optional[float] = None, noise: Optional[float] = None,
-                  jpeg: Optional[int] = None, device: str = "cpu",
+                  jpeg: Optional[int] = None, rolling_shutter_ms: Optional[float] = None,
+                  scene: Optional[str] = None, device: str = "cpu",
                   warn: bool = True) -> SequencePlan:
     """Validate the options, sample the frame stamps and poses, fit the scene (no rendering).
     Same options as :func:`generate_sequence`."""
@@ -131,10 +172,12 @@ def plan_sequence(trajectory, frames: int, size="640x480", *, fps: float = 30.0,
     if not (isinstance(fps, (int, float)) and 0 < fps <= 1000):
         raise SynthError(f"--fps must be in (0, 1000], got {fps}")
     fps = float(fps)
+    scene_name = check_scene(scene)
     K = _resolve_intrinsics(size, intrinsics, fov)
     ropts = resolve_realism(realism, motion_blur=motion_blur, exposure_ms=exposure_ms,
                             auto_exposure=auto_exposure, vignetting=vignetting, noise=noise,
-                            jpeg=jpeg).validate(fps)
+                            jpeg=jpeg, rolling_shutter_ms=rolling_shutter_ms
+                            ).validate(fps, realism)
     ts, P, fmt_used = load_trajectory(trajectory, fmt=fmt, kitti_dt=kitti_dt,
                                       min_duration=start + frames / fps + 1.0, seed=seed)
     interp = PoseInterpolator(ts, P)
@@ -149,9 +192,12 @@ def plan_sequence(trajectory, frames: int, size="640x480", *, fps: float = 30.0,
               f"linearly across the gap. The longest gap-free stretch is {a:.1f}-{b:.1f} s "
               f"(--start {a:.1f}, at most {int((b - a) * fps) + 1} frames)", file=sys.stderr)
     # every position the camera passes through, exposure windows included, stays clear of boxes
-    dense = interp.positions_between(max(stamps[0] - 1.0 / fps, interp.t_start), stamps[-1])
+    lead = 1.0 / fps
+    if ropts.rolling_shutter_ms > 0:     # the top rows are exposed up to readout + E earlier
+        lead = max(lead, (ropts.rolling_shutter_ms + ropts.exposure_ms) * 1e-3)
+    dense = interp.positions_between(max(stamps[0] - lead, interp.t_start), stamps[-1])
     scene = build_scene(poses, seed=seed, textures=textures, up=up, fmt=fmt_used,
-                        positions=dense)
+                        positions=dense, scene=scene_name)
     src = "array" if isinstance(trajectory, (tuple, list)) else str(trajectory)
     record = {
         "tool": "splat-slam-synth", "trajectory": src, "trajectory_format": fmt_used,
@@ -181,8 +227,11 @@ def generate_sequence(trajectory, frames: int, size="640x480", out=None, *,
     stamp + ``start`` seconds (poses interpolated: linear translation, SLERP rotation).
     ``size``: ``'WxH'`` or (W, H); None with ``intrinsics`` (YAML path or Intrinsics) keeps
     the file's size. Other options (see :func:`plan_sequence`): fps, start, fmt, kitti_dt,
-    seed, textures, fov, intrinsics, up, realism ('clean' | 'realistic'), motion_blur,
-    exposure_ms, auto_exposure, vignetting, noise, jpeg, device ('cpu' | 'cuda' | 'auto').
+    seed, textures, fov, intrinsics, up, scene (``options.SCENES``: 'room' (default),
+    'low_texture', 'tiled', 'repetitive', 'thin', 'deep'), realism ('clean' | 'realistic' |
+    'harsh'), motion_blur, exposure_ms, auto_exposure, vignetting, noise, jpeg,
+    rolling_shutter_ms (row readout time, see :func:`rolling_shutter_bands`), device
+    ('cpu' | 'cuda' | 'auto').
     ``threads``: torch/OpenCV CPU threads while rendering (1 by default: fastest on a shared
     2-core machine; None = leave torch's setting). ``stats`` (a dict) receives timings.
     """

@@ -239,10 +239,65 @@ def tex_whiteboard(rng, S):
     return img
 
 
+# ---- textures of the scene variants (--scene low_texture / repetitive)
+def tex_paint(rng, S):
+    """Plain matt paint: one colour with very faint large-scale mottling (~1 %)."""
+    c = _color(rng, sat=(0.02, 0.2), val=(0.6, 0.85))
+    n = 0.008 * _noise(rng, S, 1, 4) + 0.004 * _noise(rng, S, 4, 16)
+    return c[None, None] * (1 + n[..., None])
+
+
+def _two_tone(rng, pat: np.ndarray, S: int) -> np.ndarray:
+    """Blend two contrasting colours by the pattern ``pat`` in [0, 1], faint grime on top."""
+    c1 = _color(rng, sat=(0.0, 0.5), val=(0.7, 0.92))
+    c2 = c1 * rng.uniform(0.25, 0.45)
+    img = c1[None, None] * (1 - pat[..., None]) + c2[None, None] * pat[..., None]
+    return img * (1 + 0.015 * _fbm(rng, S)[..., None])
+
+
+def tex_checker(rng, S):
+    """A regular checkerboard of 8 or 16 squares per tile side."""
+    p = S // int(rng.choice([8, 16]))
+    y, x = np.mgrid[0:S, 0:S]
+    pat = cv2.GaussianBlur(((y // p + x // p) % 2).astype(np.float32), (0, 0), 0.8)
+    return _two_tone(rng, pat, S)
+
+
+def tex_stripes(rng, S):
+    """Sharp regular stripes (8, 16 or 32 per tile), vertical or horizontal."""
+    p = S // int(rng.choice([8, 16, 32]))
+    y, x = np.mgrid[0:S, 0:S]
+    coord = x if rng.uniform() < 0.5 else y
+    pat = cv2.GaussianBlur(((coord % p) < p // 2).astype(np.float32), (0, 0), 0.8)
+    return _two_tone(rng, pat, S)
+
+
+def tex_grid(rng, S):
+    """Dark grid lines (8 or 16 cells per tile side) on a plain background."""
+    p = S // int(rng.choice([8, 16]))
+    w = max(2, p // int(rng.integers(5, 9)))
+    y, x = np.mgrid[0:S, 0:S]
+    pat = cv2.GaussianBlur((((y % p) < w) | ((x % p) < w)).astype(np.float32), (0, 0), 0.8)
+    return _two_tone(rng, pat, S)
+
+
+def tex_brickwork(rng, S):
+    """Identical bricks in running bond (16 rows x 4 per tile): no per-brick tone change."""
+    bh, bw = S // 16, S // 4
+    y, x = np.mgrid[0:S, 0:S]
+    xs = (x + ((y // bh) % 2) * (bw // 2)) % S
+    pat = cv2.GaussianBlur((((y % bh) < 4) | ((xs % bw) < 4)).astype(np.float32), (0, 0), 0.8)
+    base = _color(rng, sat=(0.4, 0.65), val=(0.4, 0.6), hue=rng.uniform(0.0, 0.08))
+    img = base[None, None] * (1 - pat[..., None]) + np.float32(0.8) * pat[..., None]
+    return img * (1 + 0.015 * _fbm(rng, S)[..., None])
+
+
 PROCEDURAL = {"plaster": tex_plaster, "wallpaper": tex_wallpaper, "wood": tex_wood,
               "tiles": tex_tiles, "bricks": tex_bricks, "carpet": tex_carpet,
               "fabric": tex_fabric, "clutter": tex_clutter, "granite": tex_granite,
-              "whiteboard": tex_whiteboard}
+              "whiteboard": tex_whiteboard, "paint": tex_paint, "checker": tex_checker,
+              "stripes": tex_stripes, "grid": tex_grid, "brickwork": tex_brickwork}
+PERIODIC = ("checker", "stripes", "grid", "brickwork")   # strictly periodic kinds
 
 
 def to_u8(img: np.ndarray) -> np.ndarray:
