@@ -121,6 +121,12 @@ def rotation_trajectory(path: Path) -> None:
     _write_poses(path, t, pos, look)
 
 
+def tool(name: str) -> str:
+    """The console script ``name`` of this interpreter's environment (else from PATH)."""
+    exe = Path(sys.executable).with_name(name)
+    return str(exe) if exe.exists() else name
+
+
 def ensure_sequence(data_dir: Path, c: dict) -> Path:
     out = data_dir / c["folder"]
     if (out / "groundtruth.txt").is_file() and (out / "intrinsics.yaml").is_file() and \
@@ -134,8 +140,7 @@ def ensure_sequence(data_dir: Path, c: dict) -> Path:
         tfile = SHARED / traj
         if not tfile.is_file():
             sys.exit(f"error: trajectory {tfile} not found (needs ../shared/data)")
-    synth = Path(sys.executable).with_name("splat-slam-synth")
-    cmd = [str(synth) if synth.exists() else "splat-slam-synth", "--trajectory", str(tfile),
+    cmd = [tool("splat-slam-synth"), "--trajectory", str(tfile),
            "--frames", str(c["frames"]), "--fps", str(c["fps"]), "--start", str(c["start"]),
            "--size", "640x480", "--out", str(out), "--overwrite", *c["realism"]]
     print("rendering:", " ".join(cmd), flush=True)
@@ -152,7 +157,7 @@ def run_child(args) -> None:
     bound_heap()
     from splat_slam_ros.config import load_config
     from splat_slam_ros.io.datasets import open_dataset
-    from splat_slam_ros.evaluation import ate
+    from splat_slam_ros.evaluation import MetricError, ate, segment_scales
     from splat_slam_ros.coordinator import track_sequence
     t_import = time.perf_counter() - t0
     overrides = {}
@@ -181,15 +186,25 @@ def run_child(args) -> None:
         prof.disable()
     res.timings["decode"] = dec["decode"]
     gt_ts, gt = ds.gt_trajectory()
-    full = ate(gt_ts, gt, res.timestamps, res.poses)
-    kf = ate(gt_ts, gt, res.kf_timestamps, res.kf_poses)
+    try:
+        full = ate(gt_ts, gt, res.timestamps, res.poses)
+        kf = ate(gt_ts, gt, res.kf_timestamps, res.kf_poses)
+        seg = segment_scales(gt_ts, gt, res.timestamps, res.poses, seconds=1.0)
+    except MetricError as e:            # too few poses (never initialised): no ATE, say why
+        print(f"no ATE: {e}", file=sys.stderr)
+        full = kf = {"rmse_cm": None, "max_cm": None, "scale": None}
+        seg = {"drift": None, "ratios": []}
+    duration = max(float(res.timestamps[-1] - res.timestamps[0]), 1e-9) \
+        if len(res.timestamps) > 1 else float("nan")
     out = dict(frames=res.n_frames, posed=int(len(res.timestamps)), keyframes=res.n_keyframes,
                lost=res.n_lost, ate_full_cm=full["rmse_cm"], ate_full_max_cm=full["max_cm"],
                ate_kf_cm=kf["rmse_cm"], scale=full["scale"], tracking_wall_s=res.wall_s,
                import_s=t_import, in_process_s=time.perf_counter() - t0,
                peak_rss_mb=peak_rss_mb(),            # VmHWM: not the parent's ru_maxrss
                timings={k: round(float(v), 3) for k, v in res.timings.items()},
-               loop_events=sum(e.reason == "loop_closure" for e in res.events))
+               loop_events=sum(e.reason == "loop_closure" for e in res.events),
+               kf_per_s=res.n_keyframes / duration, scale_drift=seg["drift"],
+               segment_scales=[round(r, 4) for r in seg["ratios"]])
     if prof is not None:
         out["profile_cpu_s"] = step_profile(pstats.Stats(prof), t_import)
     Path(args.json).write_text(json.dumps(out, indent=1))

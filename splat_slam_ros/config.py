@@ -90,6 +90,13 @@ class TrackingConfig:
     # means the same viewing-angle change at any image size.
     motion_filter_thresh: float = 4.0    # keyframe candidate if mean flow to the last keyframe above
     keyframe_thresh: float = 4.0         # tau: candidate dropped if its BA-induced flow stays below
+    # keyframe rate bound: on fast motion a candidate waits until the last keyframe is
+    # 1 / max_keyframe_rate seconds of input old, unless the view is leaving it (below)
+    max_keyframe_rate: float = 8.0       # keyframes per second of input at most (0 = no bound)
+    keyframe_urgent_flow: float = 2.0    # leaving: mean flow above this x motion_filter_thresh
+    # leaving: confident flow cells below this x their typical fraction (a candidate then even
+    # below motion_filter_thresh: the reference is refreshed before the flow fails; 0 = off)
+    keyframe_urgent_valid: float = 0.7
     warmup: int = 8                      # most keyframes collected before initialisation
     init_min_keyframes: int = 2          # initialise from this many keyframes once ...
     init_parallax: float = 1.5           # ... first -> newest shows this much parallax (upper-

@@ -215,6 +215,38 @@ def ate(gt_ts, gt_poses, est_ts, est_poses, align: str = "sim3", max_diff: float
         idx_gt=ia, idx_est=ib)
 
 
+def segment_scales(gt_ts, gt_poses, est_ts, est_poses, seconds: float = 2.0,
+                   max_diff: float = 0.02, min_path_m: float = 0.05) -> Dict:
+    """Scale drift: the Sim(3) scale of each ``seconds``-long segment of the matched
+    trajectory (aligned on its own), divided by the scale of the whole trajectory. A
+    trajectory whose scale holds gives ratios near 1 everywhere; a segment where the scale
+    breaks stands out. Segments whose ground-truth path is shorter than ``min_path_m`` (a
+    scale is not observable there) are left out.
+
+    Returns ``starts`` (segment start stamps, s from the first match), ``ratios``,
+    ``path_m`` (ground-truth path length per segment), ``drift`` (max ratio / min ratio,
+    1 = none) and ``scale`` (the whole trajectory's)."""
+    if seconds <= 0:
+        raise MetricError(f"segment length must be > 0 s, got {seconds}")
+    gt_ts, G, _Ea, ia, ib, (s_all, _R, _t) = _matched_aligned(
+        gt_ts, gt_poses, est_ts, est_poses, "sim3", max_diff, 0.0)
+    _ets, E = _check_traj(est_ts, est_poses, "estimated")
+    t, Pg, Pe = gt_ts[ia], G[:, :3, 3], E[ib][:, :3, 3]
+    starts, ratios, paths = [], [], []
+    for t0 in np.arange(t[0], t[-1] - 0.5 * seconds, seconds):
+        m = (t >= t0) & (t < t0 + seconds)
+        path = float(np.linalg.norm(np.diff(Pg[m], axis=0), axis=1).sum()) if m.sum() > 1 else 0
+        if m.sum() < 3 or path < min_path_m:
+            continue
+        s, _, _ = umeyama_alignment(Pe[m], Pg[m], with_scale=True)
+        starts.append(float(t0 - t[0]))
+        ratios.append(float(s / s_all))
+        paths.append(path)
+    r = np.asarray(ratios)
+    return dict(starts=starts, ratios=ratios, path_m=paths, scale=float(s_all),
+                drift=float(r.max() / r.min()) if len(r) else float("nan"))
+
+
 # --------------------------------------------------------------------- RPE
 def _pairs(P: np.ndarray, delta, unit: str, all_pairs: bool) -> List[Tuple[int, int]]:
     n = len(P)

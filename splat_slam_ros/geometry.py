@@ -202,6 +202,11 @@ def pose_to_tq(T) -> torch.Tensor:
     return torch.cat([T[..., :3, 3], matrix_to_quat(T[..., :3, :3])], -1)
 
 
+def orthonormalize(T: torch.Tensor) -> torch.Tensor:
+    """Project the rotation part of a pose back onto SO(3) (rounding must not compound)."""
+    return pose_from_tq(pose_to_tq(T))
+
+
 # ---------------------------------------------------------------------- Sim(3)
 def sim3_matrix(s, R, t) -> torch.Tensor:
     """Scale, rotation, translation -> 4x4 similarity ``x -> s R x + t``."""

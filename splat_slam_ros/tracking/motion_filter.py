@@ -1,7 +1,11 @@
 """Motion filter and keyframe selection by mean optical-flow magnitude (paper Sec. 3.1).
 
 A frame becomes a keyframe candidate when the mean flow from the last keyframe
-exceeds ``tracking.motion_filter_thresh``; after the local BA a candidate whose
+exceeds ``tracking.motion_filter_thresh`` and the last keyframe is at least
+``1 / tracking.max_keyframe_rate`` seconds of stream time old (fast motion: a few keyframes
+per second, not one per frame), unless the view is leaving the last keyframe (mean flow above
+``keyframe_urgent_flow`` x the threshold, or the confident cells down to
+``keyframe_urgent_valid`` x their typical fraction); after the local BA a candidate whose
 flow *induced by the optimised poses and disparities* stays below the keyframe
 threshold tau (``tracking.keyframe_thresh``) is dropped again. Both thresholds
 are given in *reference* BA-grid pixels - those of the reference's setting (a
@@ -14,6 +18,7 @@ initialise. Frames whose flow confidence collapses are reported as lost.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -69,8 +74,12 @@ class MotionFilter:
     """Decides keyframe candidates and tracking loss from a flow (last keyframe -> frame)."""
 
     def __init__(self, thresh: float, min_valid_frac: float = 0.12, rel_valid_frac: float = 0.35,
-                 cell_weight: float = 0.2):
+                 cell_weight: float = 0.2, max_rate: float = 0.0, urgent_flow: float = 2.0,
+                 urgent_valid: float = 0.7):
         self.thresh = float(thresh)
+        self.min_interval = 1.0 / max_rate if max_rate > 0 else 0.0   # stream seconds
+        self.urgent_flow = float(urgent_flow) * self.thresh
+        self.urgent_valid = float(urgent_valid)
         self.min_valid_frac = min_valid_frac
         self.rel_valid_frac = rel_valid_frac
         self.cell_weight = cell_weight
@@ -93,8 +102,19 @@ class MotionFilter:
         """Running mean of the confident-cell fraction over good frames (0 before the first)."""
         return 0.0 if self._typical is None else float(self._typical)
 
-    def is_candidate(self, fc: FlowCheck) -> bool:
-        return fc.ok and fc.mean_flow >= self.thresh
+    def is_candidate(self, fc: FlowCheck, since_kf: Optional[float] = None) -> bool:
+        """Keyframe candidate: enough flow, and (``since_kf``: stream seconds since the last
+        keyframe; None = no rate bound, the warm-up) the rate bound allows one or the view is
+        leaving the last keyframe."""
+        if not fc.ok:
+            return False
+        leaving = fc.mean_flow >= self.urgent_flow or \
+            fc.valid_frac < self.urgent_valid * self.typical_valid_frac
+        if since_kf is not None and leaving:
+            return True
+        if fc.mean_flow < self.thresh:
+            return False
+        return since_kf is None or since_kf >= self.min_interval
 
 
 def predict_pose(last_pose: torch.Tensor, velocity: torch.Tensor, spacing, index: int):

@@ -32,7 +32,7 @@ from splat_slam_ros.tracking.factor_graph import FactorGraph, proximity_pairs
 from splat_slam_ros.tracking.keyframe_set import KeyframeSet, KeyframeState
 from splat_slam_ros.tracking.flow_frontend import (ImagePreprocessor, compose_flows, image_is_degenerate,
                             make_flow_predictor, mapping_preprocessor, predict_both)
-from splat_slam_ros.geometry import disparity_through_flow, intr_tensor, pixel_grid, pose_from_tq, pose_to_tq, se3_exp, se3_inverse, se3_log
+from splat_slam_ros.geometry import disparity_through_flow, intr_tensor, orthonormalize, pixel_grid, se3_exp, se3_inverse, se3_log
 from splat_slam_ros.tracking.motion_filter import MotionFilter, flow_scale, parallax, predict_pose
 from splat_slam_ros.depth.dspo import make_depth_prior
 from splat_slam_ros.runtime import limit_threads, resolve_device
@@ -48,11 +48,6 @@ LATE_INIT_PARALLAX = 0.25
 
 class TrackingError(ValueError):
     """A user-facing tracking configuration/input mistake."""
-
-
-def orthonormalize(T: torch.Tensor) -> torch.Tensor:
-    """Project the rotation part back onto SO(3) (rounding must not compound)."""
-    return pose_from_tq(pose_to_tq(T))
 
 
 @dataclass
@@ -166,8 +161,11 @@ class Tracker:
 
     # ------------------------------------------------------------ helpers
     def _motion_filter(self) -> MotionFilter:
-        return MotionFilter(self.tc.motion_filter_thresh * self.px_scale,
-                            min_valid_frac=self.tc.lost_min_valid)
+        tc = self.tc
+        return MotionFilter(tc.motion_filter_thresh * self.px_scale,
+                            min_valid_frac=tc.lost_min_valid, max_rate=tc.max_keyframe_rate,
+                            urgent_flow=tc.keyframe_urgent_flow,
+                            urgent_valid=tc.keyframe_urgent_valid)
 
     def _default_prior(self, intrinsics):
         if not (self.cfg.depth.mono_model and self.tc.dspo):
@@ -493,7 +491,8 @@ class Tracker:
         self.lost_count = 0
         self._last_flow = (ref, f)
         info = {"mean_flow": fc.mean_flow, "valid": fc.valid_frac, "pose_rms": pinfo.rms}
-        if self.motion.is_candidate(fc) and ref == self.window[-1]:
+        since_kf = float(frame.timestamp) - self.kfs[ref].timestamp
+        if self.motion.is_candidate(fc, since_kf) and ref == self.window[-1]:
             if self.on_pose_estimate is not None:      # a keyframe's pose before its local BA
                 self.on_pose_estimate(frame.index, float(frame.timestamp), T.cpu().numpy())
             return self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, info)

@@ -1,0 +1,352 @@
+#!/usr/bin/env python
+"""Generalisation benchmark: tracking on scenes and motions not tuned on, DSO beside us.
+
+The suite renders 640x480 sequences with ``splat-slam-synth`` along every real trajectory in
+``../shared/data/trajectories`` (TUM hand-held fr1/xyz and fr2/desk, EuRoC V1_02 drone,
+KITTI 00 car) at 20 and 30 Hz, in every scene of the generator (room, low_texture, tiled,
+repetitive, thin, deep), with procedural or photo textures (the real photos of
+``../shared/data``) and the realistic or harsh camera effects, plus the real EuRoC clip of
+``../shared/data``. Sequences are split into a **tuning** set (what defaults may be chosen
+on) and a **check** set with other seeds, starts, scenes and motions that no parameter is
+chosen on; the benchmark prints both and a summary of the check set against the targets
+(100 % of frames posed, ATE and frames/s against DSO's where DSO ran, peak RSS).
+
+Each tracking run is ``bench_tracking.py``'s child: its own process, default configuration,
+tracking + loop closure + global BA (``--tracking-only`` of the product), frames/s = input
+frames / wall time of the whole process. ``--full`` also runs the whole default pipeline
+(``splat-slam-run``) on the cases marked ``full`` (fast drone motion) and prints its
+frames/s, keyframes per second and PSNR.
+
+DSO (https://github.com/JakobEngel/dso, GPL-3.0) is never vendored: pass ``--dso BIN`` (a
+built ``dso_dataset``) or ``--dso-source DIR`` (a checkout: built with CMake into a scratch
+folder under ``--data-dir``). It runs monocular, without photometric calibration
+(``mode=1``), headless, on the same PNGs; its ``result.txt`` is read as a TUM trajectory.
+
+    .venv/bin/python benchmarks/bench_generalise.py [--split tuning|check|all]
+        [--cases a,b] [--full] [--dso BIN | --dso-source DIR] [--set KEY=JSON ...]
+        [--data-dir DIR] [--out benchmarks/results/generalise.json]
+
+Rendering a missing sequence takes about 1 s per frame (cached under ``--data-dir``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_tracking as bt                       # noqa: E402  (the tracking child, _save)
+
+REPO = bt.REPO
+SHARED = REPO.parent / "shared" / "data"
+FR1, FR2 = "freiburg1_xyz-groundtruth.txt", "fr2_desk_groundtruth.txt"
+V102, KITTI = "V102_groundtruth.csv", "KITTI_00_gt.txt"
+PHOTO_SOURCES = ["tum_fr3_long_office_17/*.png", "icl_nuim_living_room_5/color/*.png",
+                 "rgbd_5_frames_ch5/color/*.png", "euroc_v1_01_first95/mav0/cam0/data/*.png"]
+
+
+def seq(split, traj, start, frames, fps, scene, realism, textures, seed, full=False):
+    return dict(split=split, traj=traj, start=start, frames=frames, fps=fps, scene=scene,
+                realism=realism, textures=textures, seed=seed, full=full)
+
+
+# name -> sequence; "real:" sequences are folders of ../shared/data used as they are
+SUITE = {
+    # tuning set: defaults may be chosen on these
+    "t_fr2desk_room_photo": seq("tuning", FR2, 47, 150, 30, "room", "realistic", "photo", 11),
+    "t_v102_repetitive": seq("tuning", V102, 8, 150, 20, "repetitive", "realistic", "proc", 12),
+    "t_fr1xyz_lowtex": seq("tuning", FR1, 0, 150, 30, "low_texture", "realistic", "proc", 13),
+    "t_kitti_deep": seq("tuning", KITTI, 0, 100, 20, "deep", "realistic", "proc", 14),
+    "t_v102_thin_harsh": seq("tuning", V102, 0, 150, 20, "thin", "harsh", "photo", 15),
+    # check set: other seeds, starts, scenes, rates; no parameter is chosen on these
+    "c_fr2desk_tiled_harsh": seq("check", FR2, 60, 150, 30, "tiled", "harsh", "proc", 101),
+    "c_v102_room_photo": seq("check", V102, 8, 200, 20, "room", "realistic", "photo", 102,
+                             full=True),
+    "c_fr1xyz_thin_photo": seq("check", FR1, 5, 150, 20, "thin", "realistic", "photo", 103),
+    "c_v102_lowtex_harsh": seq("check", V102, 2, 150, 30, "low_texture", "harsh", "proc", 104),
+    "c_kitti_repetitive": seq("check", KITTI, 20, 100, 20, "repetitive", "realistic", "proc",
+                              105),
+    "c_euroc_v101_real": dict(split="check", real="euroc_v1_01_first95", full=False),
+}
+# the issue's targets on the check set
+TARGETS = dict(posed_frac=1.0, peak_rss_mb=200.0, full_fps=1.24, full_kf_per_s=6.0)
+
+
+# ------------------------------------------------------------------ sequences
+def photo_textures(data_dir: Path) -> Path:
+    """A folder of the real photos in ../shared/data (at most 32, spread over the sets)."""
+    out = data_dir / "photo_textures"
+    if out.is_dir() and any(out.iterdir()):
+        return out
+    out.mkdir(parents=True, exist_ok=True)
+    for pattern in PHOTO_SOURCES:
+        files = sorted(SHARED.glob(pattern))
+        for f in files[::max(1, len(files) // 8)][:8]:
+            shutil.copy(f, out / f"{f.parent.parent.name}_{f.parent.name}_{f.name}")
+    if not any(out.iterdir()):
+        sys.exit(f"error: no photos found under {SHARED} (needs ../shared/data)")
+    return out
+
+
+def ensure(data_dir: Path, name: str, c: dict) -> Path:
+    if "real" in c:
+        p = SHARED / c["real"]
+        if not p.is_dir():
+            sys.exit(f"error: {p} not found (needs ../shared/data)")
+        return p
+    out = data_dir / f"gen_{name}"
+    if (out / "groundtruth.txt").is_file() and \
+            len(list((out / "rgb").glob("*.png"))) == c["frames"]:
+        return out
+    tfile = SHARED / "trajectories" / c["traj"]
+    if not tfile.is_file():
+        sys.exit(f"error: trajectory {tfile} not found (needs ../shared/data)")
+    cmd = [bt.tool("splat-slam-synth"), "--trajectory", str(tfile),
+           "--frames", str(c["frames"]), "--fps", str(c["fps"]), "--start", str(c["start"]),
+           "--size", "640x480", "--scene", c["scene"], "--realism", c["realism"],
+           "--seed", str(c["seed"]), "--out", str(out), "--overwrite", "--quiet"]
+    if c["textures"] == "photo":
+        cmd += ["--textures", str(photo_textures(data_dir))]
+    print("rendering:", " ".join(cmd[1:]), flush=True)
+    subprocess.run(cmd, check=True)
+    return out
+
+
+# ------------------------------------------------------------------ DSO
+def build_dso(source: Path, data_dir: Path) -> Path:
+    """CMake build of a DSO checkout in a scratch folder; the dso_dataset binary."""
+    build = data_dir / "dso_build"
+    binary = build / "bin" / "dso_dataset"
+    if binary.is_file():
+        return binary
+    if not (source / "CMakeLists.txt").is_file():
+        sys.exit(f"error: {source} is not a DSO source checkout (no CMakeLists.txt)")
+    build.mkdir(parents=True, exist_ok=True)
+    subprocess.run(["cmake", "-S", str(source), "-B", str(build),
+                    "-DCMAKE_BUILD_TYPE=Release"], check=True)
+    subprocess.run(["cmake", "--build", str(build), "-j", str(os.cpu_count() or 2)], check=True)
+    if not binary.is_file():
+        sys.exit(f"error: the DSO build did not produce {binary}")
+    return binary
+
+
+def dso_inputs(seq_dir: Path, work: Path):
+    """DSO's input for a sequence: images/ (symlinks, in order), times.txt, camera.txt
+    (pinhole, already undistorted: our renders have none; the real EuRoC clip is given
+    DSO's RadTan line). Returns (images, camera, frame stamps, ground truth)."""
+    sys.path.insert(0, str(REPO))
+    from splat_slam_ros.io.datasets import open_dataset
+    ds = open_dataset(seq_dir)
+    ds.load_depth = False
+    entries = getattr(ds, "_entries", None)
+    if entries is None:
+        sys.exit(f"error: {seq_dir}: DSO needs a folder of image files")
+    paths, stamps = [e.image for e in entries], [e.timestamp for e in entries]
+    img = work / "images"
+    img.mkdir(parents=True, exist_ok=True)
+    with open(work / "times.txt", "w") as fh:
+        for i, (p, t) in enumerate(zip(paths, stamps)):
+            os.symlink(Path(p).resolve(), img / f"{i:06d}.png")
+            fh.write(f"{i:06d} {t:.6f}\n")
+    K = ds.intrinsics
+    W, H = K.width, K.height
+    if K.has_distortion and K.distortion_model == "plumb_bob":
+        first = (f"RadTan {K.fx / W} {K.fy / H} {(K.cx + 0.5) / W} {(K.cy + 0.5) / H} "
+                 + " ".join(str(float(x)) for x in list(K.distortion)[:4]))
+    elif K.has_distortion:
+        sys.exit(f"error: {seq_dir}: {K.distortion_model} distortion is not passed to DSO")
+    else:
+        first = f"Pinhole {K.fx / W} {K.fy / H} {(K.cx + 0.5) / W} {(K.cy + 0.5) / H} 0"
+    (work / "camera.txt").write_text(f"{first}\n{W} {H}\ncrop\n{W} {H}\n")
+    gt_ts, gt = ds.gt_trajectory()
+    return img, work / "camera.txt", stamps, (gt_ts, gt)
+
+
+def read_dso_result(path: Path):
+    """DSO's result.txt: ``stamp tx ty tz qx qy qz qw`` (camera-to-world) per posed frame
+    (the stamps of times.txt); none when DSO wrote nothing."""
+    from splat_slam_ros.io.trajectory_io import read_trajectory
+    if not path.is_file() or path.stat().st_size == 0:
+        return [], []
+    return read_trajectory(path, "tum")
+
+
+def run_dso(binary: Path, seq_dir: Path) -> dict:
+    from splat_slam_ros.evaluation import MetricError, ate
+    from splat_slam_ros.heap import proc_memory_mb
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        img, cam, stamps, (gt_ts, gt) = dso_inputs(seq_dir, work)
+        cmd = [str(binary), f"files={img}", f"calib={cam}", "mode=1", "preset=0", "nogui=1",
+               "nolog=1", "quiet=1", "nomt=0"]
+        load0 = os.getloadavg()[0]
+        t0 = time.perf_counter()
+        p = subprocess.Popen(cmd, cwd=work, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL)
+        hwm = 0.0
+        while p.poll() is None:
+            hwm = max(hwm, proc_memory_mb(p.pid).get("VmHWM", 0.0))
+            time.sleep(0.2)
+        wall = time.perf_counter() - t0
+        ts, P = read_dso_result(work / "result.txt")
+    r = dict(rc=p.returncode, wall_s=wall, fps=len(stamps) / wall, posed=len(ts),
+             frames=len(stamps), peak_rss_mb=hwm, load_before=load0)
+    try:
+        r["ate_full_cm"] = ate(gt_ts, gt, ts, P)["rmse_cm"] if len(ts) >= 3 else None
+    except MetricError as e:
+        r["ate_full_cm"], r["error"] = None, str(e)
+    return r
+
+
+# ------------------------------------------------------------------ full run
+def run_full(seq_dir: Path, out: Path, extra) -> dict:
+    cmd = [bt.tool("splat-slam-run"), str(seq_dir), "--out", str(out), "--no-progress"]
+    cmd += [x for kv in extra for x in ("--set", kv)]
+    load0 = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    with open(out.parent / f"{out.name}.log", "w") as fh:
+        rc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT).returncode
+    wall = time.perf_counter() - t0
+    m = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").is_file() \
+        else {}
+    frames = int(m.get("frames") or 0)
+    dur = None
+    if (out / "trajectory_full.txt").is_file():            # seconds of input
+        from splat_slam_ros.io.trajectory_io import read_trajectory
+        ts, _ = read_trajectory(out / "trajectory_full.txt", "tum")
+        dur = float(ts[-1] - ts[0]) if len(ts) > 1 else None
+    return dict(rc=rc, wall_s=round(wall, 1), fps=frames / wall if frames else 0.0,
+                keyframes=m.get("keyframes"), psnr=m.get("psnr"), ate_full_cm=m.get(
+                    "ate_rmse_cm_full"), kf_per_s=(m.get("keyframes") or 0) / dur if dur else
+                None, load_before=load0)
+
+
+# ------------------------------------------------------------------ output
+def fmt(v, spec=".3f"):
+    return "-" if v is None else format(v, spec)
+
+
+def table(results: dict) -> None:
+    print("\n| case | split | posed | kf | kf/s | ATE full (cm) | ATE kf | scale drift | "
+          "frames/s | RSS (MB) | load | DSO ATE | DSO posed | DSO frames/s | DSO RSS |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for name, r in results.items():
+        d = r.get("dso") or {}
+        lost = f" ({r['lost']} lost)" if r["lost"] else ""
+        print(f"| {name} | {r['split']} | {r['posed']}/{r['frames']}{lost} | {r['keyframes']} | "
+              f"{r['kf_per_s']:.1f} | {fmt(r['ate_full_cm'])} | {fmt(r['ate_kf_cm'])} | "
+              f"{fmt(r['scale_drift'])} | {r['fps']:.1f} | {r['peak_rss_mb']:.0f} | "
+              f"{r['load_before']:.1f} | {fmt(d.get('ate_full_cm'))} | "
+              f"{d.get('posed', '-')}{'/' + str(d['frames']) if d else ''} | "
+              f"{fmt(d.get('fps'), '.1f')} | {fmt(d.get('peak_rss_mb'), '.0f')} |")
+    full = {n: r["full"] for n, r in results.items() if r.get("full")}
+    for n, f in full.items():
+        print(f"\nfull default run, {n}: {f['fps']:.2f} frames/s (target >= "
+              f"{TARGETS['full_fps']}), {f['keyframes']} keyframes = {fmt(f['kf_per_s'], '.1f')}"
+              f" per second of input (target <= {TARGETS['full_kf_per_s']}), PSNR "
+              f"{fmt(f['psnr'], '.2f')} dB, ATE {fmt(f['ate_full_cm'])} cm, rc {f['rc']}")
+
+
+def check_summary(results: dict) -> dict:
+    chk = {n: r for n, r in results.items() if r["split"] == "check"}
+    if not chk:
+        return {}
+    scored = [r for r in chk.values() if r["ate_full_cm"] is not None]
+    s = {"sequences": len(chk), "with_ate": len(scored),
+         "all_frames_posed": sum(r["posed"] == r["frames"] and r["lost"] == 0
+                                 for r in chk.values()),
+         "rss_le_200mb": sum(r["peak_rss_mb"] <= TARGETS["peak_rss_mb"] for r in chk.values()),
+         "median_ate_full_cm": float(np.median([r["ate_full_cm"] for r in scored]))
+         if scored else None,
+         "max_scale_drift": max((r["scale_drift"] for r in scored), default=None)}
+    dso = {n: r for n, r in chk.items() if (r.get("dso") or {}).get("ate_full_cm") is not None
+           and r["ate_full_cm"] is not None}
+    if dso:
+        s["dso_tracked"] = len(dso)
+        s["ate_le_dso"] = sum(r["ate_full_cm"] <= r["dso"]["ate_full_cm"] for r in dso.values())
+        s["fps_ge_dso"] = sum(r["fps"] >= r["dso"]["fps"] for r in dso.values())
+        s["ate_ratio_to_dso"] = {n: r["ate_full_cm"] / max(r["dso"]["ate_full_cm"], 1e-9)
+                                 for n, r in dso.items()}
+    print("\ncheck set: " + ", ".join(f"{k} {v if not isinstance(v, float) else round(v, 3)}"
+                                      for k, v in s.items() if k != "ate_ratio_to_dso"))
+    if "ate_ratio_to_dso" in s:
+        print("ATE / DSO's: " + ", ".join(f"{n} {v:.2f}" for n, v in
+                                          s["ate_ratio_to_dso"].items()))
+    else:
+        print("DSO: not run (pass --dso BIN or --dso-source DIR)")
+    return s
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--split", choices=["tuning", "check", "all"], default="all")
+    ap.add_argument("--cases", default="", help=f"comma-separated, from: {', '.join(SUITE)}")
+    ap.add_argument("--full", action="store_true",
+                    help="also the whole default pipeline on the cases marked full")
+    ap.add_argument("--dso", help="a built DSO dso_dataset binary")
+    ap.add_argument("--dso-source", help="a DSO source checkout, built into --data-dir")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=JSON",
+                    help="config override for every run of ours")
+    ap.add_argument("--data-dir", default=str(REPO / "benchmarks" / "results" / "data"))
+    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "generalise.json"))
+    a = ap.parse_args(argv)
+    names = [c for c in a.cases.split(",") if c] or \
+        [n for n, c in SUITE.items() if a.split in ("all", c["split"])]
+    unknown = [c for c in names if c not in SUITE]
+    if unknown:
+        print(f"error: unknown case(s) {', '.join(unknown)} (use {', '.join(SUITE)})",
+              file=sys.stderr)
+        return 2
+    from splat_slam_ros.cli.common import parse_overrides
+    from splat_slam_ros.config import ConfigError, load_config
+    try:
+        overrides = parse_overrides(a.set)
+        load_config(None, overrides)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    data_dir = Path(a.data_dir)
+    data_dir.mkdir(parents=True, exist_ok=True)
+    dso = Path(a.dso) if a.dso else build_dso(Path(a.dso_source), data_dir) \
+        if a.dso_source else None
+    if dso is not None and not dso.is_file():
+        print(f"error: DSO binary not found: {dso}", file=sys.stderr)
+        return 2
+    results = {}
+    for name in names:
+        c = SUITE[name]
+        sdir = ensure(data_dir, name, c)
+        print(f"== {name} ({c['split']}): {sdir}", flush=True)
+        r = bt.run_case(name, sdir, overrides, "", data_dir)
+        r["split"] = c["split"]
+        if dso is not None:
+            r["dso"] = run_dso(dso, sdir)
+        if a.full and c.get("full"):
+            r["full"] = run_full(sdir, data_dir / f"full_{name}", a.set)
+        results[name] = r
+        print(f"   ATE {fmt(r['ate_full_cm'])} cm, {r['posed']}/{r['frames']} posed "
+              f"({r['lost']} lost), "
+              f"{r['keyframes']} kf ({r['kf_per_s']:.1f}/s), scale drift "
+              f"{fmt(r['scale_drift'])}, {r['fps']:.1f} frames/s, {r['peak_rss_mb']:.0f} MB, "
+              f"load {r['load_before']:.1f}", flush=True)
+        bt._save(Path(a.out), {name: r})
+    table(results)
+    summary = check_summary(results)
+    if summary:
+        old = json.loads(Path(a.out).read_text())
+        old["check_summary"] = summary
+        Path(a.out).write_text(json.dumps(old, indent=1))
+    print(f"\nwrote {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,125 @@
+"""Keyframe policy (rate bound in keyframes per second of input, with the view-leaving
+exception) and scale consistency across fast motion."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from splat_slam_ros.config import SlamConfig
+from splat_slam_ros.evaluation import segment_scales
+from splat_slam_ros.io.datasets import open_dataset
+from splat_slam_ros.tracking.motion_filter import FlowCheck, MotionFilter
+from splat_slam_ros.tracking.tracker import Tracker
+
+from test_tracker import INTR, ate_cm, make_sequence, small_cfg
+
+
+def test_rate_bound_defers_candidates_unless_the_view_leaves_the_keyframe():
+    mf = MotionFilter(4.0, max_rate=5.0, urgent_flow=2.0, urgent_valid=0.7)
+    flow = torch.zeros(6, 8, 2)
+    mf.check(flow, torch.ones(6, 8, 2))               # typical confident fraction: 1.0
+    enough = FlowCheck(mean_flow=5.0, valid_frac=0.9, ok=True)
+    assert not mf.is_candidate(FlowCheck(3.9, 0.9, True), since_kf=10.0)   # too little flow
+    assert mf.is_candidate(enough, since_kf=0.2)          # 1 / 5 Hz: the bound allows one
+    assert not mf.is_candidate(enough, since_kf=0.19)     # too soon after the last keyframe
+    assert mf.is_candidate(enough, since_kf=None)         # warm-up: no bound
+    assert mf.is_candidate(FlowCheck(8.0, 0.9, True), since_kf=0.05)   # 2 x the threshold
+    assert mf.is_candidate(FlowCheck(5.0, 0.69, True), since_kf=0.05)  # cells leaving
+    # confident cells falling: the reference is refreshed even below the flow threshold ...
+    assert mf.is_candidate(FlowCheck(1.0, 0.69, True), since_kf=0.05)
+    assert not mf.is_candidate(FlowCheck(1.0, 0.71, True), since_kf=0.05)
+    # ... but not in the warm-up (the keyframes there need parallax)
+    assert not mf.is_candidate(FlowCheck(1.0, 0.69, True), since_kf=None)
+    assert not mf.is_candidate(FlowCheck(8.0, 0.9, False), since_kf=1.0)   # lost: never
+    unbounded = MotionFilter(4.0, max_rate=0.0, urgent_valid=0.0)
+    assert unbounded.is_candidate(enough, since_kf=0.0)
+    assert not unbounded.is_candidate(FlowCheck(1.0, 0.01, True), since_kf=1.0)
+
+
+@pytest.fixture(scope="module")
+def fast_sweep(shared_data, tmp_path_factory):
+    """4 s of EuRoC V1_02 drone motion at 20 Hz (its fast part), realistic 320x240 render."""
+    traj = shared_data / "trajectories" / "V102_groundtruth.csv"
+    if not traj.is_file():
+        pytest.skip(f"{traj} not found")
+    out = tmp_path_factory.mktemp("kf") / "v102"
+    subprocess.run([sys.executable, "-m", "splat_slam_ros.cli.synth", "--trajectory", str(traj),
+                    "--frames", "80", "--size", "320x240", "--fps", "20", "--start", "8",
+                    "--out", str(out), "--realism", "realistic", "--quiet"],
+                   check=True, capture_output=True, timeout=300)
+    ds = open_dataset(out)
+    return ds, list(ds)
+
+
+def _track(frames, intr, cfg):
+    tr = Tracker(cfg, intr)
+    for f in frames:
+        tr.track(f)
+    tr.finalize()
+    return tr
+
+
+def test_fast_drone_sweep_makes_a_few_keyframes_per_second_and_keeps_its_scale(fast_sweep):
+    ds, frames = fast_sweep
+    duration = frames[-1].timestamp - frames[0].timestamp
+    gt = np.stack([f.gt_pose for f in frames])
+    gts = np.array([f.timestamp for f in frames])
+    counts, errs = {}, {}
+    for rate in (6.0, 0.0):
+        cfg = SlamConfig()
+        cfg.tracking.loop_closure = cfg.tracking.global_ba = False
+        cfg.tracking.max_keyframe_rate = rate
+        tr = _track(frames, ds.intrinsics, cfg)
+        ts, P = tr.trajectory_full()
+        assert len(ts) == len(frames) and tr.n_lost == 0
+        counts[rate] = len(tr.keyframe_ids())
+        errs[rate] = ate_cm(frames, gt, ts, P)
+        if rate:
+            # scale consistency: every 1-s segment's Sim(3) scale within 8 % of the whole's
+            seg = segment_scales(gts, gt, ts, P, seconds=1.0)
+            assert len(seg["ratios"]) >= 3 and seg["drift"] < 1.08, seg
+    # at most 6 per second, plus the warm-up's and those made as the view left the last one
+    assert counts[6.0] <= 6.0 * duration + 5, counts
+    assert counts[0.0] >= 1.3 * counts[6.0], counts          # the bound is what holds it
+    assert errs[6.0] < 1.0 and errs[6.0] <= 1.2 * errs[0.0], errs
+
+
+def test_slow_pan_still_makes_keyframes_for_parallax():
+    """A slow hand-held pan (3 s at 30 Hz) never meets the rate bound: the same keyframes
+    with and without it, enough to initialise and track."""
+    frames, gt = make_sequence(90, INTR, motion=(0.004, 0.001, 0.0), rot=0.012)
+    got = {}
+    for rate in (6.0, 0.0):
+        tr = _track(frames, INTR, small_cfg(max_keyframe_rate=rate))
+        ts, P = tr.trajectory_full()
+        got[rate] = (tr.keyframe_ids(), ate_cm(frames, gt, ts, P))
+        assert tr.initialized and len(ts) == 90
+    assert got[6.0] == got[0.0]
+    assert len(got[6.0][0]) >= 2 * 3                   # >= 2 keyframes per second of input
+    assert got[6.0][1] < 1.0
+
+
+def test_segment_scales_find_where_the_scale_breaks():
+    t = np.arange(0, 6, 0.05)
+    gt = np.tile(np.eye(4), (len(t), 1, 1))
+    gt[:, 0, 3] = np.cos(t)
+    gt[:, 1, 3] = np.sin(1.3 * t)
+    gt[:, 2, 3] = 0.2 * t
+    est = gt.copy()
+    est[:, :3, 3] *= 0.5                                # a uniform scale is not drift
+    seg = segment_scales(t, gt, t, est, seconds=1.0)
+    assert seg["drift"] == pytest.approx(1.0, abs=1e-9) and len(seg["ratios"]) == 6
+    assert seg["scale"] == pytest.approx(2.0)
+    # from t = 3 s on the estimate moves 25 % less per metre: segments 3.. show it
+    steps = np.diff(gt[:, :3, 3], axis=0)
+    steps[t[1:] > 3.0] *= 0.75
+    est[1:, :3, 3] = gt[0, :3, 3] + np.cumsum(steps, axis=0)
+    est[0, :3, 3] = gt[0, :3, 3]
+    seg = segment_scales(t, gt, t, est, seconds=1.0)
+    r = np.array(seg["ratios"])
+    assert seg["drift"] == pytest.approx(1 / 0.75, rel=0.02)
+    assert np.all(r[3:] > 1.2 * r[:3].max())
+    with pytest.raises(Exception, match="segment length"):
+        segment_scales(t, gt, t, est, seconds=0)
