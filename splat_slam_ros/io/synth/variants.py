@@ -90,9 +90,7 @@ def _no_textures(name: str, textures) -> None:
 def _low_texture(rng, fit: _Fit, name, textures, n_boxes) -> Scene:
     _no_textures(name, textures)
     lo, hi = _fit_room(rng, fit.allp)
-    blo: List[np.ndarray] = []
-    bhi: List[np.ndarray] = []
-    kinds: List[str] = []
+    blo, bhi, kinds = [], [], []          # boxes' low / high corners and kinds
     n = int(rng.integers(0, 3)) if n_boxes is None else int(n_boxes)
     _standard_boxes(rng, fit, lo, hi, n, blo, bhi, kinds, kind_names=("furniture", "cabinet"),
                     kind_p=(0.5, 0.5))
@@ -105,9 +103,7 @@ def _low_texture(rng, fit: _Fit, name, textures, n_boxes) -> Scene:
 def _repetitive(rng, fit: _Fit, name, textures, n_boxes) -> Scene:
     _no_textures(name, textures)
     lo, hi = _fit_room(rng, fit.allp)
-    blo: List[np.ndarray] = []
-    bhi: List[np.ndarray] = []
-    kinds: List[str] = []
+    blo, bhi, kinds = [], [], []          # boxes' low / high corners and kinds
     _standard_boxes(rng, fit, lo, hi, _target(lo, hi, 0.25, 3, 4, 12, n_boxes), blo, bhi, kinds)
     walls = [str(k) for k in rng.choice(PERIODIC, 4)]
     room = walls + [str(rng.choice(["checker", "brickwork", "grid"])), "grid"]
@@ -120,9 +116,7 @@ def _repetitive(rng, fit: _Fit, name, textures, n_boxes) -> Scene:
 
 def _tiled(rng, fit: _Fit, name, textures, n_boxes) -> Scene:
     lo, hi = _fit_room(rng, fit.allp)
-    blo: List[np.ndarray] = []
-    bhi: List[np.ndarray] = []
-    kinds: List[str] = []
+    blo, bhi, kinds = [], [], []          # boxes' low / high corners and kinds
     _standard_boxes(rng, fit, lo, hi, _target(lo, hi, 0.5, 6, 8, 32, n_boxes), blo, bhi, kinds)
     info = _scene_info(name, fit.up_v, kinds, fit.allp, blo, bhi)
     sc = make_scene(lo, hi, np.array(blo).reshape(-1, 3), np.array(bhi).reshape(-1, 3),
@@ -183,9 +177,7 @@ def _thin_parts(rng, kind: str, c, inward: np.ndarray, along: np.ndarray, floor_
 
 def _thin(rng, fit: _Fit, name, textures, n_boxes) -> Scene:
     lo, hi = _fit_room(rng, fit.allp)
-    blo: List[np.ndarray] = []
-    bhi: List[np.ndarray] = []
-    kinds: List[str] = []
+    blo, bhi, kinds = [], [], []          # boxes' low / high corners and kinds
     n_struct = int(np.clip(float(np.prod(hi[:2] - lo[:2])) / 3 + 4, 6, 14))
     counts = {"pole": 0, "shelf": 0, "table": 0}
     tries = 0
@@ -260,9 +252,7 @@ def _deep(rng, fit: _Fit, name, textures, n_boxes) -> Scene:
         lo[2] = min(lo[2], fit.allp[:, 2].min() + far * fwd[2])
     elif fwd[2] > 0.1:
         hi[2] = max(hi[2], fit.allp[:, 2].max() + far * fwd[2])
-    blo: List[np.ndarray] = []
-    bhi: List[np.ndarray] = []
-    kinds: List[str] = []
+    blo, bhi, kinds = [], [], []          # boxes' low / high corners and kinds
     # near boxes 0.5-1.5 m from the path, their tops >= 0.35 m below the mean camera height
     # so that the hall stays visible above them; then a few boxes along the hall
     top = float(fit.cams[:, 2].mean()) - 0.35
