@@ -19,7 +19,7 @@ from collections import defaultdict, deque
 from typing import Dict, Iterable, List, Optional
 
 from splat_slam_ros.config import SlamConfig
-from splat_slam_ros.io.prefetch import prefetch
+from splat_slam_ros.io.prefetch import read_frames
 from splat_slam_ros.roles import DepthRole, LoopRole, MapperRole, Outbox, TrackerRole
 from splat_slam_ros.tracking.flow_frontend import make_flow_predictor
 from splat_slam_ros.tracking.tracker import TrackingResult, TrackStep
@@ -110,27 +110,14 @@ class Coordinator:
     def run(self, frames: Iterable[Frame], progress: bool = True, total: Optional[int] = None,
             max_frames: Optional[int] = None) -> int:
         """Every frame, then :meth:`finalize`; returns the number of frames."""
-        bar = None
-        if progress:
-            from tqdm import tqdm
-            if total is None and hasattr(frames, "__len__"):
-                total = len(frames)  # type: ignore[arg-type]
-            if max_frames is not None and total is not None:
-                total = min(total, max_frames)
-            bar = tqdm(total=total, unit="frame", dynamic_ncols=True)
         t_start, n = time.perf_counter(), 0
-        for frame in prefetch(frames, 2):        # the next frames decode while this one runs
-            if max_frames is not None and n >= max_frames:
-                break
+
+        def postfix(k):
+            return dict(kf=self.n_keyframes, lost=self.tracker.tracker.n_lost,
+                        fps=f"{k / max(time.perf_counter() - t_start, 1e-9):.2f}")
+        for frame in read_frames(frames, progress, total, max_frames, postfix):
             self.on_frame(frame)
             n += 1
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(kf=self.n_keyframes, lost=self.tracker.tracker.n_lost,
-                                fps=f"{n / max(time.perf_counter() - t_start, 1e-9):.2f}",
-                                refresh=False)
-        if bar is not None:
-            bar.close()
         self.finalize()
         return n
 

@@ -19,9 +19,11 @@ import numpy as np
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.coordinator import Coordinator
 from splat_slam_ros.evaluation import ate
+from splat_slam_ros.io.session import remove_session
 from splat_slam_ros.io.trajectory_io import read_trajectory, write_tum
 from splat_slam_ros.mapping.map_sequence import map_sequence
 from splat_slam_ros.report import WarningRecorder, write_report
+from splat_slam_ros.tracking.relocalise import save_session
 
 
 class NotInitializedError(RuntimeError):
@@ -324,6 +326,7 @@ def _run_gt_mapping(dataset, cfg, out, progress, max_frames, result, metrics) ->
 
 
 def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics) -> None:
+    remove_session(out)                # an earlier run's session must not outlive its outputs
     co = Coordinator(cfg, dataset.intrinsics, mapping=(mode == "full"))
     result.frames = co.run(dataset, progress=progress, total=len(dataset), max_frames=max_frames)
     trk = co.tracker.tracker
@@ -347,3 +350,6 @@ def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics) ->
         _mesh(mp, cfg, out, progress, metrics)
         metrics.update(mp.evaluate_keyframes(out / "renders"))
         metrics["map"] = mp.stats()
+    # the session a later run loads (--load-map OUT --localize): after map.ply, which it sums
+    save_session(trk, (f for i, f in enumerate(dataset) if max_frames is None or i < max_frames),
+                 cfg, dataset.intrinsics, out)

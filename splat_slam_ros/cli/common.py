@@ -13,6 +13,7 @@ from splat_slam_ros.evaluation import MetricError
 from splat_slam_ros.io.dataset_base import DatasetError
 from splat_slam_ros.io.keyframe_store import StoreError
 from splat_slam_ros.io.sensor_codec import ConversionError
+from splat_slam_ros.io.session import SessionError
 from splat_slam_ros.io.synth import SynthError
 from splat_slam_ros.io.trajectory_io import TrajectoryFormatError
 from splat_slam_ros.mapping.mapper import MapError
@@ -29,7 +30,7 @@ USER_ERRORS: Tuple[Type[BaseException], ...] = (
     ConfigError, IntrinsicsError, DeviceError, TrajectoryFormatError, DatasetError,
     ConversionError, MetricError, MonoDepthError, ProxyDepthError, SynthError,
     RasterizerBuildError, MapError, MeshError, PlyError, TrackingError, FrontendError, StoreError,
-    FileNotFoundError)
+    SessionError, FileNotFoundError)
 
 
 def user_errors() -> Tuple[Type[BaseException], ...]:

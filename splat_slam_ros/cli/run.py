@@ -12,21 +12,29 @@ modes:
   (default)                 tracking + proxy depth + Gaussian mapping, all stages in-process
   --tracking-only           tracker (flow + dense BA + loop closure + global BA) only
   --gt-poses --gt-depth     the Gaussian mapper alone, on ground-truth poses and depth
+  --load-map RUN --localize localize-only in the session RUN saved: relocalise, then track in
+                            RUN's map frame; the map is copied unchanged, nothing is added
 
 outputs in --out: trajectory_full.txt, trajectory_keyframes.txt (TUM format), map.ply,
 metrics.json (ATE when the input has ground truth, PSNR/SSIM/depth L1 on keyframes, LPIPS
 with --set evaluation.lpips_backbone=FILE),
 renders/ (rendered keyframes), config.yaml (the configuration used), groundtruth.txt,
-report.html + report.png (the run report; splat-slam-report rebuilds them).
+report.html + report.png (the run report; splat-slam-report rebuilds them), session/ (the
+keyframes and a manifest, for a later --load-map; not in --gt-poses mode).
+--localize writes trajectory_full.txt (posed frames only, in the loaded map's frame),
+metrics.json (relocalised_frame, frames_posed, frames_lost, ATE) and map.ply (a copy).
 
 exit status: 0 done, 2 a user error (bad input, config), 3 no result: the tracker never
 initialised (no keyframe: too little camera motion for the thresholds; the message says which
-to lower), or the map stayed empty (too few keyframes with parallax for the proxy depth).
+to lower), or the map stayed empty (too few keyframes with parallax for the proxy depth),
+or (--localize) no frame relocalised in the loaded map.
 
 examples:
   splat-slam-run data/fr1_xyz --out runs/fr1 --config config/tum.yaml
   splat-slam-run data/replica --out runs/paper --preset paper     # the paper's GPU schedule
   splat-slam-run bags/synth --out runs/synth --tracking-only
+  splat-slam-run data/seq --out runs/a --max-frames 400       # a map of the first part
+  splat-slam-run data/seq --out runs/b --start-frame 300 --load-map runs/a --localize
   splat-slam-run data/icl --out runs/icl --gt-poses --gt-depth --format posefolder \\
       --intrinsics icl.yaml
 """
@@ -51,10 +59,45 @@ def build_parser() -> argparse.ArgumentParser:
                    help="use ground-truth depth as proxy depth (mapping in isolation; "
                         "needs --gt-poses)")
     p.add_argument("--max-frames", type=int, help="stop after N input frames")
+    p.add_argument("--start-frame", type=int, default=0, metavar="N",
+                   help="skip the first N input frames (0 <= N < frames): one sequence split "
+                        "into sessions")
+    p.add_argument("--load-map", metavar="RUN", help="the output folder of an earlier run whose "
+                   "saved session (RUN/session/) to load; needs --localize")
+    p.add_argument("--localize", action="store_true",
+                   help="localize-only in the --load-map session: no keyframe is added, the "
+                        "map is not changed (copied to --out)")
     p.add_argument("--format", default="auto", help="input format (see splat-slam-convert)")
     p.add_argument("--intrinsics", help="intrinsics YAML when the input has none")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
+
+
+def _session_usage(args) -> str:
+    """The usage mistake of --start-frame / --load-map / --localize, or ''."""
+    if args.start_frame < 0:
+        return f"--start-frame must be >= 0, got {args.start_frame}"
+    if args.localize and not args.load_map:
+        return "--localize needs --load-map RUN (the run whose saved map to localize in)"
+    if args.load_map and not args.localize:
+        return ("only --localize is supported so far with --load-map (extending a loaded map "
+                "is not implemented yet)")
+    if args.load_map and Path(args.load_map).resolve() == Path(args.out).resolve():
+        return "--out must be another folder than --load-map (the loaded map is not changed)"
+    if args.load_map and (args.gt_poses or args.gt_depth):
+        return "--localize cannot be combined with --gt-poses/--gt-depth"
+    return ""
+
+
+def _print_localize(res, out: Path) -> None:
+    m = res.metrics
+    print(f"relocalised at frame {m['relocalised_frame']} against keyframe "
+          f"{m['relocalised_keyframe']}")
+    print(f"frames {res.frames}  posed {m['frames_posed']}  lost {m['frames_lost']}  "
+          f"wall {res.wall_s:.1f} s")
+    if isinstance(m.get("ate_rmse_cm_full"), (int, float)):
+        print(f"ate_rmse_cm_full {m['ate_rmse_cm_full']:.4f}")
+    print(f"outputs in {out}")
 
 
 def main(argv=None) -> int:
@@ -79,8 +122,19 @@ def main(argv=None) -> int:
         if args.max_frames is not None and args.max_frames <= 0:
             print("error: --max-frames must be positive", file=sys.stderr)
             return 2
+        bad = _session_usage(args)
+        if bad:
+            print(f"error: {bad}", file=sys.stderr)
+            return 2
         cfg = load_config(args.config, parse_overrides(args.set), preset=args.preset)
+        session = None
+        if args.load_map:
+            from splat_slam_ros.io.session import load_session
+            session = load_session(Path(args.load_map))     # validated before any frame
         ds = open_dataset(args.input, fmt=args.format, intrinsics=args.intrinsics)
+        if args.start_frame:
+            from splat_slam_ros.io.datasets import FromFrame
+            ds = FromFrame(ds, args.start_frame)
         mode = "tracking" if args.tracking_only else "gt_mapping" if args.gt_poses else "full"
         if mode == "gt_mapping" and not (ds.has_gt_pose and ds.has_gt_depth):
             print(f"error: {args.input} has no ground-truth "
@@ -89,11 +143,19 @@ def main(argv=None) -> int:
             return 2
         out = Path(args.out)
         try:
-            res = run(ds, cfg, out, mode=mode, progress=not args.no_progress,
-                      max_frames=args.max_frames)
-        except NotInitializedError as e:
+            if session is not None:
+                from splat_slam_ros.localize import run_localize
+                res = run_localize(ds, cfg, out, session, progress=not args.no_progress,
+                                   max_frames=args.max_frames)
+            else:
+                res = run(ds, cfg, out, mode=mode, progress=not args.no_progress,
+                          max_frames=args.max_frames)
+        except NotInitializedError as e:       # no result: never initialised / relocalised
             print(f"error: {e} (metrics.json in {out})", file=sys.stderr)
             return 3
+        if session is not None:
+            _print_localize(res, out)
+            return 0
         m = res.metrics
         print(f"frames {res.frames}  keyframes {res.keyframes}  wall {res.wall_s:.1f} s  "
               f"{m['fps']:.2f} frames/s")

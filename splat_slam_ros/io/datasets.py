@@ -139,3 +139,40 @@ def open_dataset(path, fmt: str = "auto", intrinsics: Union[None, str, Path, Int
     opener = {"tum": _open_tum, "replica": _open_replica, "scannet": _open_scannet,
               "euroc": _open_euroc, "posefolder": _open_posefolder, "folder": _open_folder}[fmt]
     return opener(p, K, extra, **kw, **options)
+
+
+class FromFrame:
+    """A dataset without its first ``start`` frames (``splat-slam-run --start-frame``): one
+    sequence split into sessions. Frames keep their indices and stamps; the ground truth is
+    that of the remaining frames. Anything else is the wrapped dataset's."""
+
+    def __init__(self, dataset, start: int):
+        n = len(dataset)
+        if not 0 <= int(start) < n:
+            raise DatasetError(f"--start-frame {start} is outside the input's frames "
+                               f"(0 <= N < {n})")
+        self._ds, self.start = dataset, int(start)
+        self._first_stamp: Optional[float] = None
+
+    def __getattr__(self, name):
+        return getattr(self._ds, name)
+
+    def __len__(self) -> int:
+        return len(self._ds) - self.start
+
+    def __iter__(self):
+        for i, f in enumerate(self._ds):
+            if i >= self.start:
+                if self._first_stamp is None:
+                    self._first_stamp = float(f.timestamp)
+                yield f
+
+    def gt_trajectory(self):
+        gt = self._ds.gt_trajectory()
+        if gt is None:
+            return None
+        if self._first_stamp is None:
+            for _ in self:
+                break
+        keep = gt[0] >= self._first_stamp - 1e-6
+        return gt[0][keep], gt[1][keep]

@@ -59,3 +59,32 @@ def prefetch(items: Iterable[T], depth: int = 2) -> Iterator[T]:
         # let the thread finish the item it is reading, so that the source (a bag reader,
         # say) is not used by two threads when the caller iterates it again
         t.join(timeout=5.0)
+
+
+def read_frames(frames: Iterable[T], progress: bool = True, total=None, max_frames=None,
+                postfix=None) -> Iterator[T]:
+    """The input of a run: ``frames`` read ahead (:func:`prefetch`), at most ``max_frames``,
+    with a progress bar when ``progress`` (``postfix(n)`` -> dict shown beside it, called
+    after each frame was handled)."""
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        if total is None and hasattr(frames, "__len__"):
+            total = len(frames)  # type: ignore[arg-type]
+        if max_frames is not None and total is not None:
+            total = min(total, max_frames)
+        bar = tqdm(total=total, unit="frame", dynamic_ncols=True)
+    n = 0
+    try:
+        for frame in prefetch(frames, 2):        # the next frames decode while this one runs
+            if max_frames is not None and n >= max_frames:
+                break
+            yield frame
+            n += 1
+            if bar is not None:
+                bar.update(1)
+                if postfix is not None:
+                    bar.set_postfix(**postfix(n), refresh=False)
+    finally:
+        if bar is not None:
+            bar.close()

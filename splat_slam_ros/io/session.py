@@ -1,0 +1,233 @@
+"""The saved session of a run (``OUT/session/``), which a later run loads to localise in.
+
+Files: ``manifest.json`` (format name and version, package version, camera, tracking and BA
+image sizes, the configuration, counts, and a sha256 per file) and ``keyframes.npz`` (per
+keyframe: id, frame index, timestamp, camera-to-world pose, BA-grid disparity, the
+tracking-size image the flow front end prepares, and a place-recognition descriptor). The
+map is the run's ``map.ply``, referenced by checksum (none in a tracking-only run).
+
+Plain numpy / json: :func:`load_session` validates everything (presence, checksums, version,
+keys and shapes) and raises :class:`SessionError` with one line naming what is wrong.
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import List, Optional, Sequence
+
+import cv2
+import numpy as np
+
+from splat_slam_ros.types import Intrinsics
+
+FORMAT = "splat-slam-session"
+VERSION = 1
+SESSION_DIR = "session"
+MANIFEST = "manifest.json"
+KEYFRAMES = "keyframes.npz"
+MAP = "map.ply"
+DESCRIPTOR_SIZE = (16, 12)          # (w, h) of the grey thumbnail descriptor
+ARRAYS = ("kf_ids", "frame_indices", "timestamps", "poses", "disparities", "images",
+          "descriptors")
+
+
+class SessionError(ValueError):
+    """A saved session is missing, unreadable, corrupt, of another version or camera."""
+
+
+@dataclass
+class SessionKeyframes:
+    kf_ids: np.ndarray          # (N,) int64
+    frame_indices: np.ndarray   # (N,) int64
+    timestamps: np.ndarray      # (N,) float64
+    poses: np.ndarray           # (N, 4, 4) float64 camera-to-world
+    disparities: np.ndarray     # (N, h, w) float32 BA-grid disparity
+    images: np.ndarray          # (N, H, W, 3) uint8 tracking-size images
+    descriptors: np.ndarray     # (N, D) float32 unit-norm descriptors
+
+    def __len__(self) -> int:
+        return int(len(self.kf_ids))
+
+
+@dataclass
+class Session:
+    path: Path                  # the session folder
+    manifest: dict
+    keyframes: SessionKeyframes
+    map_path: Optional[Path]    # the checked map.ply, None for a tracking-only session
+
+
+def descriptor(image: np.ndarray) -> np.ndarray:
+    """Global place descriptor: the grey image shrunk to 16x12, zero-mean, unit-norm
+    (their dot product is the normalised cross-correlation of the thumbnails)."""
+    g = image if image.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(image),
+                                                   cv2.COLOR_RGB2GRAY)
+    t = cv2.resize(g.astype(np.float32), DESCRIPTOR_SIZE, interpolation=cv2.INTER_AREA).ravel()
+    t = t - t.mean()
+    n = float(np.linalg.norm(t))
+    return (t / n if n > 1e-6 else t).astype(np.float32)
+
+
+def sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def camera_dict(k: Intrinsics) -> dict:
+    return {"fx": float(k.fx), "fy": float(k.fy), "cx": float(k.cx), "cy": float(k.cy),
+            "width": int(k.width), "height": int(k.height),
+            "distortion_model": k.distortion_model,
+            "distortion": [float(x) for x in k.distortion]}
+
+
+def _write_npz(path: Path, arrays: dict) -> None:
+    """np.savez_compressed with fixed zip entry times: the same keyframes, the same bytes
+    (and checksum) in every run."""
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
+        for name, a in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.ascontiguousarray(a), allow_pickle=False)
+            z.writestr(info, buf.getvalue())
+
+
+def write_session(out: Path, kfs: SessionKeyframes, camera: Intrinsics,
+                  tracking_size: Sequence[int], ba_size: Sequence[int], config: dict,
+                  package_version: str) -> Path:
+    """Write ``out/session/`` (keyframes.npz + manifest.json); the map is ``out/map.ply``
+    when it exists. Returns the session folder."""
+    d = Path(out) / SESSION_DIR
+    d.mkdir(parents=True, exist_ok=True)
+    _write_npz(d / KEYFRAMES, {k: getattr(kfs, k) for k in ARRAYS})
+    files = {KEYFRAMES: sha256(d / KEYFRAMES)}
+    ply = Path(out) / MAP
+    map_entry = {"path": f"../{MAP}", "sha256": sha256(ply), "bytes": ply.stat().st_size} \
+        if ply.is_file() else None
+    manifest = {
+        "format": FORMAT, "version": VERSION, "package_version": package_version,
+        "camera": camera_dict(camera),
+        "tracking_size": [int(x) for x in tracking_size], "ba_size": [int(x) for x in ba_size],
+        "keyframes": len(kfs),
+        "frames": [int(kfs.frame_indices.min()), int(kfs.frame_indices.max())] if len(kfs)
+        else None,
+        "files": files, "map": map_entry,
+        "map_note": None if map_entry else "tracking-only run: no map was made",
+        "config": config,
+    }
+    (d / MANIFEST).write_text(json.dumps(manifest, indent=2, default=str))
+    return d
+
+
+def remove_session(out: Path) -> None:
+    """Remove the session files an earlier run left in ``out`` (a new run replaces them)."""
+    for name in (MANIFEST, KEYFRAMES):
+        (Path(out) / SESSION_DIR / name).unlink(missing_ok=True)
+
+
+def _read_manifest(d: Path, run_dir: Path) -> dict:
+    mf = d / MANIFEST
+    if not d.is_dir() or not mf.is_file():
+        raise SessionError(f"no saved session in {run_dir} ({mf} not found; runs of "
+                           f"splat-slam-run write one)")
+    try:
+        m = json.loads(mf.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise SessionError(f"session file {mf} is unreadable ({type(e).__name__})") from None
+    if not isinstance(m, dict) or m.get("format") != FORMAT:
+        raise SessionError(f"session file {mf} is not a {FORMAT} manifest")
+    v = m.get("version")
+    if v != VERSION:
+        raise SessionError(f"session file {mf} has format version {v!r}; this version of "
+                           f"splat-slam reads version {VERSION} only")
+    for key in ("camera", "tracking_size", "ba_size", "files"):
+        if key not in m:
+            raise SessionError(f"session file {mf} is corrupt (no {key!r})")
+    return m
+
+
+def _check_file(path: Path, want: Optional[str], what: str) -> None:
+    if not path.is_file():
+        raise SessionError(f"session file {path} is missing ({what})")
+    if not isinstance(want, str) or sha256(path) != want:
+        raise SessionError(f"session file {path} does not match its sha256 in {MANIFEST} "
+                           f"(corrupt or changed since the session was saved)")
+
+
+def _read_keyframes(path: Path, m: dict) -> SessionKeyframes:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            a = {k: np.asarray(z[k]) for k in ARRAYS}
+    except Exception as e:          # zip / npy errors of every kind: a corrupt file
+        raise SessionError(f"session file {path} is unreadable ({type(e).__name__})") from None
+    n = len(a["kf_ids"])
+    bh, bw = int(m["ba_size"][1]), int(m["ba_size"][0])
+    th, tw = int(m["tracking_size"][1]), int(m["tracking_size"][0])
+    shapes = {"frame_indices": (n,), "timestamps": (n,), "poses": (n, 4, 4),
+              "disparities": (n, bh, bw), "images": (n, th, tw, 3)}
+    for k, s in shapes.items():
+        if a[k].shape != s:
+            raise SessionError(f"session file {path} is corrupt ({k} has shape "
+                               f"{a[k].shape}, expected {s})")
+    if n == 0 or n != m.get("keyframes"):
+        raise SessionError(f"session file {path} holds {n} keyframes, the manifest says "
+                           f"{m.get('keyframes')}")
+    return SessionKeyframes(**a)
+
+
+def load_session(run_dir: Path) -> Session:
+    """Load and validate the session saved by the run in ``run_dir`` (SessionError)."""
+    run_dir = Path(run_dir)
+    d = run_dir / SESSION_DIR
+    m = _read_manifest(d, run_dir)
+    kp = d / KEYFRAMES
+    _check_file(kp, m["files"].get(KEYFRAMES) if isinstance(m["files"], dict) else None,
+                "the keyframes")
+    kfs = _read_keyframes(kp, m)
+    map_path = None
+    if m.get("map"):
+        map_path = (d / str(m["map"].get("path", f"../{MAP}"))).resolve()
+        _check_file(map_path, m["map"].get("sha256"), "the map")
+    return Session(d, m, kfs, map_path)
+
+
+def camera_mismatch(session: Session, camera: Intrinsics, tracking_size: Sequence[int],
+                    ba_size: Sequence[int]) -> List[str]:
+    """'name session vs now' for each camera value / image size that differs (empty: same)."""
+    saved, now = session.manifest["camera"], camera_dict(camera)
+    diffs: List[str] = []
+    for k in ("fx", "fy", "cx", "cy", "width", "height"):
+        a, b = saved.get(k), now[k]
+        if not isinstance(a, (int, float)) or abs(float(a) - float(b)) > 1e-4 * max(1.0, abs(b)):
+            diffs.append(f"{k} {a} vs {b}")
+    da, db = list(saved.get("distortion") or []), now["distortion"]
+    if saved.get("distortion_model") != now["distortion_model"] and (da or db) or \
+            len(da) != len(db) or any(abs(float(x) - y) > 1e-6 for x, y in zip(da, db)):
+        diffs.append(f"distortion {saved.get('distortion_model')} {da} vs "
+                     f"{now['distortion_model']} {db}")
+    for name, a, b in (("tracking size", session.manifest["tracking_size"], tracking_size),
+                       ("BA grid", session.manifest["ba_size"], ba_size)):
+        if [int(x) for x in a] != [int(x) for x in b]:
+            diffs.append(f"{name} {a[0]}x{a[1]} vs {b[0]}x{b[1]}")
+    return diffs
+
+
+def check_camera(session: Session, camera: Intrinsics, tracking_size: Sequence[int],
+                 ba_size: Sequence[int]) -> None:
+    diffs = camera_mismatch(session, camera, tracking_size, ba_size)
+    if diffs:
+        raise SessionError(f"the session in {session.path.parent} was made with another camera "
+                           f"(saved vs this input): {', '.join(diffs)}")
+
+
+def descriptor_ranking(session_desc: np.ndarray, desc: np.ndarray) -> np.ndarray:
+    """Row indices of ``session_desc`` by similarity to ``desc``, best first."""
+    return np.argsort(-(session_desc @ desc), kind="stable")
+

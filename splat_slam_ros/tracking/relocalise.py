@@ -1,0 +1,196 @@
+"""Saving a run's keyframes as a session, and localising later frames in a loaded session.
+
+:func:`save_session` writes ``OUT/session/`` (:mod:`splat_slam_ros.io.session`) from a
+finished tracker: the published keyframes' poses and BA-grid disparities, their
+tracking-size images (read again from the input: the tracker drops them once published)
+and a descriptor each.
+
+:class:`Localizer` tracks a new sequence in a loaded session without changing it
+(localize-only): the session's keyframes go into a :class:`Tracker`'s keyframe set,
+read-only. While lost, a frame is relocalised: the stored keyframes are ranked by descriptor
+similarity and the best ``k`` are tried, DIS flow keyframe -> frame and the tracker's
+pose-only fit against the keyframe's stored pose and disparity, accepted under the tracker's
+own loss thresholds (``tracking.lost_min_valid`` confident cells, ``tracking.lost_rms``).
+Once located, each frame is tracked against the stored keyframes nearest to the last pose,
+from the constant-velocity prediction; when that fails, relocalisation runs again. No
+keyframe is added and no BA runs: poses stay in the session's frame.
+"""
+from __future__ import annotations
+
+import logging
+from typing import List, Optional, Tuple
+
+import numpy as np
+import torch
+
+from splat_slam_ros import __version__
+from splat_slam_ros.config import SlamConfig
+from splat_slam_ros.geometry import se3_inverse, se3_log
+from splat_slam_ros.io.session import (Session, SessionKeyframes, check_camera, descriptor,
+                                       descriptor_ranking, write_session)
+from splat_slam_ros.runtime import limit_threads
+from splat_slam_ros.tracking.flow_frontend import image_is_degenerate
+from splat_slam_ros.tracking.keyframe_set import KeyframeState
+from splat_slam_ros.tracking.motion_filter import predict_pose
+from splat_slam_ros.tracking.tracker import Tracker
+from splat_slam_ros.types import Frame, Intrinsics
+
+log = logging.getLogger(__name__)
+
+RELOC_CANDIDATES = 3        # keyframes tried per relocalisation (best by descriptor)
+TRACK_CANDIDATES = 2        # keyframes tried per located frame (nearest to the prediction)
+
+
+def _sizes(trk: Tracker) -> Tuple[List[int], List[int]]:
+    return [trk.intrinsics.width, trk.intrinsics.height], [trk.w, trk.h]
+
+
+def session_keyframes(trk: Tracker, frames) -> SessionKeyframes:
+    """The tracker's published keyframes as session arrays; ``frames`` (the run's input,
+    iterated once more) gives their images again at the tracking size."""
+    ids = trk.keyframe_ids()
+    by_frame = {trk.kfs[k].frame_index: k for k in ids}
+    images = {}
+    for f in frames:
+        if f.index in by_frame:
+            img = trk.pre(f.image)
+            images[by_frame[f.index]] = img if img.ndim == 3 else np.repeat(img[..., None], 3, -1)
+        if len(images) == len(ids):
+            break
+    ids = [k for k in ids if k in images]
+    imgs = np.stack([images[k] for k in ids]) if ids else \
+        np.zeros((0, trk.intrinsics.height, trk.intrinsics.width, 3), np.uint8)
+    return SessionKeyframes(
+        kf_ids=np.array(ids, np.int64),
+        frame_indices=np.array([trk.kfs[k].frame_index for k in ids], np.int64),
+        timestamps=np.array([trk.kfs[k].timestamp for k in ids], np.float64),
+        poses=np.stack([trk.kfs[k].pose.cpu().numpy() for k in ids]).astype(np.float64)
+        if ids else np.zeros((0, 4, 4)),
+        disparities=np.stack([trk.kfs[k].disp.cpu().numpy() for k in ids]).astype(np.float32)
+        if ids else np.zeros((0, trk.h, trk.w), np.float32),
+        images=imgs.astype(np.uint8),
+        descriptors=np.stack([descriptor(i) for i in imgs]) if ids else
+        np.zeros((0, 192), np.float32))
+
+
+def save_session(trk: Tracker, frames, cfg: SlamConfig, camera: Intrinsics, out) -> None:
+    """Write ``out/session/`` for a finished tracker (after ``out/map.ply``, if any)."""
+    kfs = session_keyframes(trk, frames)
+    if len(kfs):
+        write_session(out, kfs, camera, *_sizes(trk), cfg.to_dict(), __version__)
+
+
+class Localizer:
+    """Localize-only tracking in a loaded :class:`Session` (see module docstring)."""
+
+    def __init__(self, cfg: SlamConfig, intrinsics: Intrinsics, session: Session,
+                 flow_predictor=None):
+        # no BA runs here: a no-op depth prior keeps a configured mono model unloaded
+        self.trk = trk = Tracker(cfg, intrinsics, flow_predictor=flow_predictor,
+                                 depth_prior=lambda _state: None)
+        check_camera(session, intrinsics, *_sizes(trk))
+        s = session.keyframes
+        self.ids = [int(k) for k in s.kf_ids]
+        self.desc = s.descriptors.astype(np.float32)
+        for n, k in enumerate(self.ids):
+            trk.kfs.add(k, KeyframeState(
+                torch.as_tensor(s.poses[n], dtype=torch.float64, device=trk.device),
+                torch.as_tensor(s.disparities[n], dtype=torch.float32, device=trk.device),
+                int(s.frame_indices[n]), float(s.timestamps[n]),
+                prep=trk.flow.prepare(s.images[n])))
+        self.located = False
+        self.relocalised_frame: Optional[int] = None
+        self.relocalised_keyframe: Optional[int] = None
+        self.stamps: List[float] = []
+        self.poses: List[np.ndarray] = []
+        self.n_lost = 0
+        self.n_relocalisations = 0
+
+    # ------------------------------------------------------------ candidates
+    def _accept(self, ref: int, prep, inits, init_flow=None):
+        """(pose, rms) of the frame against keyframe ``ref``, or None when the flow or the
+        pose fit fails the tracker's loss thresholds."""
+        trk = self.trk
+        f, w, _, _ = trk._flows(trk.kfs[ref].prep, prep, init_flow)
+        valid = float((w.mean(-1) > trk.motion.cell_weight).float().mean())
+        if valid < trk.tc.lost_min_valid:
+            return None
+        T, info = trk._fit_pose(ref, f, w, inits)
+        if info is None or not np.isfinite(info.rms) or info.rms > trk.tc.lost_rms:
+            return None
+        return T, float(info.rms)
+
+    def _nearest(self, T: torch.Tensor) -> List[int]:
+        """Stored keyframes by distance to the pose ``T``: translation in units of the
+        keyframe's mean depth plus the rotation angle (rad)."""
+        d = []
+        for k in self.ids:
+            ks = self.trk.kfs[k]
+            rel = se3_log(se3_inverse(ks.pose) @ T)
+            depth = 1.0 / max(float(ks.disp.mean()), 1e-6)
+            d.append(float(rel[:3].norm()) / depth + float(rel[3:].norm()))
+        return [self.ids[i] for i in np.argsort(d, kind="stable")]
+
+    def _relocalise(self, img, prep):
+        trk = self.trk
+        order = descriptor_ranking(self.desc, descriptor(img))[:RELOC_CANDIDATES]
+        best = None
+        for i in order:
+            k = self.ids[int(i)]
+            r = self._accept(k, prep, [trk.kfs[k].pose.clone()])
+            if r is not None and (best is None or r[1] < best[1][1]):
+                best = (k, r)
+        return best
+
+    def _follow(self, frame: Frame, prep):
+        trk = self.trk
+        pred = predict_pose(trk.last_pose, trk.velocity, trk._spacing, frame.index)
+        for k in self._nearest(pred)[:TRACK_CANDIDATES]:
+            ks = trk.kfs[k]
+            r = self._accept(k, prep, [pred, trk.last_pose.clone()],
+                             trk._induced(ks.pose, ks.disp, pred))
+            if r is not None:
+                return k, r
+        return None
+
+    # ------------------------------------------------------------ per frame
+    def track(self, frame: Frame) -> Optional[np.ndarray]:
+        """The frame's camera-to-world pose in the session's frame, or None (lost)."""
+        with limit_threads(self.trk.tc.threads):
+            return self._track(frame)
+
+    def _track(self, frame: Frame) -> Optional[np.ndarray]:
+        trk = self.trk
+        img = trk.pre(frame.image)
+        if image_is_degenerate(img):
+            return self._lose(frame, "degenerate image")
+        prep = trk.flow.prepare(img)
+        hit = self._follow(frame, prep) if self.located else None
+        if hit is None:
+            hit = self._relocalise(img, prep)
+            if hit is None:
+                return self._lose(frame, "no stored keyframe matched")
+            self.n_relocalisations += 1
+            trk.velocity = torch.eye(4, dtype=torch.float64, device=trk.device)
+            trk._spacing = (None, None)
+            trk.last_pose = hit[1][0].clone()
+            if self.relocalised_frame is None:
+                self.relocalised_frame, self.relocalised_keyframe = int(frame.index), hit[0]
+                log.info("relocalised at frame %d against keyframe %d", frame.index, hit[0])
+        self.located = True
+        trk._set_pose(hit[1][0], frame.index)
+        T = trk.last_pose.cpu().numpy().copy()
+        self.stamps.append(float(frame.timestamp))
+        self.poses.append(T)
+        return T
+
+    def _lose(self, frame: Frame, why: str) -> None:
+        if self.located:
+            log.warning("frame %d: lost in the loaded map (%s); relocalising", frame.index, why)
+        self.located = False
+        self.n_lost += 1
+        return None
+
+    def trajectory(self) -> Tuple[np.ndarray, np.ndarray]:
+        return (np.array(self.stamps, np.float64),
+                np.stack(self.poses) if self.poses else np.zeros((0, 4, 4)))
