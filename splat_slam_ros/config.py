@@ -97,6 +97,10 @@ class TrackingConfig:
     # leaving: confident flow cells below this x their typical fraction (a candidate then even
     # below motion_filter_thresh: the reference is refreshed before the flow fails; 0 = off)
     keyframe_urgent_valid: float = 0.7
+    # lost for this many frames in a row: initialise again from the current frame, the new
+    # segment placed where the motion before the loss leads, with the last keyframe's depth
+    # scale (0 = never)
+    reinit_after: int = 10
     warmup: int = 8                      # most keyframes collected before initialisation
     init_min_keyframes: int = 2          # initialise from this many keyframes once ...
     init_parallax: float = 1.5           # ... first -> newest shows this much parallax (upper-

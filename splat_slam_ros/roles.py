@@ -36,7 +36,8 @@ from splat_slam_ros.io.keyframe_store import (KeyframeStore, keyframe_depth, map
                                               restore_mapper)
 from splat_slam_ros.io.trajectory_io import write_tum
 from splat_slam_ros.tracking.loop_closure import LoopCloser
-from splat_slam_ros.tracking.tracker import Tracker, TrackStep
+from splat_slam_ros.tracking.tracker import Tracker
+from splat_slam_ros.types import TrackStep
 from splat_slam_ros.tracking.tracker_state import (TrackerCheckpoint, intrinsics_from_list,
                                                    intrinsics_to_list)
 from splat_slam_ros.types import (LOOP_SEQ_START, TRACKER_SEQ_START, Frame, Intrinsics,

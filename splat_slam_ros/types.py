@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 import yaml
@@ -209,3 +209,36 @@ class ProxyDepth:
         if ba_weight == 1.0 or not ba.any():
             return s > 0
         return np.where(ba, np.float32(ba_weight), (s > 0).astype(np.float32))
+
+
+@dataclass
+class TrackStep:
+    """What :meth:`Tracker.track` returns for one input frame."""
+    frame_index: int
+    timestamp: float
+    is_keyframe: bool
+    kf_id: Optional[int]
+    pose: np.ndarray                         # 4x4 camera-to-world, current estimate
+    events: List[UpdateEvent] = field(default_factory=list)
+    keyframe: Optional[KeyframeData] = None  # the newest keyframe published this step
+    lost: bool = False
+    # every keyframe published this step (usually 0 or 1; the end of the warm-up
+    # publishes all warm-up keyframes at once) - consumers should iterate this
+    keyframes: List[KeyframeData] = field(default_factory=list)
+    initialized: bool = True
+    info: Dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class TrackingResult:
+    timestamps: np.ndarray            # full trajectory
+    poses: np.ndarray                 # (N, 4, 4) camera-to-world
+    kf_timestamps: np.ndarray
+    kf_poses: np.ndarray
+    kf_ids: List[int]
+    events: List[UpdateEvent]
+    timings: Dict[str, float]
+    n_frames: int
+    n_keyframes: int
+    n_lost: int
+    wall_s: float

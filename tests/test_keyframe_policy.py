@@ -123,3 +123,53 @@ def test_segment_scales_find_where_the_scale_breaks():
     assert np.all(r[3:] > 1.2 * r[:3].max())
     with pytest.raises(Exception, match="segment length"):
         segment_scales(t, gt, t, est, seconds=0)
+
+
+def _blocked_sequence():
+    """110 frames of a hand-held path, frames 40-54 black (the tracker is lost there)."""
+    frames, gt = make_sequence(110, INTR, motion=(0.02, 0.006, 0.004), rot=0.006)
+    black = np.zeros_like(frames[0].image)
+    return [f if not 40 <= f.index < 55 else
+            type(f)(f.index, f.timestamp, black, f.intrinsics) for f in frames], frames, gt
+
+
+def test_a_new_segment_survives_a_restart(tmp_path):
+    from splat_slam_ros.io.keyframe_store import KeyframeStore
+    from splat_slam_ros.roles import TrackerRole
+    blocked, _, _ = _blocked_sequence()
+    a = TrackerRole(small_cfg(), INTR, False, store=KeyframeStore(tmp_path / "t"))
+    for f in blocked[:80]:
+        a.on_frame(f)
+    assert a.tracker.n_segments == 2 and a.tracker.initialized
+    pose, disp = a.tracker._anchor
+    del a                                              # "kill -9"
+    b = TrackerRole(small_cfg(), INTR, False, store=KeyframeStore(tmp_path / "t"))
+    assert b.resumed and b.tracker.n_segments == 2
+    assert torch.equal(b.tracker._anchor[0], pose) and b.tracker._anchor[1] == disp
+
+
+def test_a_long_loss_starts_a_new_segment_near_the_old_one():
+    """15 black frames in the middle of a hand-held path: after 10 lost frames the tracker
+    initialises again from the next good frame; the new segment continues in the first
+    one's frame (placed where the motion before the loss leads, its depth scale carried
+    over), where without it every later frame stays lost."""
+    from splat_slam_ros.evaluation import ate
+    blocked, frames, gt = _blocked_sequence()
+    gts = np.array([f.timestamp for f in frames])
+    runs = {}
+    for reinit in (10, 0):
+        tr = _track(blocked, INTR, small_cfg(reinit_after=reinit))
+        ts, P = tr.trajectory_full()
+        runs[reinit] = (tr, ts, P)
+    tr, ts, P = runs[10]
+    assert tr.n_segments == 2 and runs[0][0].n_segments == 1
+    assert tr.n_lost <= 20 and runs[0][0].n_lost >= 50, (tr.n_lost, runs[0][0].n_lost)
+    after = ts > frames[62].timestamp                   # the new segment, initialised
+    first = ts < frames[40].timestamp
+    a2 = ate(gts, gt, ts[after], P[after])
+    a1 = ate(gts, gt, ts[first], P[first])
+    assert a2["rmse_cm"] < 1.0, a2["rmse_cm"]
+    assert 0.7 < a2["scale"] / a1["scale"] < 1.4, (a1["scale"], a2["scale"])
+    # one Sim(3) over both segments: placed at the last pose instead, 9.9 cm
+    both = first | after
+    assert ate(gts, gt, ts[both], P[both])["rmse_cm"] < 5.0

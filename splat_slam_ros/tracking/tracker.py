@@ -19,7 +19,7 @@ import itertools
 import logging
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
@@ -38,7 +38,8 @@ from splat_slam_ros.depth.dspo import make_depth_prior
 from splat_slam_ros.runtime import limit_threads, resolve_device
 from splat_slam_ros.tracking.trajectory_filler import FrameRecord, fill_trajectory
 from splat_slam_ros.tracking.two_view import two_view_start
-from splat_slam_ros.types import TRACKER_SEQ_START, Frame, Intrinsics, KeyframeData, UpdateEvent
+from splat_slam_ros.types import (TRACKER_SEQ_START, Frame, Intrinsics, KeyframeData,
+                                  TrackingResult, TrackStep, UpdateEvent)
 
 log = logging.getLogger(__name__)
 
@@ -48,24 +49,6 @@ LATE_INIT_PARALLAX = 0.25
 
 class TrackingError(ValueError):
     """A user-facing tracking configuration/input mistake."""
-
-
-@dataclass
-class TrackStep:
-    """What :meth:`Tracker.track` returns for one input frame."""
-    frame_index: int
-    timestamp: float
-    is_keyframe: bool
-    kf_id: Optional[int]
-    pose: np.ndarray                         # 4x4 camera-to-world, current estimate
-    events: List[UpdateEvent] = field(default_factory=list)
-    keyframe: Optional[KeyframeData] = None  # the newest keyframe published this step
-    lost: bool = False
-    # every keyframe published this step (usually 0 or 1; the end of the warm-up
-    # publishes all warm-up keyframes at once) - consumers should iterate this
-    keyframes: List[KeyframeData] = field(default_factory=list)
-    initialized: bool = True
-    info: Dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -87,21 +70,6 @@ class BAState:
     weight: torch.Tensor
     images: Dict[int, np.ndarray]
     fixed: int
-
-
-@dataclass
-class TrackingResult:
-    timestamps: np.ndarray            # full trajectory
-    poses: np.ndarray                 # (N, 4, 4) camera-to-world
-    kf_timestamps: np.ndarray
-    kf_poses: np.ndarray
-    kf_ids: List[int]
-    events: List[UpdateEvent]
-    timings: Dict[str, float]
-    n_frames: int
-    n_keyframes: int
-    n_lost: int
-    wall_s: float
 
 
 class Tracker:
@@ -147,6 +115,8 @@ class Tracker:
         self._spacing = (None, None)   # frame indices of the velocity's step (predict_pose)
         self.lost_count = self.n_lost = 0
         self.n_skipped = 0              # frames skip() posed without tracking (live, busy)
+        self.n_segments = 1             # initialisations (a new one after a long loss)
+        self._anchor = None             # (pose, mean disparity) a new segment starts from
         self.on_pose_estimate: Optional[Callable] = None   # (index, stamp, pose) before BA
         self._last_flow = None          # (ref kf, flow ref -> previous frame): DIS init
         self._warm_best = None          # warm-up: the frame that moved most since the last kf
@@ -244,6 +214,8 @@ class Tracker:
             step = self._lost(frame, "degenerate image (black/uniform)")
         else:
             prep = self.flow.prepare(img)
+            if self.initialized and 0 < self.tc.reinit_after <= self.lost_count:
+                self._new_segment(frame.index)
             if not self.initialized:
                 step = self._warmup(frame, img, prep)
             else:
@@ -264,6 +236,8 @@ class Tracker:
     def _lost(self, frame: Frame, why: str) -> TrackStep:
         self.lost_count += 1
         self.n_lost += 1
+        if self.lost_count == 1:        # the motion before the loss (a new segment's start)
+            self._before_loss = (self.last_pose.clone(), self.velocity, self._spacing)
         self.velocity = torch.eye(4, dtype=torch.float64, device=self.device)
         self._spacing = (None, None)
         if self.lost_count == 1 or self.lost_count % 30 == 0:
@@ -360,8 +334,29 @@ class Tracker:
             flows.append(compose_flows(flows[-1], self.graph.flow(a, b)))
         return flows, self.graph.edges[(ids[0], ids[1])][1].float()
 
+    def _new_segment(self, index: int) -> None:
+        """Lost for ``tracking.reinit_after`` frames: a new warm-up and initialisation, its
+        first keyframe where the constant-velocity motion before the loss leads, with the
+        last keyframe's mean disparity (the scale carries over if the scene's depth does);
+        published keyframes stay."""
+        T, vel, spacing = getattr(self, "_before_loss", (self.last_pose, self.velocity, (None, None)))
+        self._anchor = (predict_pose(T, vel, spacing, index),
+                        float(self.kfs[self.window[-1]].disp.mean()))
+        log.warning("frame %d: lost for %d frames: initialising again from here", index,
+                    self.lost_count)
+        for k in self.window:
+            self.kfs.drop_prep(k)
+            self.kfs.drop_image(k)
+        self.initialized, self._last_flow = False, None
+        self.n_segments += 1
+        self._reset()
+
     def _reset(self) -> None:
-        self.kfs.clear()
+        if self.published:              # a new segment: the published keyframes stay
+            for k in [k for k in self.window if k not in self.published]:
+                self.kfs.remove(k)
+        else:
+            self.kfs.clear()
         self.graph = FactorGraph(self.h, self.w, self.device)
         self.window = []
         self.lost_count = 0
@@ -402,6 +397,11 @@ class Tracker:
         disps = disps / s
         poses = poses.clone()
         poses[:, :3, 3] *= s
+        if self._anchor is not None:    # a new segment: in the world frame of the first one
+            T0, d0 = self._anchor
+            disps = disps * d0
+            poses[:, :3, 3] /= d0
+            poses = T0.to(poses) @ poses
         poses, disps, infos2 = bundle_adjust(poses, disps, self.intr, ii, jj, tgt, wgt,
                                              iters=self.tc.ba_iters, fixed=2, huber=self.huber)
         self.timings["ba"] += time.perf_counter() - t0

@@ -273,6 +273,9 @@ class TrackerCheckpoint:
                 "trk_published": sorted(int(k) for k in trk.published),
                 "trk_initialized": bool(trk.initialized), "trk_lost_count": int(trk.lost_count),
                 "trk_n_lost": int(trk.n_lost), "trk_records": self._n_records,
+                "trk_segments": int(trk.n_segments),       # a new segment's start (warm-up)
+                "trk_anchor": None if trk._anchor is None else
+                [trk._anchor[0].cpu().numpy().tolist(), float(trk._anchor[1])],
                 "trk_chunks": self._chunks,
                 "trk_last_stamp": (float(trk.records[-1].timestamp) if trk.records else None),
                 "trk_motion_typical": trk.motion._typical,
@@ -325,6 +328,9 @@ class TrackerCheckpoint:
         trk.next_kf = int(m["trk_next_kf"])
         trk.initialized = bool(m["trk_initialized"])
         trk.lost_count, trk.n_lost = int(m["trk_lost_count"]), int(m["trk_n_lost"])
+        trk.n_segments, a = int(m.get("trk_segments", 1)), m.get("trk_anchor")
+        trk._anchor = None if a is None else (
+            torch.as_tensor(a[0], dtype=torch.float64, device=dev), float(a[1]))
         trk.motion._typical = m.get("trk_motion_typical")
         trk.last_pose = torch.as_tensor(s["last_pose"], dtype=torch.float64, device=dev)
         trk.velocity = torch.as_tensor(s["velocity"], dtype=torch.float64, device=dev)
