@@ -48,6 +48,8 @@ import sys
 import time
 from pathlib import Path
 
+from bench_defaults import tool
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data" / "trajectories"
 REALISTIC = ["--realism", "realistic"]       # blur 5, AE 0.08, vignetting 0.25, noise 2, JPEG 90
@@ -119,12 +121,6 @@ def rotation_trajectory(path: Path) -> None:
     pos = np.stack([-0.3 + 0.1 * move, -0.5 + 0.05 * move, 1.2 + 0.02 * np.sin(2 * t)], 1)
     look = np.stack([np.sin(pan) * np.cos(tilt), np.cos(pan) * np.cos(tilt), np.sin(tilt)], 1)
     _write_poses(path, t, pos, look)
-
-
-def tool(name: str) -> str:
-    """The console script ``name`` of this interpreter's environment (else from PATH)."""
-    exe = Path(sys.executable).with_name(name)
-    return str(exe) if exe.exists() else name
 
 
 def ensure_sequence(data_dir: Path, c: dict) -> Path:
