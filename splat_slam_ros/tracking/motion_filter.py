@@ -3,9 +3,11 @@
 A frame becomes a keyframe candidate when the mean flow from the last keyframe
 exceeds ``tracking.motion_filter_thresh`` and the last keyframe is at least
 ``1 / tracking.max_keyframe_rate`` seconds of stream time old (fast motion: a few keyframes
-per second, not one per frame), unless the view is leaving the last keyframe (mean flow above
-``keyframe_urgent_flow`` x the threshold, or the confident cells down to
-``keyframe_urgent_valid`` x their typical fraction); after the local BA a candidate whose
+per second, not one per frame). A frame whose view is leaving the last keyframe (mean flow
+above ``keyframe_urgent_flow`` x the threshold, or the confident cells down to
+``keyframe_urgent_valid`` x their typical fraction) is a candidate at once, the latter even
+below the threshold (the reference is renewed before the flow to it fails; not in the
+warm-up, whose keyframes need parallax). After the local BA a candidate whose
 flow *induced by the optimised poses and disparities* stays below the keyframe
 threshold tau (``tracking.keyframe_thresh``) is dropped again. Both thresholds
 are given in *reference* BA-grid pixels - those of the reference's setting (a
