@@ -228,19 +228,20 @@ def segment_scales(gt_ts, gt_poses, est_ts, est_poses, seconds: float = 2.0,
     1 = none) and ``scale`` (the whole trajectory's)."""
     if seconds <= 0:
         raise MetricError(f"segment length must be > 0 s, got {seconds}")
-    gt_ts, G, _Ea, ia, ib, (s_all, _R, _t) = _matched_aligned(
+    gt_ts, G, Ea, ia, _ib, (s_all, _R, _t) = _matched_aligned(
         gt_ts, gt_poses, est_ts, est_poses, "sim3", max_diff, 0.0)
-    _ets, E = _check_traj(est_ts, est_poses, "estimated")
-    t, Pg, Pe = gt_ts[ia], G[:, :3, 3], E[ib][:, :3, 3]
+    # a segment of the estimate aligned as a whole, aligned again on its own: the extra
+    # scale is the segment's scale over the whole trajectory's
+    t, Pg, Pe = gt_ts[ia], G[:, :3, 3], Ea[:, :3, 3]
     starts, ratios, paths = [], [], []
     for t0 in np.arange(t[0], t[-1] - 0.5 * seconds, seconds):
         m = (t >= t0) & (t < t0 + seconds)
         path = float(np.linalg.norm(np.diff(Pg[m], axis=0), axis=1).sum()) if m.sum() > 1 else 0
         if m.sum() < 3 or path < min_path_m:
             continue
-        s, _, _ = umeyama_alignment(Pe[m], Pg[m], with_scale=True)
+        ratio, _, _ = umeyama_alignment(Pe[m], Pg[m], with_scale=True)
         starts.append(float(t0 - t[0]))
-        ratios.append(float(s / s_all))
+        ratios.append(float(ratio))
         paths.append(path)
     r = np.asarray(ratios)
     return dict(starts=starts, ratios=ratios, path_m=paths, scale=float(s_all),

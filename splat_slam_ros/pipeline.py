@@ -7,6 +7,7 @@ trajectory_full.txt, trajectory_keyframes.txt, map.ply, renders/ and metrics.jso
 """
 from __future__ import annotations
 
+import itertools
 import json
 import sys
 import time
@@ -351,5 +352,4 @@ def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics) ->
         metrics.update(mp.evaluate_keyframes(out / "renders"))
         metrics["map"] = mp.stats()
     # the session a later run loads (--load-map OUT --localize): after map.ply, which it sums
-    save_session(trk, (f for i, f in enumerate(dataset) if max_frames is None or i < max_frames),
-                 cfg, dataset.intrinsics, out)
+    save_session(trk, itertools.islice(dataset, max_frames), cfg, dataset.intrinsics, out)

@@ -55,14 +55,16 @@ class Intrinsics:
         return np.array([self.fx, self.fy, self.cx, self.cy], dtype=np.float64)
 
     # ------------------------------------------------------------ YAML I/O
+    def to_dict(self) -> dict:
+        """``fx fy cx cy width height distortion_model distortion`` as plain Python values."""
+        return dict(fx=float(self.fx), fy=float(self.fy), cx=float(self.cx), cy=float(self.cy),
+                    width=int(self.width), height=int(self.height),
+                    distortion_model=self.distortion_model,
+                    distortion=[float(x) for x in self.distortion])
+
     def to_yaml(self, path, **extra) -> None:
-        """Write ``fx fy cx cy width height distortion_model distortion`` (+ extra keys)."""
-        d = dict(fx=float(self.fx), fy=float(self.fy), cx=float(self.cx), cy=float(self.cy),
-                 width=int(self.width), height=int(self.height),
-                 distortion_model=self.distortion_model,
-                 distortion=[float(x) for x in self.distortion])
-        d.update(extra)
-        Path(path).write_text(yaml.safe_dump(d, sort_keys=False))
+        """Write :meth:`to_dict` (+ extra keys) as YAML."""
+        Path(path).write_text(yaml.safe_dump({**self.to_dict(), **extra}, sort_keys=False))
 
     @staticmethod
     def from_yaml(path) -> "Intrinsics":

@@ -80,13 +80,6 @@ def sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def camera_dict(k: Intrinsics) -> dict:
-    return {"fx": float(k.fx), "fy": float(k.fy), "cx": float(k.cx), "cy": float(k.cy),
-            "width": int(k.width), "height": int(k.height),
-            "distortion_model": k.distortion_model,
-            "distortion": [float(x) for x in k.distortion]}
-
-
 def _write_npz(path: Path, arrays: dict) -> None:
     """np.savez_compressed with fixed zip entry times: the same keyframes, the same bytes
     (and checksum) in every run."""
@@ -113,7 +106,7 @@ def write_session(out: Path, kfs: SessionKeyframes, camera: Intrinsics,
         if ply.is_file() else None
     manifest = {
         "format": FORMAT, "version": VERSION, "package_version": package_version,
-        "camera": camera_dict(camera),
+        "camera": camera.to_dict(),
         "tracking_size": [int(x) for x in tracking_size], "ba_size": [int(x) for x in ba_size],
         "keyframes": len(kfs),
         "frames": [int(kfs.frame_indices.min()), int(kfs.frame_indices.max())] if len(kfs)
@@ -201,7 +194,7 @@ def load_session(run_dir: Path) -> Session:
 def camera_mismatch(session: Session, camera: Intrinsics, tracking_size: Sequence[int],
                     ba_size: Sequence[int]) -> List[str]:
     """'name session vs now' for each camera value / image size that differs (empty: same)."""
-    saved, now = session.manifest["camera"], camera_dict(camera)
+    saved, now = session.manifest["camera"], camera.to_dict()
     diffs: List[str] = []
     for k in ("fx", "fy", "cx", "cy", "width", "height"):
         a, b = saved.get(k), now[k]

@@ -87,9 +87,12 @@ class MotionFilter:
         self.cell_weight = cell_weight
         self._typical = None            # running median-ish of valid_frac on good frames
 
+    def confident_fraction(self, weight: torch.Tensor) -> float:
+        """Fraction of BA cells whose mean flow weight exceeds ``cell_weight``."""
+        return float((weight.mean(-1) > self.cell_weight).float().mean())
+
     def check(self, flow: torch.Tensor, weight: torch.Tensor) -> FlowCheck:
-        wm = weight.mean(-1)
-        valid = float((wm > self.cell_weight).float().mean())
+        valid = self.confident_fraction(weight)
         mf = mean_flow(flow, weight, self.cell_weight)
         need = self.min_valid_frac
         if self._typical is not None:

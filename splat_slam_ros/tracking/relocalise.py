@@ -112,8 +112,7 @@ class Localizer:
         pose fit fails the tracker's loss thresholds."""
         trk = self.trk
         f, w, _, _ = trk._flows(trk.kfs[ref].prep, prep, init_flow)
-        valid = float((w.mean(-1) > trk.motion.cell_weight).float().mean())
-        if valid < trk.tc.lost_min_valid:
+        if trk.motion.confident_fraction(w) < trk.tc.lost_min_valid:
             return None
         T, info = trk._fit_pose(ref, f, w, inits)
         if info is None or not np.isfinite(info.rms) or info.rms > trk.tc.lost_rms:

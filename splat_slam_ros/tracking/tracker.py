@@ -116,7 +116,7 @@ class Tracker:
         self.lost_count = self.n_lost = 0
         self.n_skipped = 0              # frames skip() posed without tracking (live, busy)
         self.n_segments = 1             # initialisations (a new one after a long loss)
-        self._anchor = None             # (pose, mean disparity) a new segment starts from
+        self._anchor = self._before_loss = None   # a new segment's start; the motion at a loss
         self.on_pose_estimate: Optional[Callable] = None   # (index, stamp, pose) before BA
         self._last_flow = None          # (ref kf, flow ref -> previous frame): DIS init
         self._warm_best = None          # warm-up: the frame that moved most since the last kf
@@ -339,7 +339,8 @@ class Tracker:
         first keyframe where the constant-velocity motion before the loss leads, with the
         last keyframe's mean disparity (the scale carries over if the scene's depth does);
         published keyframes stay."""
-        T, vel, spacing = getattr(self, "_before_loss", (self.last_pose, self.velocity, (None, None)))
+        # (a tracker restored while lost has no motion before the loss: the last pose)
+        T, vel, spacing = self._before_loss or (self.last_pose, self.velocity, (None, None))
         self._anchor = (predict_pose(T, vel, spacing, index),
                         float(self.kfs[self.window[-1]].disp.mean()))
         log.warning("frame %d: lost for %d frames: initialising again from here", index,
