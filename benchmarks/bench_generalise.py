@@ -102,22 +102,12 @@ def ensure(data_dir: Path, name: str, c: dict) -> Path:
         if not p.is_dir():
             sys.exit(f"error: {p} not found (needs ../shared/data)")
         return p
-    out = data_dir / f"gen_{name}"
-    if (out / "groundtruth.txt").is_file() and \
-            len(list((out / "rgb").glob("*.png"))) == c["frames"]:
-        return out
-    tfile = SHARED / "trajectories" / c["traj"]
-    if not tfile.is_file():
-        sys.exit(f"error: trajectory {tfile} not found (needs ../shared/data)")
-    cmd = [bt.tool("splat-slam-synth"), "--trajectory", str(tfile),
-           "--frames", str(c["frames"]), "--fps", str(c["fps"]), "--start", str(c["start"]),
-           "--size", "640x480", "--scene", c["scene"], "--realism", c["realism"],
-           "--seed", str(c["seed"]), "--out", str(out), "--overwrite", "--quiet"]
+    extra = ["--scene", c["scene"], "--realism", c["realism"], "--seed", str(c["seed"]),
+             "--quiet"]
     if c["textures"] == "photo":
-        cmd += ["--textures", str(photo_textures(data_dir))]
-    print("rendering:", " ".join(cmd[1:]), flush=True)
-    subprocess.run(cmd, check=True)
-    return out
+        extra += ["--textures", str(photo_textures(data_dir))]
+    return bt.ensure_sequence(data_dir, bt.case(c["traj"], c["frames"], extra, f"gen_{name}",
+                                                fps=c["fps"], start=c["start"]))
 
 
 # ------------------------------------------------------------------ DSO
