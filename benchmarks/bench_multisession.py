@@ -1,19 +1,21 @@
 #!/usr/bin/env python
 """Maps across sessions: one sequence split in two sessions, the second localised in the
-first's saved map (``splat-slam-run --load-map RUN --localize``).
+first's saved map (``splat-slam-run --load-map RUN --localize``) and extending it
+(``--load-map RUN``).
 
     .venv/bin/python benchmarks/bench_multisession.py [--sequence fr2desk] [--split 150]
         [--data-dir DIR] [--json benchmarks/results/multisession.json]
 
 The first session: frames ``0 .. split-1`` with the full default pipeline (``--max-frames split``),
-which saves ``session/``. The second: frames ``split ..`` with ``--start-frame split
---load-map S1 --localize``. Printed: frames until relocalised, frames posed / lost in the second
-session, the ATE of both sessions' trajectories together under one Sim(3) against the single run's
-ATE over the same frames (target: at most 1.5x), whether the second session left the map
-byte-identical, and frames/s of each session (input frames / wall time of the whole
-command). The sequence is ``bench_defaults.py``'s realistic 640x480 render (rendered into
-``--data-dir`` when missing). Extending a loaded map is not supported yet, so there is no
-extend-mode row.
+which saves ``session/``. The second, in both modes: frames ``split ..`` with ``--start-frame
+split --load-map S1 --localize`` and with ``--start-frame split --load-map S1`` (extend).
+Printed per mode: frames until relocalised, frames posed / lost in the second session, the ATE
+of both sessions' trajectories together under one Sim(3) against the single run's ATE over the
+same frames (target: at most 1.5x), frames/s of each session (input frames / wall time of the
+whole command); localize: whether the map stayed byte-identical; extend: keyframes and
+Gaussians before and after, and the PSNR of the first session's keyframes in the extended map
+against the first session's own (target: no loss above 0.5 dB). The sequence is
+``bench_defaults.py``'s realistic 640x480 render (rendered into ``--data-dir`` when missing).
 """
 from __future__ import annotations
 
@@ -31,6 +33,11 @@ SEQUENCES = ("fr2desk", "fr1xyz")
 def _trajectory(run: Path):
     from splat_slam_ros.io.trajectory_io import read_trajectory
     return read_trajectory(run / "trajectory_full.txt", "tum")
+
+
+def _keyframe_psnr(run: Path) -> dict:
+    views = json.loads((run / "renders" / "keyframes.json").read_text())["keyframes"]
+    return {int(v["kf_id"]): float(v["psnr"]) for v in views}
 
 
 def main(argv=None) -> int:
@@ -51,7 +58,7 @@ def main(argv=None) -> int:
         return 2
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
-    s1, s2, single = work / "first", work / "second", work / "single"
+    s1, s2, s3, single = (work / n for n in ("first", "second", "extend", "single"))
     run = tool("splat-slam-run")
     res = {"sequence": a.sequence, "split": a.split, "frames": n}
     res["single"] = timed([run, str(seq), "--out", str(single), "--no-progress"],
@@ -61,7 +68,10 @@ def main(argv=None) -> int:
     res["second"] = timed([run, str(seq), "--out", str(s2), "--no-progress", "--start-frame",
                              str(a.split), "--load-map", str(s1), "--localize"],
                             work / "second.log", None)
-    for k, frames in (("single", n), ("first", a.split), ("second", n - a.split)):
+    res["extend"] = timed([run, str(seq), "--out", str(s3), "--no-progress", "--start-frame",
+                           str(a.split), "--load-map", str(s1)], work / "extend.log", None)
+    for k, frames in (("single", n), ("first", a.split), ("second", n - a.split),
+                      ("extend", n - a.split)):
         if res[k]["rc"] != 0:
             print(f"error: {k} exited {res[k]['rc']} (log in {work / (k + '.log')})",
                   file=sys.stderr)
@@ -82,12 +92,35 @@ def main(argv=None) -> int:
                ate_two_sessions_cm=both["rmse_cm"], ate_single_run_cm=one["rmse_cm"],
                ratio=both["rmse_cm"] / max(one["rmse_cm"], 1e-9),
                map_unchanged=filecmp.cmp(s1 / "map.ply", s2 / "map.ply", shallow=False))
+    m3 = json.loads((s3 / "metrics.json").read_text())
+    x = m3["extend"]
+    t3, P3 = _trajectory(s3)
+    both3 = ate(gt_ts, gt, np.concatenate([t1, t3]), np.concatenate([P1, P3]))
+    p1, p3 = _keyframe_psnr(s1), _keyframe_psnr(s3)
+    drop = [p1[k] - p3[k] for k in p1 if k in p3]
+    res.update(extend_frames_until_relocalised=None if x["relocalised_frame"] is None else
+               int(x["relocalised_frame"]) - a.split,
+               extend_posed=m3.get("frames_posed"), extend_lost=m3.get("frames_lost"),
+               extend_ate_two_sessions_cm=both3["rmse_cm"],
+               extend_ratio=both3["rmse_cm"] / max(one["rmse_cm"], 1e-9),
+               extend_keyframes=f"{x['loaded']['keyframes']} + {x['new_keyframes']}",
+               extend_mapped_keyframes=f"{x['loaded']['mapped_keyframes']} -> "
+                                       f"{x['mapped_keyframes']}",
+               extend_gaussians=f"{x['loaded']['gaussians']} -> {x['gaussians']}",
+               extend_first_keyframes_psnr=f"{np.mean(list(p1.values())):.2f} -> "
+                                           f"{np.mean([p3[k] for k in p1 if k in p3]):.2f}",
+               extend_first_keyframes_max_loss_db=max(drop) if drop else None,
+               extend_psnr_all=m3.get("psnr"))
     print(f"\n| {a.sequence}, split at {a.split} | value |\n|---|---|")
     for k in ("frames_until_relocalised", "second_posed", "second_lost",
-              "ate_two_sessions_cm", "ate_single_run_cm", "ratio", "map_unchanged"):
+              "ate_two_sessions_cm", "ate_single_run_cm", "ratio", "map_unchanged",
+              "extend_frames_until_relocalised", "extend_posed", "extend_lost",
+              "extend_ate_two_sessions_cm", "extend_ratio", "extend_keyframes",
+              "extend_mapped_keyframes", "extend_gaussians", "extend_first_keyframes_psnr",
+              "extend_first_keyframes_max_loss_db", "extend_psnr_all"):
         v = res[k]
         print(f"| {k} | {round(v, 3) if isinstance(v, float) else v} |")
-    for k in ("single", "first", "second"):
+    for k in ("single", "first", "second", "extend"):
         r = res[k]
         print(f"| {k} frames/s (load {r['load_before'][0]}) | {r['fps']} |")
     Path(a.json).parent.mkdir(parents=True, exist_ok=True)

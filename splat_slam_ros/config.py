@@ -299,6 +299,11 @@ class MappingConfig:
     # its pixels rendered with accumulated opacity > 0.5) is not mapped either, whatever its
     # (drifting) pose says
     revisit_coverage: float = 0.95
+    # a new keyframe seeds Gaussians only where the map does not explain it yet (rendered
+    # opacity < 0.5, or rendered depth off by more than seed_depth_tol x depth): on by default
+    # when a loaded map is extended (splat-slam-run --load-map RUN), so a revisited view adds none
+    seed_uncovered: bool = False
+    seed_depth_tol: float = 0.1          # ... relative depth difference that counts as unexplained
     # densification stops for a keyframe's Gaussians at this x the number a keyframe anchors
     # when mapped (pixels / downsample; 0 = no limit): a bounded map when views conflict
     densify_max_per_view: float = 0.0

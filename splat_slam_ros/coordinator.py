@@ -38,13 +38,15 @@ class Coordinator:
     """Tracker + loop closer + proxy depth + mapper in one process (see module docstring)."""
 
     def __init__(self, cfg: SlamConfig, intrinsics: Intrinsics, mapping: bool = True,
-                 loop_closure: Optional[bool] = None):
+                 loop_closure: Optional[bool] = None, make_tracker=None):
+        """``make_tracker(flow_predictor)``: the tracker to use (default a new Tracker)."""
         tc = cfg.tracking
         use_loop = bool(tc.loop_closure or tc.global_ba) if loop_closure is None \
             else bool(loop_closure)
         self.cfg = cfg
         flow = make_flow_predictor(tc)           # one front end (DIS or the network) for both
-        self.tracker = TrackerRole(cfg, intrinsics, loop_closure=use_loop, flow_predictor=flow)
+        self.tracker = TrackerRole(cfg, intrinsics, loop_closure=use_loop, flow_predictor=flow,
+                                   tracker=make_tracker(flow) if make_tracker else None)
         self.loop = LoopRole(cfg, flow_predictor=flow) if use_loop else None
         self.depth = DepthRole(cfg, loop_closure=use_loop) if mapping else None
         self.mapper = MapperRole(cfg) if mapping else None

@@ -253,17 +253,23 @@ def evaluate_lpips(out: Path, cfg: SlamConfig, metrics: dict) -> None:
 
 
 def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool = True,
-        max_frames: Optional[int] = None) -> RunResult:
+        max_frames: Optional[int] = None, session=None) -> RunResult:
     """Run the in-process pipeline over a dataset and write the standard outputs to ``out``.
 
     mode: "full" (tracking + depth + mapping), "tracking" (--tracking-only),
-    "gt_mapping" (--gt-poses --gt-depth: the mapper alone on ground truth).
+    "gt_mapping" (--gt-poses --gt-depth: the mapper alone on ground truth), "extend" (a full
+    run that continues the loaded ``session``: :mod:`splat_slam_ros.extend`).
     Raises :class:`NotInitializedError` (after writing metrics.json) when the tracker made no
-    keyframe, or a full run's map has no Gaussian (:func:`no_result_reason`); ConfigError
-    before any work when a configured LPIPS backbone file is missing or invalid.
+    keyframe, an extend run never relocalised, or a full run's map has no Gaussian
+    (:func:`no_result_reason`); ConfigError before any work when a configured LPIPS backbone
+    file is missing or invalid; SessionError before any frame for an unusable session.
     """
     if mode != "tracking":
         check_lpips_config(cfg)
+    co = None
+    if mode == "extend":                # the session is checked before any output is written
+        from splat_slam_ros.extend import extend_coordinator
+        co = extend_coordinator(cfg, dataset.intrinsics, session)
     out.mkdir(parents=True, exist_ok=True)
     (out / "renders").mkdir(exist_ok=True)
     t_start = time.perf_counter()
@@ -273,7 +279,7 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
     if mode == "gt_mapping":
         _run_gt_mapping(dataset, cfg, out, progress, max_frames, result, metrics)
     else:
-        _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics)
+        _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics, co, session)
     result.wall_s = time.perf_counter() - t_start
     metrics["frames"] = result.frames
     metrics["keyframes"] = result.keyframes
@@ -281,11 +287,13 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
     metrics["fps"] = round(result.frames / max(result.wall_s, 1e-9), 3)
     metrics["timings_s"] = result.timings
     metrics["update_events"] = result.events
-    if mode != "gt_mapping" and result.keyframes == 0:
+    if "error" in metrics:                               # an extend run never relocalised
+        pass
+    elif mode != "gt_mapping" and result.keyframes == 0:
         metrics["error"] = not_initialized_reason(cfg, result.frames)
     elif mode != "gt_mapping":
         evaluate_trajectories(dataset, out, metrics)
-        if mode == "full":
+        if mode in ("full", "extend"):
             t0 = time.perf_counter()
             evaluate_map_depth(dataset, out, cfg, metrics)
             metrics["depth_eval_s"] = round(time.perf_counter() - t0, 3)
@@ -326,12 +334,23 @@ def _run_gt_mapping(dataset, cfg, out, progress, max_frames, result, metrics) ->
     result.keyframes = int(m.get("keyframes", 0))
 
 
-def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics) -> None:
+def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics, co=None,
+              session=None) -> None:
+    """``co``: the coordinator of an extend run (:func:`extend.extend_coordinator`)."""
+    from splat_slam_ros import extend
     remove_session(out)                # an earlier run's session must not outlive its outputs
-    co = Coordinator(cfg, dataset.intrinsics, mapping=(mode == "full"))
+    if co is None:
+        co = Coordinator(cfg, dataset.intrinsics, mapping=(mode == "full"))
     result.frames = co.run(dataset, progress=progress, total=len(dataset), max_frames=max_frames)
     trk = co.tracker.tracker
     result.keyframes = len(trk.published)
+    if mode == "extend":
+        metrics["extend"] = extend.extend_metrics(co, session)
+        if trk.relocalised_frame is None:
+            metrics["error"] = extend.never_relocalised(result.frames, len(trk.loaded_ids))
+            for stale in ("trajectory_full.txt", "trajectory_keyframes.txt", "map.ply"):
+                (out / stale).unlink(missing_ok=True)
+            return
     if result.keyframes == 0:
         return
     ts_full, poses_full = trk.trajectory_full()
@@ -352,4 +371,4 @@ def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics) ->
         metrics.update(mp.evaluate_keyframes(out / "renders"))
         metrics["map"] = mp.stats()
     # the session a later run loads (--load-map OUT --localize): after map.ply, which it sums
-    save_session(trk, itertools.islice(dataset, max_frames), cfg, dataset.intrinsics, out)
+    save_session(trk, itertools.islice(dataset, max_frames), cfg, dataset.intrinsics, out, mp)

@@ -130,8 +130,8 @@ class TrackerRole:
     update_sources = ("loop",)              # whose PoseGraphUpdates it applies
 
     def __init__(self, cfg: SlamConfig, intrinsics: Intrinsics, loop_closure: bool,
-                 flow_predictor=None, store: Optional[KeyframeStore] = None):
-        self.tracker = Tracker(cfg, intrinsics, flow_predictor=flow_predictor)
+                 flow_predictor=None, store: Optional[KeyframeStore] = None, tracker=None):
+        self.tracker = tracker or Tracker(cfg, intrinsics, flow_predictor=flow_predictor)
         self.intrinsics = intrinsics
         self.wait_loop = bool(loop_closure)
         self.last_seq = 0                   # our newest update

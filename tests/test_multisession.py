@@ -1,5 +1,6 @@
 """Maps across sessions: a run saves OUT/session/, a later run (--load-map OUT --localize)
-relocalises in it and tracks in its frame without changing the map; --start-frame."""
+relocalises in it and tracks in its frame without changing the map, or (--load-map OUT)
+extends the map; --start-frame."""
 import json
 import shutil
 import subprocess
@@ -189,7 +190,7 @@ def test_option_mistakes_exit_2(work, capsys, tmp_path):
     seq, out = work["seq"], tmp_path / "out"
     for args, msg in (
             (["--localize"], "--localize needs --load-map"),
-            (["--load-map", work["s1"]], "only --localize is supported so far"),
+            (["--load-map", work["s1"], "--tracking-only"], "--tracking-only cannot extend"),
             (["--start-frame", -1], "--start-frame must be >= 0"),
             (["--load-map", out, "--localize"], "--out must be another folder than --load-map"),
             (["--start-frame", 50], "--start-frame 50 is outside the input's frames "
@@ -287,3 +288,123 @@ def test_a_run_without_keyframes_leaves_no_stale_session(work, tmp_path, capsys)
     assert code == 3 and "never initialised" in err[-1]
     with pytest.raises(ss.SessionError, match="no saved session"):
         ss.load_session(out)
+
+
+# ---------------------------------------------------------------------------- extend
+def _metrics(run: Path) -> dict:
+    return json.loads((run / "metrics.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def ext(work):
+    """A map of the first 20 frames, extended over frames 20-49 (a new part of the room) and
+    over frames 0-19 again (a revisit)."""
+    root, seq, cfg = work["root"], work["seq"], work["cfg"]
+    runs = {n: root / n for n in ("a", "grow", "again")}
+    r = _run(seq, "--out", runs["a"], "--config", cfg, "--max-frames", 20)
+    assert r.returncode == 0, r.stderr[-2000:]
+    for name, args in (("grow", ["--start-frame", 20]), ("again", ["--max-frames", 20])):
+        r = _run(seq, "--out", runs[name], "--config", cfg, "--load-map", runs["a"], *args)
+        assert r.returncode == 0, r.stderr[-2000:]
+        runs[name + "_stdout"] = r.stdout
+    return runs
+
+
+def test_extend_grows_the_loaded_map_in_its_frame(work, ext):
+    a, grow = ext["a"], ext["grow"]
+    ma, m = _metrics(a), _metrics(grow)
+    x = m["extend"]
+    assert m["mode"] == "extend" and x["session"] == str(a)
+    assert x["loaded"]["keyframes"] == ma["keyframes"] and \
+        x["loaded"]["gaussians"] == ma["map"]["gaussians"]
+    assert x["relocalised_frame"] == 20 and x["frames_before_relocalised"] == 0
+    assert x["new_keyframes"] >= 3 and m["keyframes"] == ma["keyframes"] + x["new_keyframes"]
+    assert x["gaussians"] == m["map"]["gaussians"] > 1.2 * x["loaded"]["gaussians"]
+    assert x["mapped_keyframes"] > x["loaded"]["mapped_keyframes"]
+    assert f"keyframes {ma['keyframes']} loaded + {x['new_keyframes']} new" in ext["grow_stdout"]
+    # the loaded keyframes stay where they were (held fixed as the gauge): the same poses
+    ka, Pa = read_trajectory(a / "trajectory_keyframes.txt")
+    kg, Pg = read_trajectory(grow / "trajectory_keyframes.txt")
+    np.testing.assert_allclose(kg[:len(ka)], ka, atol=1e-4)
+    np.testing.assert_allclose(Pg[:len(ka)], Pa, atol=1e-5)
+    # ONE Sim(3) for both runs' trajectories: the second run is in the first one's frame
+    gt = _gt(work["seq"])
+    est, ref = [], []
+    for run in (a, grow):
+        ts, P = read_trajectory(run / "trajectory_full.txt")
+        est += [T[:3, 3] for T in P]
+        ref += [gt[round(float(t), 3)] for t in ts]
+    assert len(est) == 50
+    est, ref = np.array(est), np.array(ref)
+    s, R, t = umeyama_alignment(est, ref, with_scale=True)
+    rmse_cm = 100 * float(np.sqrt(np.mean(np.sum(((s * (R @ est.T)).T + t - ref) ** 2, 1))))
+    assert rmse_cm < 2.0, rmse_cm
+    # the extended map is a session again, with every keyframe and the mapper's state
+    s2 = ss.load_session(grow)
+    assert len(s2.keyframes) == m["keyframes"] and s2.manifest["map_state"] is not None
+    arrays, _meta, _cam = ss.map_state(s2)
+    assert len(arrays["means"]) == x["gaussians"]
+
+
+def test_extend_a_revisited_view_adds_no_gaussians(ext):
+    x = _metrics(ext["again"])["extend"]
+    assert x["relocalised_frame"] == 0 and x["new_keyframes"] >= 2
+    assert x["gaussians"] <= 1.02 * x["loaded"]["gaussians"], x
+    assert x["mapped_keyframes"] <= x["loaded"]["mapped_keyframes"] + 1, x
+
+
+def test_map_state_round_trip(ext):
+    from splat_slam_ros.config import load_config
+    from splat_slam_ros.io.keyframe_store import restore_mapper
+    s = ss.load_session(ext["a"])
+    arrays, meta, cam = ss.map_state(s)
+    mp = restore_mapper(arrays, meta, load_config(None), cam, lambda k: arrays[f"kf{k}_image"],
+                        lambda k: {n: arrays[f"kf{k}_{n}"] for n in ("depth", "valid", "width",
+                                                                      "weight")
+                                   if f"kf{k}_{n}" in arrays})
+    again, meta2 = ss.mapper_arrays(mp)
+    assert sorted(again) == sorted(arrays) and meta2 == meta
+    for k, v in arrays.items():
+        np.testing.assert_array_equal(again[k], v, err_msg=k)
+    assert len(mp.keyframes) == len(arrays["kf_ids"]) > 2 and len(mp.map) > 100
+
+
+def test_extend_rejects_what_it_cannot_extend(work, ext, other, capsys, tmp_path):
+    seq, out = work["seq"], tmp_path / "out"
+    t1 = tmp_path / "t1"
+    r = _run(seq, "--out", t1, "--config", work["cfg"], "--tracking-only", "--max-frames", 20)
+    assert r.returncode == 0, r.stderr[-2000:]
+    code, err = _main(capsys, seq, "--out", out, "--config", work["cfg"], "--load-map", t1)
+    assert code == 2 and "has no map to extend (a tracking-only run)" in err[-1], err
+    bad = tmp_path / "bad"
+    shutil.copytree(ext["a"], bad)
+    st = bad / "session" / "map_state.npz"
+    st.write_bytes(st.read_bytes()[:-50] + b"x" * 50)
+    code, err = _main(capsys, seq, "--out", out, "--config", work["cfg"], "--load-map", bad)
+    assert code == 2 and "map_state.npz does not match its sha256" in err[-1], err
+    assert not out.exists()
+    r = _run(other, "--out", out, "--config", work["cfg"], "--load-map", ext["a"])
+    assert r.returncode == 3, r.stderr[-2000:]
+    assert "never relocalised in the loaded map: none of the 12 frames" in r.stderr
+    m = _metrics(out)
+    assert m["extend"]["relocalised_frame"] is None and m["extend"]["frames_before_relocalised"] == 12
+    assert not (out / "map.ply").exists() and not (out / "trajectory_full.txt").exists()
+
+
+def test_frames_without_a_keyframe_of_their_input_are_not_placed():
+    """Extend runs: a frame tracked against a loaded keyframe (no time in this input) is
+    placed from it; a lost one, with no keyframe of this input to interpolate, is not."""
+    import torch
+    from splat_slam_ros.tracking.trajectory_filler import FrameRecord, fill_trajectory
+    h, w = 6, 8
+    T = torch.eye(4, dtype=torch.float64)
+    T[0, 3] = 0.5
+    rel = np.eye(4)
+    rel[1, 3] = 0.1
+    zero = torch.zeros(h, w, 2, dtype=torch.float16)
+    recs = [FrameRecord(0, 1.0, lost=True),
+            FrameRecord(1, 1.1, ref_kf=7, rel_pose=rel, flow=zero, weight=zero)]
+    ts, P = fill_trajectory(recs, {7: T}, {7: torch.ones(h, w)},
+                            torch.tensor([8.0, 8.0, 4.0, 3.0]), iters=0)
+    assert list(ts) == [1.1]
+    np.testing.assert_allclose(P[0][:3, 3], [0.5, 0.1, 0.0])

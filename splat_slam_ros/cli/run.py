@@ -14,6 +14,8 @@ modes:
   --gt-poses --gt-depth     the Gaussian mapper alone, on ground-truth poses and depth
   --load-map RUN --localize localize-only in the session RUN saved: relocalise, then track in
                             RUN's map frame; the map is copied unchanged, nothing is added
+  --load-map RUN            extend RUN's map (a full run's): relocalise, then track, add
+                            keyframes and grow the same Gaussian map where it lacks the view
 
 outputs in --out: trajectory_full.txt, trajectory_keyframes.txt (TUM format), map.ply,
 metrics.json (ATE when the input has ground truth, PSNR/SSIM/depth L1 on keyframes, LPIPS
@@ -23,11 +25,14 @@ report.html + report.png (the run report; splat-slam-report rebuilds them), sess
 keyframes and a manifest, for a later --load-map; not in --gt-poses mode).
 --localize writes trajectory_full.txt (posed frames only, in the loaded map's frame),
 metrics.json (relocalised_frame, frames_posed, frames_lost, ATE) and map.ply (a copy).
+--load-map without --localize writes a full run's outputs: trajectory_full.txt from the first
+relocalised frame on, trajectory_keyframes.txt with the loaded and the new keyframes, the
+extended map.ply, metrics.json "extend" (keyframes and Gaussians before / after), session/.
 
 exit status: 0 done, 2 a user error (bad input, config), 3 no result: the tracker never
 initialised (no keyframe: too little camera motion for the thresholds; the message says which
 to lower), or the map stayed empty (too few keyframes with parallax for the proxy depth),
-or (--localize) no frame relocalised in the loaded map.
+or (--load-map) no frame relocalised in the loaded map.
 
 examples:
   splat-slam-run data/fr1_xyz --out runs/fr1 --config config/tum.yaml
@@ -35,6 +40,7 @@ examples:
   splat-slam-run bags/synth --out runs/synth --tracking-only
   splat-slam-run data/seq --out runs/a --max-frames 400       # a map of the first part
   splat-slam-run data/seq --out runs/b --start-frame 300 --load-map runs/a --localize
+  splat-slam-run data/seq --out runs/c --start-frame 300 --load-map runs/a   # grow the map
   splat-slam-run data/icl --out runs/icl --gt-poses --gt-depth --format posefolder \\
       --intrinsics icl.yaml
 """
@@ -63,7 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="skip the first N input frames (0 <= N < frames): one sequence split "
                         "into sessions")
     p.add_argument("--load-map", metavar="RUN", help="the output folder of an earlier run whose "
-                   "saved session (RUN/session/) to load; needs --localize")
+                   "saved session (RUN/session/) to load: extend its map, or with --localize "
+                   "only localise in it")
     p.add_argument("--localize", action="store_true",
                    help="localize-only in the --load-map session: no keyframe is added, the "
                         "map is not changed (copied to --out)")
@@ -79,13 +86,13 @@ def _session_usage(args) -> str:
         return f"--start-frame must be >= 0, got {args.start_frame}"
     if args.localize and not args.load_map:
         return "--localize needs --load-map RUN (the run whose saved map to localize in)"
-    if args.load_map and not args.localize:
-        return ("only --localize is supported so far with --load-map (extending a loaded map "
-                "is not implemented yet)")
+    if args.load_map and args.tracking_only and not args.localize:
+        return ("--tracking-only cannot extend a map (--load-map without --localize grows the "
+                "map); use --localize to track in it")
     if args.load_map and Path(args.load_map).resolve() == Path(args.out).resolve():
         return "--out must be another folder than --load-map (the loaded map is not changed)"
     if args.load_map and (args.gt_poses or args.gt_depth):
-        return "--localize cannot be combined with --gt-poses/--gt-depth"
+        return "--load-map cannot be combined with --gt-poses/--gt-depth"
     return ""
 
 
@@ -126,7 +133,8 @@ def main(argv=None) -> int:
         if bad:
             print(f"error: {bad}", file=sys.stderr)
             return 2
-        cfg = load_config(args.config, parse_overrides(args.set), preset=args.preset)
+        overrides = parse_overrides(args.set)
+        cfg = load_config(args.config, overrides, preset=args.preset)
         session = None
         if args.load_map:
             from splat_slam_ros.io.session import load_session
@@ -136,6 +144,11 @@ def main(argv=None) -> int:
             from splat_slam_ros.io.datasets import FromFrame
             ds = FromFrame(ds, args.start_frame)
         mode = "tracking" if args.tracking_only else "gt_mapping" if args.gt_poses else "full"
+        if session is not None and not args.localize:
+            from splat_slam_ros.extend import extend_config
+            mode = "extend"
+            for note in extend_config(cfg, overrides):
+                print(f"extending a loaded map: {note}", file=sys.stderr)
         if mode == "gt_mapping" and not (ds.has_gt_pose and ds.has_gt_depth):
             print(f"error: {args.input} has no ground-truth "
                   f"{'poses' if not ds.has_gt_pose else 'depth'}; --gt-poses --gt-depth need both",
@@ -143,20 +156,26 @@ def main(argv=None) -> int:
             return 2
         out = Path(args.out)
         try:
-            if session is not None:
+            if session is not None and args.localize:
                 from splat_slam_ros.localize import run_localize
                 res = run_localize(ds, cfg, out, session, progress=not args.no_progress,
                                    max_frames=args.max_frames)
             else:
                 res = run(ds, cfg, out, mode=mode, progress=not args.no_progress,
-                          max_frames=args.max_frames)
+                          max_frames=args.max_frames, session=session)
         except NotInitializedError as e:       # no result: never initialised / relocalised
             print(f"error: {e} (metrics.json in {out})", file=sys.stderr)
             return 3
-        if session is not None:
+        if args.localize:
             _print_localize(res, out)
             return 0
         m = res.metrics
+        if mode == "extend":
+            x = m["extend"]
+            print(f"relocalised at frame {x['relocalised_frame']} against keyframe "
+                  f"{x['relocalised_keyframe']}; keyframes {x['loaded']['keyframes']} loaded + "
+                  f"{x['new_keyframes']} new, Gaussians {x['loaded']['gaussians']} -> "
+                  f"{x['gaussians']}")
         print(f"frames {res.frames}  keyframes {res.keyframes}  wall {res.wall_s:.1f} s  "
               f"{m['fps']:.2f} frames/s")
         for k in SUMMARY_METRICS:

@@ -4,7 +4,11 @@ Files: ``manifest.json`` (format name and version, package version, camera, trac
 image sizes, the configuration, counts, and a sha256 per file) and ``keyframes.npz`` (per
 keyframe: id, frame index, timestamp, camera-to-world pose, BA-grid disparity, the
 tracking-size image the flow front end prepares, and a place-recognition descriptor). The
-map is the run's ``map.ply``, referenced by checksum (none in a tracking-only run).
+map is the run's ``map.ply``, referenced by checksum (none in a tracking-only run). A full
+run also writes ``map_state.npz``: the mapper's state (Gaussians with their bookkeeping, the
+mapped keyframes' poses, exposures, images and proxy depths, the mapping window), which a
+later run that extends the map restores (:func:`map_state`); its metadata and the mapping
+camera are in the manifest.
 
 Plain numpy / json: :func:`load_session` validates everything (presence, checksums, version,
 keys and shapes) and raises :class:`SessionError` with one line naming what is wrong.
@@ -17,11 +21,12 @@ import json
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
 
+from splat_slam_ros.io.keyframe_store import keyframe_depth, mapper_state
 from splat_slam_ros.types import Intrinsics
 
 FORMAT = "splat-slam-session"
@@ -30,6 +35,7 @@ SESSION_DIR = "session"
 MANIFEST = "manifest.json"
 KEYFRAMES = "keyframes.npz"
 MAP = "map.ply"
+MAP_STATE = "map_state.npz"
 DESCRIPTOR_SIZE = (16, 12)          # (w, h) of the grey thumbnail descriptor
 ARRAYS = ("kf_ids", "frame_indices", "timestamps", "poses", "disparities", "images",
           "descriptors")
@@ -88,19 +94,39 @@ def _write_npz(path: Path, arrays: dict) -> None:
             info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
             info.compress_type = zipfile.ZIP_DEFLATED
             buf = io.BytesIO()
-            np.lib.format.write_array(buf, np.ascontiguousarray(a), allow_pickle=False)
+            a = np.asarray(a)                   # (0-d arrays stay 0-d)
+            np.lib.format.write_array(buf, a if a.flags.c_contiguous else a.copy(),
+                                      allow_pickle=False)
             z.writestr(info, buf.getvalue())
+
+
+def mapper_arrays(mapper) -> Tuple[Dict[str, np.ndarray], dict]:
+    """(arrays, metadata) of a mapper for ``map_state.npz``: :meth:`Mapper.state_dict` plus,
+    per mapped keyframe ``k``, ``kf<k>_image`` and the ``kf<k>_<name>`` arrays of
+    :func:`keyframe_store.keyframe_depth` (depth, packed validity, width, weight)."""
+    arrays, meta = mapper_state(mapper)
+    for k, kf in mapper.keyframes.items():
+        arrays[f"kf{k}_image"] = kf.image.cpu().numpy().astype(np.uint8)
+        for name, a in keyframe_depth(mapper, k).items():
+            arrays[f"kf{k}_{name}"] = a
+    return arrays, meta
 
 
 def write_session(out: Path, kfs: SessionKeyframes, camera: Intrinsics,
                   tracking_size: Sequence[int], ba_size: Sequence[int], config: dict,
-                  package_version: str) -> Path:
-    """Write ``out/session/`` (keyframes.npz + manifest.json); the map is ``out/map.ply``
-    when it exists. Returns the session folder."""
+                  package_version: str, mapper=None) -> Path:
+    """Write ``out/session/`` (keyframes.npz + manifest.json, and map_state.npz of
+    ``mapper``); the map is ``out/map.ply`` when it exists. Returns the session folder."""
     d = Path(out) / SESSION_DIR
     d.mkdir(parents=True, exist_ok=True)
     _write_npz(d / KEYFRAMES, {k: getattr(kfs, k) for k in ARRAYS})
     files = {KEYFRAMES: sha256(d / KEYFRAMES)}
+    state = None
+    if mapper is not None:
+        arrays, meta = mapper_arrays(mapper)
+        _write_npz(d / MAP_STATE, arrays)
+        files[MAP_STATE] = sha256(d / MAP_STATE)
+        state = {"meta": meta, "camera": mapper.K.to_dict()}
     ply = Path(out) / MAP
     map_entry = {"path": f"../{MAP}", "sha256": sha256(ply), "bytes": ply.stat().st_size} \
         if ply.is_file() else None
@@ -111,7 +137,7 @@ def write_session(out: Path, kfs: SessionKeyframes, camera: Intrinsics,
         "keyframes": len(kfs),
         "frames": [int(kfs.frame_indices.min()), int(kfs.frame_indices.max())] if len(kfs)
         else None,
-        "files": files, "map": map_entry,
+        "files": files, "map": map_entry, "map_state": state,
         "map_note": None if map_entry else "tracking-only run: no map was made",
         "config": config,
     }
@@ -121,7 +147,7 @@ def write_session(out: Path, kfs: SessionKeyframes, camera: Intrinsics,
 
 def remove_session(out: Path) -> None:
     """Remove the session files an earlier run left in ``out`` (a new run replaces them)."""
-    for name in (MANIFEST, KEYFRAMES):
+    for name in (MANIFEST, KEYFRAMES, MAP_STATE):
         (Path(out) / SESSION_DIR / name).unlink(missing_ok=True)
 
 
@@ -224,3 +250,31 @@ def descriptor_ranking(session_desc: np.ndarray, desc: np.ndarray) -> np.ndarray
     """Row indices of ``session_desc`` by similarity to ``desc``, best first."""
     return np.argsort(-(session_desc @ desc), kind="stable")
 
+
+
+def map_state(session: Session) -> Tuple[Dict[str, np.ndarray], dict, Intrinsics]:
+    """The mapper state a full run saved (arrays, metadata, the mapping camera), checked
+    against its checksum; SessionError when the session has none (a tracking-only run) or
+    the file is corrupt."""
+    entry = session.manifest.get("map_state")
+    run_dir = session.path.parent
+    if not isinstance(entry, dict) or MAP_STATE not in session.manifest["files"]:
+        raise SessionError(f"the session in {run_dir} has no map to extend (a tracking-only "
+                           f"run); --localize tracks in its keyframes without a map")
+    path = session.path / MAP_STATE
+    _check_file(path, session.manifest["files"].get(MAP_STATE), "the mapper state")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: np.asarray(z[k]) for k in z.files}
+        c = entry["camera"]
+        cam = Intrinsics(float(c["fx"]), float(c["fy"]), float(c["cx"]), float(c["cy"]),
+                         int(c["width"]), int(c["height"]))
+        meta = dict(entry["meta"])
+        missing = [k for k in ("means", "kf_ids", "kf_pose") if k not in arrays]
+        missing += [f"kf{k}_{n}" for k in arrays.get("kf_ids", []) for n in
+                    ("image", "depth", "valid", "width") if f"kf{k}_{n}" not in arrays]
+    except Exception as e:          # zip / npy / key errors of every kind: a corrupt state
+        raise SessionError(f"session file {path} is unreadable ({type(e).__name__})") from None
+    if missing:
+        raise SessionError(f"session file {path} is corrupt (no {missing[0]!r})")
+    return arrays, meta, cam

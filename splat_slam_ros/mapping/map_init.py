@@ -80,3 +80,13 @@ def init_gaussians(image, depth, valid, pose_c2w, intrinsics, downsample: int,
         "quats": quats,
         "opacity_logits": torch.full((M,), float(np.log(op / (1 - op))), **f),
     }
+
+
+def uncovered(alpha: torch.Tensor, rendered_depth: torch.Tensor, depth: torch.Tensor,
+              tol: float) -> torch.Tensor:
+    """Pixels a map does not explain yet (``mapping.seed_uncovered``): rendered with
+    accumulated opacity below 0.5, or a rendered depth off the keyframe's depth by more than
+    ``tol`` x depth (something new in front of or behind the map). New Gaussians are seeded
+    only there when a loaded map is extended, so a revisited view adds none."""
+    far = (rendered_depth / alpha.clamp_min(1e-6) - depth).abs() > tol * depth   # blended z
+    return (alpha < 0.5) | far

@@ -33,8 +33,8 @@ from splat_slam_ros.mapping.keyframe_inputs import (MapError, MappedKeyframe,
 from splat_slam_ros.geometry import project, quat_to_matrix, se3_inverse, transform_points
 from splat_slam_ros.mapping.keyframe_views import history_entry, write_keyframe_views
 from splat_slam_ros.mapping.keyframe_window import KeyframeDecision, KeyframeWindow
-from splat_slam_ros.mapping.map_init import init_gaussians
-from splat_slam_ros.mapping.ply_io import load_gaussians_ply, save_gaussians_ply
+from splat_slam_ros.mapping.map_init import init_gaussians, uncovered
+from splat_slam_ros.mapping.ply_io import PlyError, load_gaussians_ply, save_gaussians_ply
 from splat_slam_ros.mapping.rasterizer import rasterize, select_backend
 from splat_slam_ros.runtime import resolve_device
 from splat_slam_ros.types import Intrinsics
@@ -226,6 +226,8 @@ class Mapper:
         # Gaussians are seeded where the depth has full weight; down-weighted pixels (BA depth
         # in multi-view holes) only supervise (seeding them cost 0.5 dB PSNR on fr2/desk)
         seed = valid_t if weight_t is None else weight_t >= 1
+        if self.mcfg.seed_uncovered and not first:      # a loaded map grows where it lacks
+            seed = seed & uncovered(out.alpha, out.depth, depth_t, self.mcfg.seed_depth_tol)
         new = init_gaussians(img_t, depth_t, seed, pose, self.intr,
                              self.mcfg.downsample_first if empty else self.mcfg.downsample,
                              self.mcfg.init_opacity, self.gen, self.device)
@@ -238,13 +240,12 @@ class Mapper:
         done = self._optimize(b.steps, densify=True, progress=self.progress and b.steps >= 200,
                               budget_s=b.wall_s, min_iters=b.min_steps,
                               yield_to=None if empty else yield_to)
-        stats.update({"steps": done, "steps_skipped": b.steps - done})
         self._last_mapped_ts = kf.timestamp
         n_vis_pruned = self._visibility_prune() if self._enough_views() else 0
         self.last_ms = 1000 * (time.perf_counter() - t0)
-        stats.update({"new_gaussians": n_new, "left_window": removed,
-                      "visibility_pruned": n_vis_pruned, "loss": round(self.last_loss, 5)})
-        stats.update(self.stats())
+        stats.update({"steps": done, "steps_skipped": b.steps - done, "new_gaussians": n_new,
+                      "left_window": removed, "visibility_pruned": n_vis_pruned,
+                      "loss": round(self.last_loss, 5), **self.stats()})
         self.history.append(history_entry(stats, timestamp))
         return stats
 
@@ -652,7 +653,6 @@ class Mapper:
     @classmethod
     def load_ply(cls, path, cfg: SlamConfig, intrinsics: Intrinsics) -> "Mapper":
         """A mapper holding the Gaussians of a PLY file (no keyframes): render/evaluate it."""
-        from splat_slam_ros.mapping.ply_io import PlyError
         try:
             d = load_gaussians_ply(path)
         except PlyError as e:

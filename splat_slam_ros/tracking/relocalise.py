@@ -33,7 +33,7 @@ from splat_slam_ros.tracking.flow_frontend import image_is_degenerate
 from splat_slam_ros.tracking.keyframe_set import KeyframeState
 from splat_slam_ros.tracking.motion_filter import predict_pose
 from splat_slam_ros.tracking.tracker import Tracker
-from splat_slam_ros.types import Frame, Intrinsics
+from splat_slam_ros.types import Frame, Intrinsics, TrackStep
 
 log = logging.getLogger(__name__)
 
@@ -45,10 +45,10 @@ def _sizes(trk: Tracker) -> Tuple[List[int], List[int]]:
     return [trk.intrinsics.width, trk.intrinsics.height], [trk.w, trk.h]
 
 
-def session_keyframes(trk: Tracker, frames) -> SessionKeyframes:
-    """The tracker's published keyframes as session arrays; ``frames`` (the run's input,
-    iterated once more) gives their images again at the tracking size."""
-    ids = trk.keyframe_ids()
+def session_keyframes(trk: Tracker, frames, ids: Optional[List[int]] = None) -> SessionKeyframes:
+    """The tracker's published keyframes (or ``ids`` of them) as session arrays; ``frames``
+    (the run's input, iterated once more) gives their images again at the tracking size."""
+    ids = trk.keyframe_ids() if ids is None else list(ids)
     by_frame = {trk.kfs[k].frame_index: k for k in ids}
     images = {}
     for f in frames:
@@ -73,11 +73,77 @@ def session_keyframes(trk: Tracker, frames) -> SessionKeyframes:
         np.zeros((0, 192), np.float32))
 
 
-def save_session(trk: Tracker, frames, cfg: SlamConfig, camera: Intrinsics, out) -> None:
-    """Write ``out/session/`` for a finished tracker (after ``out/map.ply``, if any)."""
-    kfs = session_keyframes(trk, frames)
+def save_session(trk: Tracker, frames, cfg: SlamConfig, camera: Intrinsics, out,
+                 mapper=None) -> None:
+    """Write ``out/session/`` for a finished tracker (after ``out/map.ply``, if any) and,
+    with a ``mapper``, its state. An :class:`ExtendTracker`'s session holds the loaded
+    keyframes (as they are now) and the new ones: a map extended again and again."""
+    if isinstance(trk, ExtendTracker):
+        new = session_keyframes(trk, frames, trk.new_keyframe_ids())
+        kfs = concat_keyframes(trk.loaded_keyframes(), new)
+    else:
+        kfs = session_keyframes(trk, frames)
     if len(kfs):
-        write_session(out, kfs, camera, *_sizes(trk), cfg.to_dict(), __version__)
+        write_session(out, kfs, camera, *_sizes(trk), cfg.to_dict(), __version__, mapper)
+
+
+def concat_keyframes(a: SessionKeyframes, b: SessionKeyframes) -> SessionKeyframes:
+    return SessionKeyframes(**{k: np.concatenate([getattr(a, k), getattr(b, k)])
+                               for k in SessionKeyframes.__dataclass_fields__})
+
+
+def add_session_keyframes(trk: Tracker, session: Session,
+                          camera: Intrinsics) -> Tuple[List[int], np.ndarray]:
+    """Put the session's keyframes (pose, disparity, prepared image) into ``trk``'s keyframe
+    set after checking that ``camera`` and the tracker's sizes are the session's
+    (SessionError); returns their ids and descriptors (rows in the same order)."""
+    check_camera(session, camera, *_sizes(trk))
+    s = session.keyframes
+    ids = [int(k) for k in s.kf_ids]
+    for n, k in enumerate(ids):
+        trk.kfs.add(k, KeyframeState(
+            torch.as_tensor(s.poses[n], dtype=torch.float64, device=trk.device),
+            torch.as_tensor(s.disparities[n], dtype=torch.float32, device=trk.device),
+            int(s.frame_indices[n]), float(s.timestamps[n]),
+            prep=trk.flow.prepare(s.images[n])))
+    return ids, s.descriptors.astype(np.float32)
+
+
+def match_keyframe(trk: Tracker, ref: int, prep, inits, init_flow=None):
+    """(pose, rms) of a frame against keyframe ``ref``: DIS flow ref -> frame and the
+    tracker's pose-only fit from the best of ``inits``; None when the flow or the fit fails
+    the tracker's loss thresholds (``tracking.lost_min_valid``, ``tracking.lost_rms``)."""
+    f, w, _, _ = trk._flows(trk.kfs[ref].prep, prep, init_flow)
+    if trk.motion.confident_fraction(w) < trk.tc.lost_min_valid:
+        return None
+    T, info = trk._fit_pose(ref, f, w, inits)
+    if info is None or not np.isfinite(info.rms) or info.rms > trk.tc.lost_rms:
+        return None
+    return T, float(info.rms)
+
+
+def relocalise(trk: Tracker, ids: List[int], desc: np.ndarray, img, prep):
+    """(keyframe id, (pose, rms)) of the best match among the ``RELOC_CANDIDATES`` keyframes
+    of ``ids`` most similar by descriptor (rows of ``desc``), or None."""
+    best = None
+    for i in descriptor_ranking(desc, descriptor(img))[:RELOC_CANDIDATES]:
+        k = ids[int(i)]
+        r = match_keyframe(trk, k, prep, [trk.kfs[k].pose.clone()])
+        if r is not None and (best is None or r[1] < best[1][1]):
+            best = (k, r)
+    return best
+
+
+def nearest_keyframes(trk: Tracker, ids: List[int], T: torch.Tensor) -> List[int]:
+    """``ids`` by distance to the pose ``T``: translation in units of the keyframe's mean
+    depth plus the rotation angle (rad)."""
+    d = []
+    for k in ids:
+        ks = trk.kfs[k]
+        rel = se3_log(se3_inverse(ks.pose) @ T)
+        depth = 1.0 / max(float(ks.disp.mean()), 1e-6)
+        d.append(float(rel[:3].norm()) / depth + float(rel[3:].norm()))
+    return [ids[i] for i in np.argsort(d, kind="stable")]
 
 
 class Localizer:
@@ -88,16 +154,7 @@ class Localizer:
         # no BA runs here: a no-op depth prior keeps a configured mono model unloaded
         self.trk = trk = Tracker(cfg, intrinsics, flow_predictor=flow_predictor,
                                  depth_prior=lambda _state: None)
-        check_camera(session, intrinsics, *_sizes(trk))
-        s = session.keyframes
-        self.ids = [int(k) for k in s.kf_ids]
-        self.desc = s.descriptors.astype(np.float32)
-        for n, k in enumerate(self.ids):
-            trk.kfs.add(k, KeyframeState(
-                torch.as_tensor(s.poses[n], dtype=torch.float64, device=trk.device),
-                torch.as_tensor(s.disparities[n], dtype=torch.float32, device=trk.device),
-                int(s.frame_indices[n]), float(s.timestamps[n]),
-                prep=trk.flow.prepare(s.images[n])))
+        self.ids, self.desc = add_session_keyframes(trk, session, intrinsics)
         self.located = False
         self.relocalised_frame: Optional[int] = None
         self.relocalised_keyframe: Optional[int] = None
@@ -106,48 +163,13 @@ class Localizer:
         self.n_lost = 0
         self.n_relocalisations = 0
 
-    # ------------------------------------------------------------ candidates
-    def _accept(self, ref: int, prep, inits, init_flow=None):
-        """(pose, rms) of the frame against keyframe ``ref``, or None when the flow or the
-        pose fit fails the tracker's loss thresholds."""
-        trk = self.trk
-        f, w, _, _ = trk._flows(trk.kfs[ref].prep, prep, init_flow)
-        if trk.motion.confident_fraction(w) < trk.tc.lost_min_valid:
-            return None
-        T, info = trk._fit_pose(ref, f, w, inits)
-        if info is None or not np.isfinite(info.rms) or info.rms > trk.tc.lost_rms:
-            return None
-        return T, float(info.rms)
-
-    def _nearest(self, T: torch.Tensor) -> List[int]:
-        """Stored keyframes by distance to the pose ``T``: translation in units of the
-        keyframe's mean depth plus the rotation angle (rad)."""
-        d = []
-        for k in self.ids:
-            ks = self.trk.kfs[k]
-            rel = se3_log(se3_inverse(ks.pose) @ T)
-            depth = 1.0 / max(float(ks.disp.mean()), 1e-6)
-            d.append(float(rel[:3].norm()) / depth + float(rel[3:].norm()))
-        return [self.ids[i] for i in np.argsort(d, kind="stable")]
-
-    def _relocalise(self, img, prep):
-        trk = self.trk
-        order = descriptor_ranking(self.desc, descriptor(img))[:RELOC_CANDIDATES]
-        best = None
-        for i in order:
-            k = self.ids[int(i)]
-            r = self._accept(k, prep, [trk.kfs[k].pose.clone()])
-            if r is not None and (best is None or r[1] < best[1][1]):
-                best = (k, r)
-        return best
-
     def _follow(self, frame: Frame, prep):
         trk = self.trk
         pred = predict_pose(trk.last_pose, trk.velocity, trk._spacing, frame.index)
-        for k in self._nearest(pred)[:TRACK_CANDIDATES]:
+        for k in nearest_keyframes(trk, self.ids, pred)[:TRACK_CANDIDATES]:
             ks = trk.kfs[k]
-            r = self._accept(k, prep, [pred, trk.last_pose.clone()],
-                             trk._induced(ks.pose, ks.disp, pred))
+            r = match_keyframe(trk, k, prep, [pred, trk.last_pose.clone()],
+                               trk._induced(ks.pose, ks.disp, pred))
             if r is not None:
                 return k, r
         return None
@@ -166,7 +188,7 @@ class Localizer:
         prep = trk.flow.prepare(img)
         hit = self._follow(frame, prep) if self.located else None
         if hit is None:
-            hit = self._relocalise(img, prep)
+            hit = relocalise(trk, self.ids, self.desc, img, prep)
             if hit is None:
                 return self._lose(frame, "no stored keyframe matched")
             self.n_relocalisations += 1
@@ -193,3 +215,73 @@ class Localizer:
     def trajectory(self) -> Tuple[np.ndarray, np.ndarray]:
         return (np.array(self.stamps, np.float64),
                 np.stack(self.poses) if self.poses else np.zeros((0, 4, 4)))
+
+
+class ExtendTracker(Tracker):
+    """The tracker of an extend run (``--load-map RUN`` without ``--localize``): the loaded
+    session's keyframes are in its keyframe set, fixed, as keyframes published before.
+
+    It starts lost: no warm-up, no initialisation of its own (which would start a map in
+    another frame and scale). Each frame is relocalised (:func:`relocalise`) until one
+    matches a stored keyframe; that keyframe and the stored one nearest to it become the
+    window, oldest first, so local BA holds them fixed (the gauge and the scale of the
+    loaded map) while new keyframes join with their flow edges. Frames before the first
+    relocalisation are lost and not posed. After a loss mid-run (``tracking.reinit_after``)
+    relocalisation is tried first on every frame; the new segment's warm-up (anchored by
+    the motion before the loss) runs beside it and is dropped when a frame relocalises."""
+
+    def __init__(self, cfg: SlamConfig, intrinsics: Intrinsics, session: Session,
+                 flow_predictor=None):
+        super().__init__(cfg, intrinsics, flow_predictor=flow_predictor)
+        self.loaded_ids, self.desc = add_session_keyframes(self, session, intrinsics)
+        self.session_kfs = session.keyframes
+        self.published.update(self.loaded_ids)
+        self.next_kf = max(self.loaded_ids) + 1
+        self.relocalised_frame: Optional[int] = None
+        self.relocalised_keyframe: Optional[int] = None
+        self.n_relocalisations = 0
+        self.n_unplaced = 0             # frames before the first relocalisation (not posed)
+
+    def new_keyframe_ids(self) -> List[int]:
+        loaded = set(self.loaded_ids)
+        return [k for k in self.keyframe_ids() if k not in loaded]
+
+    def loaded_keyframes(self) -> SessionKeyframes:
+        """The loaded session's keyframes with their current poses and disparities."""
+        s, ids = self.session_kfs, self.loaded_ids
+        return SessionKeyframes(
+            kf_ids=s.kf_ids, frame_indices=s.frame_indices, timestamps=s.timestamps,
+            poses=np.stack([self.kfs[k].pose.cpu().numpy() for k in ids]).astype(np.float64),
+            disparities=np.stack([self.kfs[k].disp.cpu().numpy() for k in ids]).astype(
+                np.float32), images=s.images, descriptors=s.descriptors)
+
+    def _warmup(self, frame, img, prep) -> TrackStep:
+        hit = relocalise(self, self.loaded_ids, self.desc, img, prep)
+        if hit is not None:
+            return self._relocalised(frame, img, prep, *hit)
+        if self.relocalised_frame is not None:       # lost mid-run: a new segment meanwhile
+            return super()._warmup(frame, img, prep)
+        self.n_lost += 1
+        self.n_unplaced += 1
+        if self.n_unplaced == 1 or self.n_unplaced % 30 == 0:
+            log.warning("frame %d: not relocalised in the loaded map yet (%d frames)",
+                        frame.index, self.n_unplaced)
+        return TrackStep(frame.index, float(frame.timestamp), False, None,
+                         self.last_pose.cpu().numpy().copy(), lost=True, initialized=False,
+                         info={"why": "not relocalised in the loaded map"})
+
+    def _relocalised(self, frame, img, prep, k: int, fit) -> TrackStep:
+        T = fit[0]
+        self._reset()                   # a new segment's unfinished warm-up is dropped
+        near = [j for j in nearest_keyframes(self, self.loaded_ids, T) if j != k][:1]
+        self.window = near + [k]
+        self.initialized = True
+        self._anchor = self._before_loss = self._last_flow = None
+        self.last_pose = T.clone()
+        self.velocity = torch.eye(4, dtype=torch.float64, device=self.device)
+        self._spacing = (None, None)
+        self.n_relocalisations += 1
+        if self.relocalised_frame is None:
+            self.relocalised_frame, self.relocalised_keyframe = int(frame.index), int(k)
+        log.info("frame %d: relocalised in the loaded map against keyframe %d", frame.index, k)
+        return self._track(frame, img, prep)

@@ -70,10 +70,14 @@ def fill_trajectory(records: List[FrameRecord], kf_poses: Dict[int, torch.Tensor
     if not known:
         return np.zeros(0), np.zeros((0, 4, 4))
     by_id = {r.kf_id: r for r in records if r.kf_id is not None}
-    kf_ts = np.array([by_id[k].timestamp if k in by_id else np.nan for k in known])
+    # interpolation in time between the keyframes recorded here (a loaded map's keyframes
+    # are references of tracked frames but have no time in this input)
+    timed = [k for k in known if k in by_id]
+    kf_ts = np.array([by_id[k].timestamp for k in timed])
     order = np.argsort(kf_ts)
     kf_ts = kf_ts[order]
-    stack = torch.stack([kf_poses[known[o]].to(torch.float64).cpu() for o in order])
+    stack = torch.stack([kf_poses[timed[o]].to(torch.float64).cpu() for o in order]) \
+        if timed else None
     pose = {k: kf_poses[k].to(torch.float64).cpu() for k in known}
     disp = {k: kf_disps[k].float().cpu() for k in known if k in kf_disps}
     ts_out, poses_out, fit, skipped = [], [], [], []
@@ -88,8 +92,11 @@ def fill_trajectory(records: List[FrameRecord], kf_poses: Dict[int, torch.Tensor
                 ts_out.append(r.timestamp)
                 poses_out.append(pose[r.kf_id])
             continue
+        lost = r.lost or r.ref_kf not in pose or r.ref_kf not in disp or r.flow is None
+        if stack is None and (lost or r.rel_pose is None):   # nothing to place it by
+            continue
         ts_out.append(r.timestamp)
-        if r.lost or r.ref_kf not in pose or r.ref_kf not in disp or r.flow is None:
+        if lost:
             poses_out.append(interpolate_from_keyframes(r.timestamp, kf_ts, stack))
             continue
         if r.rel_pose is not None:
@@ -127,8 +134,10 @@ def _interpolate_skipped(ts_out, poses_out, skipped, kf_ts, kf_stack) -> None:
             a = (ts[i] - kt[k - 1]) / (kt[k] - kt[k - 1])
             poses_out[i] = se3_interpolate(poses_out[known[k - 1]], poses_out[known[k]],
                                            float(a))
-        else:
+        elif kf_stack is not None:
             poses_out[i] = interpolate_from_keyframes(float(ts[i]), kf_ts, kf_stack)
+        else:                           # no keyframe of this input: the nearest posed frame
+            poses_out[i] = poses_out[known[min(k, len(known) - 1)]].clone()
 
 
 def _refine(fit, poses_out, pose, disp, intr, iters, huber, max_cells: int = 1 << 14):

@@ -1,0 +1,101 @@
+"""Extend runs (``splat-slam-run SEQ --out OUT2 --load-map OUT``): a loaded map grows.
+
+The session that the full run in ``OUT`` saved (``OUT/session/``: keyframes, and
+``map_state.npz``, the mapper's state) is loaded and checked before any frame. The run is
+the in-process pipeline (:mod:`splat_slam_ros.pipeline`) with two stages started from the
+session instead of empty:
+
+- the tracker (:class:`~splat_slam_ros.tracking.relocalise.ExtendTracker`) holds the loaded
+  keyframes, starts lost and relocalises; from there it tracks and makes keyframes in the
+  loaded map's frame and scale (local BA keeps the loaded keyframes fixed);
+- the mapper holds the loaded Gaussians and mapped keyframes (their images, proxy depths,
+  exposures, the mapping window): new keyframes join its window, its optimisation keeps
+  sampling the loaded keyframes' views, and the final refinement runs over all of them.
+
+So that a revisited place is not mapped twice, unless the configuration sets them the run
+uses ``mapping.revisit_cull_deg`` 10 (a new keyframe next to a mapped one with the same
+viewing direction, or whose view the map covers to ``mapping.revisit_coverage``, is not
+mapped) and ``mapping.seed_uncovered`` (new Gaussians only where the loaded map does not
+explain the view). Proxy depth and loop closure work on the new keyframes.
+
+Outputs in ``OUT2`` as for a full run: trajectory_full.txt (the frames posed from the first
+relocalisation on, in the loaded map's frame), trajectory_keyframes.txt (every keyframe of
+the extended map, loaded and new), map.ply, metrics.json (``extend``: the loaded session,
+keyframes and Gaussians before and after, the relocalisation), and a session of the
+extended map (it can be extended again).
+"""
+from __future__ import annotations
+
+from typing import Dict, List
+
+from splat_slam_ros.config import MappingConfig, SlamConfig
+from splat_slam_ros.coordinator import Coordinator
+from splat_slam_ros.io.session import Session, SessionError, map_state
+from splat_slam_ros.io.keyframe_store import restore_mapper
+from splat_slam_ros.tracking.relocalise import ExtendTracker
+from splat_slam_ros.types import Intrinsics
+
+# mapping settings of an extend run, unless the configuration sets them (module docstring)
+EXTEND_MAPPING = {"revisit_cull_deg": 10.0, "seed_uncovered": True}
+
+
+def extend_config(cfg: SlamConfig, overrides: Dict[str, object]) -> List[str]:
+    """Apply :data:`EXTEND_MAPPING` where ``cfg`` has the default and ``overrides`` (the
+    command line's ``--set``) does not name the key; returns 'key value' of each applied."""
+    defaults, notes = MappingConfig(), []
+    for key, value in EXTEND_MAPPING.items():
+        if getattr(cfg.mapping, key) == getattr(defaults, key) and \
+                f"mapping.{key}" not in overrides:
+            setattr(cfg.mapping, key, value)
+            notes.append(f"mapping.{key} {value}")
+    return notes
+
+
+def _same_camera(a: Intrinsics, b: Intrinsics) -> bool:
+    va = (a.fx, a.fy, a.cx, a.cy, a.width, a.height)
+    vb = (b.fx, b.fy, b.cx, b.cy, b.width, b.height)
+    return all(abs(float(x) - float(y)) <= 1e-4 * max(1.0, abs(float(y))) for x, y in zip(va, vb))
+
+
+def extend_coordinator(cfg: SlamConfig, intrinsics: Intrinsics, session: Session) -> Coordinator:
+    """A :class:`Coordinator` whose tracker and mapper continue ``session`` (SessionError
+    before any frame when it has no map state, or another camera or mapping size)."""
+    arrays, meta, map_cam = map_state(session)
+    co = Coordinator(cfg, intrinsics, mapping=True, make_tracker=lambda flow: ExtendTracker(
+        cfg, intrinsics, session, flow_predictor=flow))
+    trk = co.tracker.tracker
+    if not _same_camera(map_cam, trk.map_intrinsics):
+        m = trk.map_intrinsics
+        raise SessionError(f"the map in {session.path.parent} was made at {map_cam.width}x"
+                           f"{map_cam.height} (fx {map_cam.fx:g}), this configuration maps at "
+                           f"{m.width}x{m.height} (fx {m.fx:g}): use the camera.* settings of "
+                           f"the run that made it")
+    role = co.mapper
+    role.intr = trk.map_intrinsics
+    role.mapper = restore_mapper(
+        arrays, meta, cfg, trk.map_intrinsics, lambda k: arrays[f"kf{k}_image"],
+        lambda k: {n: arrays[f"kf{k}_{n}"] for n in ("depth", "valid", "width", "weight")
+                   if f"kf{k}_{n}" in arrays})
+    role.offered = {int(k): True for k in role.mapper.keyframes}
+    co.loaded = {"keyframes": len(trk.loaded_ids), "mapped_keyframes": len(role.offered),
+                 "gaussians": len(role.mapper.map)}
+    return co
+
+
+def extend_metrics(co: Coordinator, session: Session) -> dict:
+    """metrics.json ``extend``: the loaded session, what it held and what the run added."""
+    trk = co.tracker.tracker
+    mp = co.mapper.mapper
+    return {"session": str(session.path.parent), "loaded": co.loaded,
+            "new_keyframes": len(trk.new_keyframe_ids()),
+            "mapped_keyframes": len(mp.keyframes), "gaussians": len(mp.map),
+            "relocalised_frame": trk.relocalised_frame,
+            "relocalised_keyframe": trk.relocalised_keyframe,
+            "relocalisations": trk.n_relocalisations,
+            "frames_before_relocalised": trk.n_unplaced}
+
+
+def never_relocalised(frames: int, keyframes: int) -> str:
+    return (f"never relocalised in the loaded map: none of the {frames} frames matched any of "
+            f"the session's {keyframes} keyframes (another place, or too little overlap with "
+            f"the run that made it)")
