@@ -16,7 +16,9 @@ So that a revisited place is not mapped twice, unless the configuration sets the
 uses ``mapping.revisit_cull_deg`` 10 (a new keyframe next to a mapped one with the same
 viewing direction, or whose view the map covers to ``mapping.revisit_coverage``, is not
 mapped) and ``mapping.seed_uncovered`` (new Gaussians only where the loaded map does not
-explain the view). Proxy depth and loop closure work on the new keyframes.
+explain the view). The loop closer holds the loaded keyframes too, fixed in every BA: a new
+keyframe that sees a loaded one's view again closes a loop that pulls the new part of the
+map onto the loaded one (never the reverse). Proxy depth works on the new keyframes.
 
 Outputs in ``OUT2`` as for a full run: trajectory_full.txt (the frames posed from the first
 relocalisation on, in the loaded map's frame), trajectory_keyframes.txt (every keyframe of
@@ -77,6 +79,8 @@ def extend_coordinator(cfg: SlamConfig, intrinsics: Intrinsics, session: Session
         lambda k: {n: arrays[f"kf{k}_{n}"] for n in ("depth", "valid", "width", "weight")
                    if f"kf{k}_{n}" in arrays})
     role.offered = {int(k): True for k in role.mapper.keyframes}
+    if co.loop is not None:             # loops from new keyframes to loaded ones (fixed)
+        co.loop.add_fixed(trk.loaded_keyframe_data())
     co.loaded = {"keyframes": len(trk.loaded_ids), "mapped_keyframes": len(role.offered),
                  "gaussians": len(role.mapper.map)}
     return co
@@ -86,7 +90,11 @@ def extend_metrics(co: Coordinator, session: Session) -> dict:
     """metrics.json ``extend``: the loaded session, what it held and what the run added."""
     trk = co.tracker.tracker
     mp = co.mapper.mapper
+    lc = co.loop.loop if co.loop is not None else None
+    pairs = lc.loop_pairs if lc is not None else set()
     return {"session": str(session.path.parent), "loaded": co.loaded,
+            "loop_edges": len(pairs),
+            "loop_edges_to_loaded": sum(1 for p in pairs if set(p) & lc.fixed_ids),
             "new_keyframes": len(trk.new_keyframe_ids()),
             "mapped_keyframes": len(mp.keyframes), "gaussians": len(mp.map),
             "relocalised_frame": trk.relocalised_frame,

@@ -37,11 +37,10 @@ from splat_slam_ros.io.keyframe_store import (KeyframeStore, keyframe_depth, map
 from splat_slam_ros.io.trajectory_io import write_tum
 from splat_slam_ros.tracking.loop_closure import LoopCloser
 from splat_slam_ros.tracking.tracker import Tracker
-from splat_slam_ros.types import TrackStep
 from splat_slam_ros.tracking.tracker_state import (TrackerCheckpoint, intrinsics_from_list,
                                                    intrinsics_to_list)
 from splat_slam_ros.types import (LOOP_SEQ_START, TRACKER_SEQ_START, Frame, Intrinsics,
-                                  KeyframeData, ProxyDepth, UpdateEvent)
+                                  KeyframeData, ProxyDepth, TrackStep, UpdateEvent)
 
 
 @dataclass
@@ -274,6 +273,12 @@ class LoopRole:
                 self.kf_ids[kf.kf_id] = kf.timestamp
             self._restore_loop_edges(meta)
 
+    def add_fixed(self, kfs: List[KeyframeData]) -> None:   # a loaded map's (extend runs)
+        for kf in kfs:
+            self.loop = self.loop or self._make(kf.intrinsics)
+            self.loop.add_fixed(kf)
+            self.kf_ids[kf.kf_id] = kf.timestamp
+
     def meta(self) -> dict:
         m = {"trk_seq": self.trk_seq, "last_seq": self.last_seq}
         if self.loop is not None:
@@ -286,8 +291,7 @@ class LoopRole:
                                        if (a, o) not in unsaved),
                      checked=sorted([int(a), int(o)] for a, o in self.loop.checked
                                     if (a, o) not in unsaved),
-                     n_loops=int(self.loop.n_loops) - len(unsaved),
-                     merged=self.loop.merged_list())
+                     n_loops=int(self.loop.n_loops) - len(unsaved), merged=self.loop.merged_list())
         return m
 
     def _loop_edges_staged(self) -> dict:
@@ -379,8 +383,7 @@ class DepthRole:
     name = "depth"
     update_sources = ("tracker", "loop")
 
-    def __init__(self, cfg: SlamConfig, loop_closure: bool,
-                 store: Optional[KeyframeStore] = None):
+    def __init__(self, cfg: SlamConfig, loop_closure: bool, store: Optional[KeyframeStore] = None):
         self.cfg = cfg
         self.wait_loop = bool(loop_closure)
         self.est: Optional[ProxyDepthEstimator] = None
@@ -683,8 +686,7 @@ class MapperRole:
         or the final digest; the map's first keyframe never waits."""
         return (self.cfg.mapping.revisit_cull_deg > 0 and self.loop_seen and
                 self.mapper is not None and bool(self.mapper.keyframes) and
-                k not in self.settled and
-                self.newest_kf - k < self.cfg.mapping.window_size)
+                k not in self.settled and self.newest_kf - k < self.cfg.mapping.window_size)
 
     def _revisit(self, pd: ProxyDepth, exclude: Optional[int] = None) -> Optional[int]:
         """The mapped keyframe (other than ``exclude``) nearest to ``pd``'s keyframe that sees

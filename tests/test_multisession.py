@@ -351,6 +351,8 @@ def test_extend_a_revisited_view_adds_no_gaussians(ext):
     assert x["relocalised_frame"] == 0 and x["new_keyframes"] >= 2
     assert x["gaussians"] <= 1.02 * x["loaded"]["gaussians"], x
     assert x["mapped_keyframes"] <= x["loaded"]["mapped_keyframes"] + 1, x
+    # the same views again: loops from the new keyframes to the loaded ones (held fixed)
+    assert x["loop_edges_to_loaded"] >= 1, x
 
 
 def test_map_state_round_trip(ext):

@@ -73,6 +73,7 @@ class LoopCloser:
         self.gate = tc.edge_gate_px / tc.ba_downsample
         self.timings: Dict[str, float] = defaultdict(float)
         self.n_loops = 0
+        self.fixed_ids: set = set()            # a loaded map's keyframes (add_fixed)
 
     # ------------------------------------------------------------ inputs
     def _setup(self, kd: KeyframeData) -> None:
@@ -103,6 +104,27 @@ class LoopCloser:
                 self._measure(p, k, kind="odometry", both=(n == 0), gate=self.gate)
             self._evict()
             self.timings["add"] += time.perf_counter() - t0
+
+    def add_fixed(self, kf: KeyframeData) -> None:
+        """A keyframe of a loaded map (extend runs): stored without edges of its own and held
+        fixed in every BA, so loops from new keyframes to it pull the new ones onto the
+        loaded map (never the reverse)."""
+        if self.graph is None:
+            self._setup(kf)
+        k = int(kf.kf_id)
+        self.kfs.add(k, KeyframeState(
+            torch.as_tensor(np.asarray(kf.pose), dtype=torch.float64, device=self.device),
+            torch.as_tensor(np.asarray(kf.disparity), dtype=torch.float32, device=self.device),
+            int(kf.frame_index), float(kf.timestamp), prep=self.flow.prepare(
+                flow_input(kf.image, kf.disparity.shape, self.tc.ba_downsample))))
+        self.fixed_ids.add(k)
+
+    def _gauge(self, ids: Sequence[int], fixed: torch.Tensor) -> torch.Tensor:
+        """``fixed`` (a mask over ``ids``) plus a loaded map's keyframes; at least two."""
+        fixed = fixed | torch.tensor([k in self.fixed_ids for k in ids], device=self.device)
+        if int(fixed.sum()) < 2:
+            fixed[:2] = True
+        return fixed
 
     def _evict(self) -> None:
         """Bound the store to ``keyframe_buffer`` keyframes (oldest images dropped first)."""
@@ -269,7 +291,8 @@ class LoopCloser:
     def detect(self) -> List[Tuple[int, int, float]]:
         """Loop candidates (active, old, induced distance) by the Sec. 3.1 criteria."""
         tc = self.tc
-        if len(self.kfs) <= tc.loop_time_gap:
+        ids = self.kfs.ids                     # (ids need not be contiguous: merges, a
+        if not ids or ids[-1] - ids[0] <= tc.loop_time_gap:      # loaded map's keyframes)
             return []
         active = self.kfs.ids[-tc.loop_window:]
         old = [k for k in self.kfs.with_prep() if k < active[-1] - tc.loop_time_gap]
@@ -328,9 +351,7 @@ class LoopCloser:
         # the older side (loop nodes and their neighbours) holds the gauge and the
         # scale; the active keyframes move onto it (their disparities all move)
         act_set = set(active)
-        fixed = torch.tensor([k not in act_set for k in ids], device=self.device)
-        if int(fixed.sum()) < 2:
-            fixed[:2] = True
+        fixed = self._gauge(ids, torch.tensor([k not in act_set for k in ids], device=self.device))
         before = self.kfs.snapshot(ids)
         t0 = time.perf_counter()
         res = self._optimize(ids, tc.loop_ba_iters, fixed=fixed, normalize=True)
@@ -385,7 +406,8 @@ class LoopCloser:
         self.new_since_gba = []
         ids = self.kfs.ids
         before = self.kfs.snapshot(ids)
-        res = self._optimize(ids, iters, fixed=2, normalize=True)
+        res = self._optimize(ids, iters, normalize=True, fixed=self._gauge(
+            ids, torch.zeros(len(ids), dtype=torch.bool, device=self.device)))
         self.timings["global_ba"] += time.perf_counter() - t0
         if res is None:
             return []

@@ -33,7 +33,7 @@ from splat_slam_ros.tracking.flow_frontend import image_is_degenerate
 from splat_slam_ros.tracking.keyframe_set import KeyframeState
 from splat_slam_ros.tracking.motion_filter import predict_pose
 from splat_slam_ros.tracking.tracker import Tracker
-from splat_slam_ros.types import Frame, Intrinsics, TrackStep
+from splat_slam_ros.types import Frame, Intrinsics, KeyframeData, TrackStep
 
 log = logging.getLogger(__name__)
 
@@ -236,7 +236,9 @@ class ExtendTracker(Tracker):
         self.loaded_ids, self.desc = add_session_keyframes(self, session, intrinsics)
         self.session_kfs = session.keyframes
         self.published.update(self.loaded_ids)
-        self.next_kf = max(self.loaded_ids) + 1
+        # new ids continue loop_time_gap after the loaded ones: to loop detection, every
+        # loaded keyframe is old enough for a loop from the first new one on
+        self.next_kf = max(self.loaded_ids) + 1 + self.tc.loop_time_gap
         self.relocalised_frame: Optional[int] = None
         self.relocalised_keyframe: Optional[int] = None
         self.n_relocalisations = 0
@@ -254,6 +256,17 @@ class ExtendTracker(Tracker):
             poses=np.stack([self.kfs[k].pose.cpu().numpy() for k in ids]).astype(np.float64),
             disparities=np.stack([self.kfs[k].disp.cpu().numpy() for k in ids]).astype(
                 np.float32), images=s.images, descriptors=s.descriptors)
+
+    def loaded_keyframe_data(self) -> List[KeyframeData]:
+        """The loaded keyframes as the other stages take keyframes (tracking-size images)."""
+        s = self.session_kfs
+        return [KeyframeData(kf_id=k, frame_index=int(s.frame_indices[n]),
+                             timestamp=float(s.timestamps[n]),
+                             pose=self.kfs[k].pose.cpu().numpy().copy(), image=s.images[n],
+                             intrinsics=self.intrinsics,
+                             disparity=self.kfs[k].disp.cpu().numpy().astype(np.float32),
+                             confidence=np.ones((self.h, self.w), np.float32))
+                for n, k in enumerate(self.loaded_ids)]
 
     def _warmup(self, frame, img, prep) -> TrackStep:
         hit = relocalise(self, self.loaded_ids, self.desc, img, prep)
