@@ -93,11 +93,7 @@ class LoopCloser:
             t0 = time.perf_counter()
             k = int(kf.kf_id)
             prev = [i for i in self.kfs.ids if i < k][-max(self.tc.global_ba_radius, 1):]
-            self.kfs.add(k, KeyframeState(
-                torch.as_tensor(np.asarray(kf.pose), dtype=torch.float64, device=self.device),
-                torch.as_tensor(np.asarray(kf.disparity), dtype=torch.float32, device=self.device),
-                int(kf.frame_index), float(kf.timestamp), prep=self.flow.prepare(
-                    flow_input(kf.image, kf.disparity.shape, self.tc.ba_downsample))))
+            self._store(kf)
             self.new_since_gba.append(k)
             for n, p in enumerate(reversed(prev)):
                 # the previous keyframe in both directions, further ones k -> p only
@@ -111,13 +107,16 @@ class LoopCloser:
         loaded map (never the reverse)."""
         if self.graph is None:
             self._setup(kf)
-        k = int(kf.kf_id)
-        self.kfs.add(k, KeyframeState(
+        self._store(kf)
+        self.fixed_ids.add(int(kf.kf_id))
+
+    def _store(self, kf: KeyframeData) -> None:
+        """Pose, disparity and the flow-ready image of a keyframe."""
+        self.kfs.add(int(kf.kf_id), KeyframeState(
             torch.as_tensor(np.asarray(kf.pose), dtype=torch.float64, device=self.device),
             torch.as_tensor(np.asarray(kf.disparity), dtype=torch.float32, device=self.device),
             int(kf.frame_index), float(kf.timestamp), prep=self.flow.prepare(
                 flow_input(kf.image, kf.disparity.shape, self.tc.ba_downsample))))
-        self.fixed_ids.add(k)
 
     def _gauge(self, ids: Sequence[int], fixed: torch.Tensor) -> torch.Tensor:
         """``fixed`` (a mask over ``ids``) plus a loaded map's keyframes; at least two."""
