@@ -410,3 +410,28 @@ def test_frames_without_a_keyframe_of_their_input_are_not_placed():
                             torch.tensor([8.0, 8.0, 4.0, 3.0]), iters=0)
     assert list(ts) == [1.1]
     np.testing.assert_allclose(P[0][:3, 3], [0.5, 0.1, 0.0])
+
+
+def test_extend_relocalises_again_after_a_loss_mid_run(work, other):
+    """A long loss mid-run (more than tracking.reinit_after frames of another room): the
+    extend tracker relocalises in the loaded map again, no new frame of reference."""
+    from splat_slam_ros.config import load_config
+    from splat_slam_ros.io.datasets import open_dataset
+    from splat_slam_ros.tracking.relocalise import ExtendTracker
+    ds = open_dataset(work["seq"])
+    cfg = load_config(str(work["cfg"]))
+    trk = ExtendTracker(cfg, ds.intrinsics, ss.load_session(work["s1"]))
+    strange = next(iter(open_dataset(other))).image
+    steps = {}
+    for f in ds:
+        if 20 <= f.index < 40:
+            if 25 <= f.index < 25 + cfg.tracking.reinit_after + 2:
+                f = type(f)(f.index, f.timestamp, strange, f.intrinsics)
+            steps[f.index] = trk.track(f)
+    assert trk.relocalised_frame == 20 and trk.n_relocalisations == 2, trk.n_relocalisations
+    assert not steps[39].lost and trk.initialized
+    ts, P = read_trajectory(work["s1"] / "trajectory_full.txt")
+    first = {round(float(t), 3): T for t, T in zip(ts, P)}
+    span = np.ptp(P[:, :3, 3], axis=0).max()
+    T = first[round(float(steps[39].timestamp), 3)]
+    assert np.linalg.norm(steps[39].pose[:3, 3] - T[:3, 3]) < 0.05 * span
