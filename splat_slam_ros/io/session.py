@@ -7,8 +7,8 @@ tracking-size image the flow front end prepares, and a place-recognition descrip
 map is the run's ``map.ply``, referenced by checksum (none in a tracking-only run). A full
 run also writes ``map_state.npz``: the mapper's state (Gaussians with their bookkeeping, the
 mapped keyframes' poses, exposures, images and proxy depths, the mapping window), which a
-later run that extends the map restores (:func:`map_state`); its metadata and the mapping
-camera are in the manifest.
+later run that extends the map restores (:func:`map_state`); the mapping camera is in the
+manifest.
 
 Plain numpy / json: :func:`load_session` validates everything (presence, checksums, version,
 keys and shapes) and raises :class:`SessionError` with one line naming what is wrong.
@@ -36,6 +36,7 @@ MANIFEST = "manifest.json"
 KEYFRAMES = "keyframes.npz"
 MAP = "map.ply"
 MAP_STATE = "map_state.npz"
+META_KEY = "meta_json"              # map_state.npz: the mapper's JSON metadata as bytes
 DESCRIPTOR_SIZE = (16, 12)          # (w, h) of the grey thumbnail descriptor
 ARRAYS = ("kf_ids", "frame_indices", "timestamps", "poses", "disparities", "images",
           "descriptors")
@@ -124,9 +125,12 @@ def write_session(out: Path, kfs: SessionKeyframes, camera: Intrinsics,
     state = None
     if mapper is not None:
         arrays, meta = mapper_arrays(mapper)
+        # the metadata (window visibility lists: large) inside the file, not the manifest
+        arrays[META_KEY] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
         _write_npz(d / MAP_STATE, arrays)
         files[MAP_STATE] = sha256(d / MAP_STATE)
-        state = {"meta": meta, "camera": mapper.K.to_dict()}
+        state = {"camera": mapper.K.to_dict(), "gaussians": len(arrays["means"]),
+                 "mapped_keyframes": len(arrays["kf_ids"])}
     ply = Path(out) / MAP
     map_entry = {"path": f"../{MAP}", "sha256": sha256(ply), "bytes": ply.stat().st_size} \
         if ply.is_file() else None
@@ -269,7 +273,7 @@ def map_state(session: Session) -> Tuple[Dict[str, np.ndarray], dict, Intrinsics
         c = entry["camera"]
         cam = Intrinsics(float(c["fx"]), float(c["fy"]), float(c["cx"]), float(c["cy"]),
                          int(c["width"]), int(c["height"]))
-        meta = dict(entry["meta"])
+        meta = json.loads(bytes(arrays.pop(META_KEY)).decode())
         missing = [k for k in ("means", "kf_ids", "kf_pose") if k not in arrays]
         missing += [f"kf{k}_{n}" for k in arrays.get("kf_ids", []) for n in
                     ("image", "depth", "valid", "width") if f"kf{k}_{n}" not in arrays]
