@@ -32,8 +32,8 @@ from typing import Dict, List
 
 from splat_slam_ros.config import MappingConfig, SlamConfig
 from splat_slam_ros.coordinator import Coordinator
-from splat_slam_ros.io.session import Session, SessionError, map_state
-from splat_slam_ros.io.keyframe_store import restore_mapper
+from splat_slam_ros.io.session import (Session, SessionError, map_state, pinhole_diffs,
+                                       restore_map_state)
 from splat_slam_ros.tracking.relocalise import ExtendTracker
 from splat_slam_ros.types import Intrinsics
 
@@ -53,12 +53,6 @@ def extend_config(cfg: SlamConfig, overrides: Dict[str, object]) -> List[str]:
     return notes
 
 
-def _same_camera(a: Intrinsics, b: Intrinsics) -> bool:
-    va = (a.fx, a.fy, a.cx, a.cy, a.width, a.height)
-    vb = (b.fx, b.fy, b.cx, b.cy, b.width, b.height)
-    return all(abs(float(x) - float(y)) <= 1e-4 * max(1.0, abs(float(y))) for x, y in zip(va, vb))
-
-
 def extend_coordinator(cfg: SlamConfig, intrinsics: Intrinsics, session: Session) -> Coordinator:
     """A :class:`Coordinator` whose tracker and mapper continue ``session`` (SessionError
     before any frame when it has no map state, or another camera or mapping size)."""
@@ -66,18 +60,14 @@ def extend_coordinator(cfg: SlamConfig, intrinsics: Intrinsics, session: Session
     co = Coordinator(cfg, intrinsics, mapping=True, make_tracker=lambda flow: ExtendTracker(
         cfg, intrinsics, session, flow_predictor=flow))
     trk = co.tracker.tracker
-    if not _same_camera(map_cam, trk.map_intrinsics):
-        m = trk.map_intrinsics
-        raise SessionError(f"the map in {session.path.parent} was made at {map_cam.width}x"
-                           f"{map_cam.height} (fx {map_cam.fx:g}), this configuration maps at "
-                           f"{m.width}x{m.height} (fx {m.fx:g}): use the camera.* settings of "
-                           f"the run that made it")
+    diffs = pinhole_diffs(map_cam.to_dict(), trk.map_intrinsics.to_dict())
+    if diffs:
+        raise SessionError(f"the map in {session.path.parent} was made at another mapping size "
+                           f"(saved vs this configuration): {', '.join(diffs)}; use the "
+                           f"camera.* settings of the run that made it")
     role = co.mapper
     role.intr = trk.map_intrinsics
-    role.mapper = restore_mapper(
-        arrays, meta, cfg, trk.map_intrinsics, lambda k: arrays[f"kf{k}_image"],
-        lambda k: {n: arrays[f"kf{k}_{n}"] for n in ("depth", "valid", "width", "weight")
-                   if f"kf{k}_{n}" in arrays})
+    role.mapper = restore_map_state(arrays, meta, cfg, trk.map_intrinsics)
     role.offered = {int(k): True for k in role.mapper.keyframes}
     if co.loop is not None:             # loops from new keyframes to loaded ones (fixed)
         co.loop.add_fixed(trk.loaded_keyframe_data())

@@ -357,13 +357,9 @@ def test_extend_a_revisited_view_adds_no_gaussians(ext):
 
 def test_map_state_round_trip(ext):
     from splat_slam_ros.config import load_config
-    from splat_slam_ros.io.keyframe_store import restore_mapper
     s = ss.load_session(ext["a"])
     arrays, meta, cam = ss.map_state(s)
-    mp = restore_mapper(arrays, meta, load_config(None), cam, lambda k: arrays[f"kf{k}_image"],
-                        lambda k: {n: arrays[f"kf{k}_{n}"] for n in ("depth", "valid", "width",
-                                                                      "weight")
-                                   if f"kf{k}_{n}" in arrays})
+    mp = ss.restore_map_state(arrays, meta, load_config(None), cam)
     again, meta2 = ss.mapper_arrays(mp)
     assert sorted(again) == sorted(arrays) and meta2 == meta
     for k, v in arrays.items():

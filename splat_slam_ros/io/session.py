@@ -26,7 +26,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 
-from splat_slam_ros.io.keyframe_store import keyframe_depth, mapper_state
+from splat_slam_ros.io.keyframe_store import keyframe_depth, mapper_state, restore_mapper
 from splat_slam_ros.types import Intrinsics
 
 FORMAT = "splat-slam-session"
@@ -37,6 +37,8 @@ KEYFRAMES = "keyframes.npz"
 MAP = "map.ply"
 MAP_STATE = "map_state.npz"
 META_KEY = "meta_json"              # map_state.npz: the mapper's JSON metadata as bytes
+# map_state.npz: kf<k>_<name> per mapped keyframe, as keyframe_store.keyframe_depth gives them
+KEYFRAME_DEPTH = ("depth", "valid", "width", "weight")
 DESCRIPTOR_SIZE = (16, 12)          # (w, h) of the grey thumbnail descriptor
 ARRAYS = ("kf_ids", "frame_indices", "timestamps", "poses", "disparities", "images",
           "descriptors")
@@ -221,15 +223,22 @@ def load_session(run_dir: Path) -> Session:
     return Session(d, m, kfs, map_path)
 
 
-def camera_mismatch(session: Session, camera: Intrinsics, tracking_size: Sequence[int],
-                    ba_size: Sequence[int]) -> List[str]:
-    """'name session vs now' for each camera value / image size that differs (empty: same)."""
-    saved, now = session.manifest["camera"], camera.to_dict()
+def pinhole_diffs(saved: dict, now: dict) -> List[str]:
+    """'name saved vs now' for each of fx, fy, cx, cy, width, height (:meth:`Intrinsics.to_dict`
+    layout) that differs by more than 1e-4 relative."""
     diffs: List[str] = []
     for k in ("fx", "fy", "cx", "cy", "width", "height"):
         a, b = saved.get(k), now[k]
         if not isinstance(a, (int, float)) or abs(float(a) - float(b)) > 1e-4 * max(1.0, abs(b)):
             diffs.append(f"{k} {a} vs {b}")
+    return diffs
+
+
+def camera_mismatch(session: Session, camera: Intrinsics, tracking_size: Sequence[int],
+                    ba_size: Sequence[int]) -> List[str]:
+    """'name session vs now' for each camera value / image size that differs (empty: same)."""
+    saved, now = session.manifest["camera"], camera.to_dict()
+    diffs = pinhole_diffs(saved, now)
     da, db = list(saved.get("distortion") or []), now["distortion"]
     if saved.get("distortion_model") != now["distortion_model"] and (da or db) or \
             len(da) != len(db) or any(abs(float(x) - y) > 1e-6 for x, y in zip(da, db)):
@@ -255,7 +264,6 @@ def descriptor_ranking(session_desc: np.ndarray, desc: np.ndarray) -> np.ndarray
     return np.argsort(-(session_desc @ desc), kind="stable")
 
 
-
 def map_state(session: Session) -> Tuple[Dict[str, np.ndarray], dict, Intrinsics]:
     """The mapper state a full run saved (arrays, metadata, the mapping camera), checked
     against its checksum; SessionError when the session has none (a tracking-only run) or
@@ -276,9 +284,17 @@ def map_state(session: Session) -> Tuple[Dict[str, np.ndarray], dict, Intrinsics
         meta = json.loads(bytes(arrays.pop(META_KEY)).decode())
         missing = [k for k in ("means", "kf_ids", "kf_pose") if k not in arrays]
         missing += [f"kf{k}_{n}" for k in arrays.get("kf_ids", []) for n in
-                    ("image", "depth", "valid", "width") if f"kf{k}_{n}" not in arrays]
+                    ("image",) + KEYFRAME_DEPTH[:3] if f"kf{k}_{n}" not in arrays]
     except Exception as e:          # zip / npy / key errors of every kind: a corrupt state
         raise SessionError(f"session file {path} is unreadable ({type(e).__name__})") from None
     if missing:
         raise SessionError(f"session file {path} is corrupt (no {missing[0]!r})")
     return arrays, meta, cam
+
+
+def restore_map_state(arrays: Dict[str, np.ndarray], meta: dict, cfg, intrinsics: Intrinsics):
+    """The Mapper that :func:`map_state`'s arrays and metadata describe
+    (:func:`keyframe_store.restore_mapper`)."""
+    return restore_mapper(arrays, meta, cfg, intrinsics, lambda k: arrays[f"kf{k}_image"],
+                          lambda k: {n: arrays[f"kf{k}_{n}"] for n in KEYFRAME_DEPTH
+                                     if f"kf{k}_{n}" in arrays})

@@ -45,6 +45,14 @@ def _sizes(trk: Tracker) -> Tuple[List[int], List[int]]:
     return [trk.intrinsics.width, trk.intrinsics.height], [trk.w, trk.h]
 
 
+def _ba_state(trk: Tracker, ids: List[int]) -> Tuple[np.ndarray, np.ndarray]:
+    """(N, 4, 4) float64 poses and (N, h, w) float32 disparities of keyframes ``ids`` now."""
+    if not ids:
+        return np.zeros((0, 4, 4)), np.zeros((0, trk.h, trk.w), np.float32)
+    return (np.stack([trk.kfs[k].pose.cpu().numpy() for k in ids]).astype(np.float64),
+            np.stack([trk.kfs[k].disp.cpu().numpy() for k in ids]).astype(np.float32))
+
+
 def session_keyframes(trk: Tracker, frames, ids: Optional[List[int]] = None) -> SessionKeyframes:
     """The tracker's published keyframes (or ``ids`` of them) as session arrays; ``frames``
     (the run's input, iterated once more) gives their images again at the tracking size."""
@@ -60,15 +68,12 @@ def session_keyframes(trk: Tracker, frames, ids: Optional[List[int]] = None) -> 
     ids = [k for k in ids if k in images]
     imgs = np.stack([images[k] for k in ids]) if ids else \
         np.zeros((0, trk.intrinsics.height, trk.intrinsics.width, 3), np.uint8)
+    poses, disps = _ba_state(trk, ids)
     return SessionKeyframes(
         kf_ids=np.array(ids, np.int64),
         frame_indices=np.array([trk.kfs[k].frame_index for k in ids], np.int64),
         timestamps=np.array([trk.kfs[k].timestamp for k in ids], np.float64),
-        poses=np.stack([trk.kfs[k].pose.cpu().numpy() for k in ids]).astype(np.float64)
-        if ids else np.zeros((0, 4, 4)),
-        disparities=np.stack([trk.kfs[k].disp.cpu().numpy() for k in ids]).astype(np.float32)
-        if ids else np.zeros((0, trk.h, trk.w), np.float32),
-        images=imgs.astype(np.uint8),
+        poses=poses, disparities=disps, images=imgs.astype(np.uint8),
         descriptors=np.stack([descriptor(i) for i in imgs]) if ids else
         np.zeros((0, 192), np.float32))
 
@@ -250,12 +255,11 @@ class ExtendTracker(Tracker):
 
     def loaded_keyframes(self) -> SessionKeyframes:
         """The loaded session's keyframes with their current poses and disparities."""
-        s, ids = self.session_kfs, self.loaded_ids
+        s = self.session_kfs
+        poses, disps = _ba_state(self, self.loaded_ids)
         return SessionKeyframes(
             kf_ids=s.kf_ids, frame_indices=s.frame_indices, timestamps=s.timestamps,
-            poses=np.stack([self.kfs[k].pose.cpu().numpy() for k in ids]).astype(np.float64),
-            disparities=np.stack([self.kfs[k].disp.cpu().numpy() for k in ids]).astype(
-                np.float32), images=s.images, descriptors=s.descriptors)
+            poses=poses, disparities=disps, images=s.images, descriptors=s.descriptors)
 
     def loaded_keyframe_data(self) -> List[KeyframeData]:
         """The loaded keyframes as the other stages take keyframes (tracking-size images)."""
