@@ -32,8 +32,7 @@ from typing import Dict, List
 
 from splat_slam_ros.config import MappingConfig, SlamConfig
 from splat_slam_ros.coordinator import Coordinator
-from splat_slam_ros.io.session import (Session, SessionError, map_state, pinhole_diffs,
-                                       restore_map_state)
+from splat_slam_ros.io.session import Session, map_state, restore_map_state
 from splat_slam_ros.tracking.relocalise import ExtendTracker
 from splat_slam_ros.types import Intrinsics
 
@@ -59,20 +58,13 @@ def extend_coordinator(cfg: SlamConfig, intrinsics: Intrinsics, session: Session
     arrays, meta, map_cam = map_state(session)
     co = Coordinator(cfg, intrinsics, mapping=True, make_tracker=lambda flow: ExtendTracker(
         cfg, intrinsics, session, flow_predictor=flow))
-    trk = co.tracker.tracker
-    diffs = pinhole_diffs(map_cam.to_dict(), trk.map_intrinsics.to_dict())
-    if diffs:
-        raise SessionError(f"the map in {session.path.parent} was made at another mapping size "
-                           f"(saved vs this configuration): {', '.join(diffs)}; use the "
-                           f"camera.* settings of the run that made it")
-    role = co.mapper
-    role.intr = trk.map_intrinsics
-    role.mapper = restore_map_state(arrays, meta, cfg, trk.map_intrinsics)
-    role.offered = {int(k): True for k in role.mapper.keyframes}
+    trk = co.tracker.tracker                # (checks the camera and the mapping size)
+    co.mapper.restore(restore_map_state(arrays, meta, cfg, map_cam), map_cam)
     if co.loop is not None:             # loops from new keyframes to loaded ones (fixed)
         co.loop.add_fixed(trk.loaded_keyframe_data())
-    co.loaded = {"keyframes": len(trk.loaded_ids), "mapped_keyframes": len(role.offered),
-                 "gaussians": len(role.mapper.map)}
+    co.loaded = {"keyframes": len(trk.loaded_ids),
+                 "mapped_keyframes": len(co.mapper.mapper.keyframes),
+                 "gaussians": len(co.mapper.mapper.map)}
     return co
 
 
@@ -81,10 +73,10 @@ def extend_metrics(co: Coordinator, session: Session) -> dict:
     trk = co.tracker.tracker
     mp = co.mapper.mapper
     lc = co.loop.loop if co.loop is not None else None
-    pairs = lc.loop_pairs if lc is not None else set()
+    loops = lc.loop_stats() if lc is not None else {"loop_edges": 0, "loop_edges_to_loaded": 0}
     return {"session": str(session.path.parent), "loaded": co.loaded,
-            "loop_edges": len(pairs),
-            "loop_edges_to_loaded": sum(1 for p in pairs if set(p) & lc.fixed_ids),
+            "loop_edges": loops["loop_edges"],
+            "loop_edges_to_loaded": loops["loop_edges_to_loaded"],
             "new_keyframes": len(trk.new_keyframe_ids()),
             "mapped_keyframes": len(mp.keyframes), "gaussians": len(mp.map),
             "relocalised_frame": trk.relocalised_frame,

@@ -76,3 +76,43 @@ def run_localize(dataset, cfg: SlamConfig, out: Path, session: Session, progress
         raise NeverRelocalisedError(metrics["error"])
     result.metrics = metrics
     return result
+
+
+class LocalizeRole:
+    """The tracker node's role in a localize-only graph (``splat-slam-launch --load-map RUN
+    --localize``): the :class:`Localizer` behind the interface of
+    :class:`~splat_slam_ros.roles.TrackerRole`. It publishes no keyframe and no update; the
+    node publishes each located frame's pose (in the loaded map's frame) and writes the
+    posed frames at the end. Frames the busy node skips (live input) are not posed."""
+    name = "tracker"
+    update_sources = ()                 # no loop closer runs: the map is read-only
+
+    def __init__(self, cfg: SlamConfig, intrinsics, session: Session):
+        self.loc = Localizer(cfg, intrinsics, session)
+        self.tracker = self.loc         # what the node reads: see Localizer's tracker surface
+        self.intrinsics = intrinsics
+        self.finalized = False
+
+    def on_frame(self, frame):
+        from splat_slam_ros.roles import Outbox
+        from splat_slam_ros.types import TrackStep
+        T = self.loc.track(frame)
+        pose = T if T is not None else self.loc.predict()
+        return TrackStep(int(frame.index), float(frame.timestamp), False, None, pose,
+                         lost=T is None, initialized=self.loc.initialized), Outbox()
+
+    def on_update(self, ev):
+        from splat_slam_ros.roles import Outbox
+        return Outbox()
+
+    def on_final(self, node, info):
+        return self.on_update(None)
+
+    def finalize(self):
+        from splat_slam_ros.roles import Outbox
+        self.finalized = True
+        return Outbox(final={"last_seq": 0, "keyframes": 0})
+
+    @property
+    def complete(self) -> bool:
+        return self.finalized

@@ -24,7 +24,7 @@ from splat_slam_ros.io.session import remove_session
 from splat_slam_ros.io.trajectory_io import read_trajectory, write_tum
 from splat_slam_ros.mapping.map_sequence import map_sequence
 from splat_slam_ros.report import WarningRecorder, write_report
-from splat_slam_ros.tracking.relocalise import save_session
+from splat_slam_ros.tracking.relocalise import input_images, save_session, session_ids
 
 
 class NotInitializedError(RuntimeError):
@@ -371,4 +371,5 @@ def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics, co
         metrics.update(mp.evaluate_keyframes(out / "renders"))
         metrics["map"] = mp.stats()
     # the session a later run loads (--load-map OUT --localize): after map.ply, which it sums
-    save_session(trk, itertools.islice(dataset, max_frames), cfg, dataset.intrinsics, out, mp)
+    images = input_images(trk, itertools.islice(dataset, max_frames), session_ids(trk))
+    save_session(trk, images, cfg, dataset.intrinsics, out, mp)

@@ -54,11 +54,8 @@ class Outbox:
     final: Optional[dict] = None                        # the stage became final
 
     def extend(self, other: "Outbox") -> "Outbox":
-        self.updates += other.updates
-        self.keyframes += other.keyframes
-        self.proxy_depths += other.proxy_depths
-        self.acks += other.acks
-        self.mapped += other.mapped
+        for name in ("updates", "keyframes", "proxy_depths", "acks", "mapped"):
+            getattr(self, name).extend(getattr(other, name))
         if other.final is not None:
             self.final = other.final
         return self
@@ -374,7 +371,7 @@ class LoopRole:
             self.store.commit({}, self.meta())
         return Outbox(updates=list(events), final={
             "last_seq": self.last_seq, "keyframes": len(self.kf_ids),
-            "merged": len(self.loop.merged) if self.loop is not None else 0})
+            **(self.loop.loop_stats() if self.loop is not None else {"merged": 0})})
 
 
 # ============================================================================ proxy depth
@@ -546,8 +543,7 @@ class MapperRole:
         self.taken = {int(k): int(v) for k, v in meta.get("taken", {}).items()}
         self.last_update_seq = int(meta.get("last_update_seq", 0))
         if self.store.has("map") and meta.get("intrinsics"):
-            i = meta["intrinsics"]
-            self.intr = Intrinsics(i[0], i[1], i[2], i[3], int(i[4]), int(i[5]))
+            self.intr = Intrinsics(*meta["intrinsics"][:4], *map(int, meta["intrinsics"][4:6]))
             self.mapper = restore_mapper(self.store.get("map"), meta["map"], self.cfg, self.intr,
                                          lambda k: self.store.get(f"kf{k}_image")["image"],
                                          lambda k: self.store.get(f"kf{k}_mdepth"))
@@ -560,6 +556,9 @@ class MapperRole:
         staged = {f"kf{k}_mdepth": self.store.stage(f"kf{k}_mdepth",
                                                      **keyframe_depth(self.mapper, k))
                   for k in sorted(self.dirty) if k in self.mapper.keyframes}
+        staged.update({f"kf{k}_image": self.store.stage(f"kf{k}_image", image=np.asarray(
+            self.mapper.keyframes[k].image.cpu(), np.uint8)) for k in sorted(self.dirty) if
+            k in self.mapper.keyframes and not self.store.has(f"kf{k}_image")})
         for k in sorted(self.gone):                    # merged keyframes: records deleted
             staged[f"kf{k}_mdepth"] = staged[f"kf{k}_image"] = None
         self.dirty.clear()
@@ -573,14 +572,19 @@ class MapperRole:
                                    "last_update_seq": self.last_update_seq})
         self.n_since_snapshot = 0
 
+    def restore(self, mapper: "Mapper", intr: Intrinsics) -> None:  # noqa: F821
+        """Start from a loaded map (extend runs): its keyframes count as mapped."""
+        self.mapper, self.intr = mapper, intr
+        self.offered = {int(k): True for k in mapper.keyframes}
+        self.dirty = set(self.offered)
+        self.snapshot()
+
     def reset(self) -> None:
         """Drop the map and everything it consumed; the next keyframes start a new map."""
         self.mapper = None
-        for d in (self.pending_kf, self.pending_depth, self.offered, self.taken):
+        for d in (self.pending_kf, self.pending_depth, self.offered, self.taken, self.dirty,
+                  self.gone, self.settled):
             d.clear()
-        self.dirty.clear()
-        self.gone.clear()
-        self.settled.clear()
         if self.store is not None:
             self.store.clear()
 
@@ -599,11 +603,10 @@ class MapperRole:
             metrics["mesh"] = map_mesh_output(self.mapper, d / "map_mesh.ply")
         metrics.update(self.mapper.evaluate_keyframes(d / "renders"))
         metrics["map"] = self.mapper.stats()
-        if final:
-            (d / "mapper_metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
-        else:
+        if not final:
             write_tum(d / "trajectory_keyframes.txt", *self.mapper.keyframe_trajectory())
-            (d / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
+        (d / ("mapper_metrics.json" if final else "metrics.json")).write_text(
+            json.dumps(metrics, indent=2, default=str))
         return metrics
 
     # ------------------------------------------------------------ inputs
@@ -644,8 +647,7 @@ class MapperRole:
             out = self._try_map()
         return out.extend(self._check_final())
 
-    def on_update(self, ev: UpdateEvent) -> Outbox:
-        # the deformation itself follows the depth stage's ProxyDepth stream
+    def on_update(self, ev: UpdateEvent) -> Outbox:  # deformation: the ProxyDepth stream
         self.last_update_seq = max(self.last_update_seq, int(ev.seq))
         self.loop_seen |= int(ev.seq) >= LOOP_SEQ_START
         return Outbox()
@@ -756,8 +758,6 @@ class MapperRole:
         self.taken[kf.kf_id] = int(pd.revision)
         if mapped:
             self.dirty.add(kf.kf_id)
-            if self.store is not None and not self.store.has(f"kf{kf.kf_id}_image"):
-                self.store.put(f"kf{kf.kf_id}_image", image=np.asarray(kf.image, np.uint8))
         self.n_since_snapshot += 1
         if self.n_since_snapshot >= self.snapshot_every:
             self.snapshot()

@@ -66,17 +66,26 @@ def _camera():
 
 
 def test_session_round_trip_and_checksums(tmp_path):
+    from splat_slam_ros.config import load_config
+    from splat_slam_ros.mapping.mapper import Mapper
     kfs = _keyframes()
-    (tmp_path / "map.ply").write_bytes(b"ply\nfake map\n")
-    ss.write_session(tmp_path, kfs, _camera(), (32, 24), (8, 6), {"a": 1}, "0.1.0")
+    # the graph writes the two parts from two processes, in either order: the map state first
+    mp = Mapper(load_config(None), _camera())
+    mp.save_ply(tmp_path / "map.ply")
+    ss.write_map_state(tmp_path, mp)
+    with pytest.raises(ss.SessionError, match="corrupt"):     # half a session: not loadable
+        ss.load_session(tmp_path)
+    ss.write_session_keyframes(tmp_path, kfs, _camera(), (32, 24), (8, 6), {"a": 1}, "0.1.0")
     s = ss.load_session(tmp_path)
     for k in ss.ARRAYS:
         np.testing.assert_array_equal(getattr(s.keyframes, k), getattr(kfs, k))
     m = s.manifest
     assert m["version"] == ss.VERSION and m["keyframes"] == 3 and m["config"] == {"a": 1}
     assert m["files"]["keyframes.npz"] == ss.sha256(tmp_path / "session" / "keyframes.npz")
-    assert s.map_path == (tmp_path / "map.ply").resolve()
+    assert m["files"]["map_state.npz"] == ss.sha256(tmp_path / "session" / "map_state.npz")
+    assert s.map_path == (tmp_path / "map.ply").resolve() and m["map_note"] is None
     assert m["camera"]["fx"] == 30.0 and m["ba_size"] == [8, 6]
+    assert ss.map_camera(s).to_dict() == _camera().to_dict()
     # a map changed after the session was saved no longer matches its checksum
     (tmp_path / "map.ply").write_bytes(b"ply\nanother map\n")
     with pytest.raises(ss.SessionError, match=r"map\.ply does not match its sha256"):

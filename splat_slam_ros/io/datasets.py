@@ -160,12 +160,18 @@ class FromFrame:
     def __len__(self) -> int:
         return len(self._ds) - self.start
 
-    def __iter__(self):
-        for i, f in enumerate(self._ds):
+    def iter_frames(self, keep_mono: Optional[bool] = None):
+        for i, f in enumerate(self._ds.iter_frames(keep_mono)):
             if i >= self.start:
                 if self._first_stamp is None:
                     self._first_stamp = float(f.timestamp)
                 yield f
+
+    def __iter__(self):
+        return self.iter_frames()
+
+    def info(self) -> dict:
+        return dict(self._ds.info(), frames=len(self))
 
     def gt_trajectory(self):
         gt = self._ds.gt_trajectory()

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from splat_slam_ros.io.keyframe_store import keyframe_depth, mapper_state, restore_mapper
-from splat_slam_ros.types import Intrinsics
+from splat_slam_ros.types import Intrinsics, KeyframeData
 
 FORMAT = "splat-slam-session"
 VERSION = 1
@@ -36,6 +36,7 @@ MANIFEST = "manifest.json"
 KEYFRAMES = "keyframes.npz"
 MAP = "map.ply"
 MAP_STATE = "map_state.npz"
+LOCK = ".lock"                      # held while the manifest is merged (_merge_manifest)
 META_KEY = "meta_json"              # map_state.npz: the mapper's JSON metadata as bytes
 # map_state.npz: kf<k>_<name> per mapped keyframe, as keyframe_store.keyframe_depth gives them
 KEYFRAME_DEPTH = ("depth", "valid", "width", "weight")
@@ -115,45 +116,76 @@ def mapper_arrays(mapper) -> Tuple[Dict[str, np.ndarray], dict]:
     return arrays, meta
 
 
+def _merge_manifest(d: Path, part: dict) -> None:
+    """Merge ``part`` into ``d/manifest.json`` under a file lock: the keyframes and the map
+    state may come from two processes (the tracker and mapper nodes), in either order."""
+    import fcntl
+    with open(d / LOCK, "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        mf = d / MANIFEST
+        m = json.loads(mf.read_text()) if mf.is_file() else {}
+        files = dict(m.get("files") or {}, **part.pop("files", {}))
+        m.update(part, files=files, format=FORMAT, version=VERSION)
+        m.setdefault("map", None)
+        m.setdefault("map_state", None)
+        m["map_note"] = None if m["map"] else "no map in this session (a tracking-only run)"
+        tmp = mf.with_suffix(".tmp")
+        tmp.write_text(json.dumps(m, indent=2, default=str))
+        tmp.replace(mf)
+
+
+def write_session_keyframes(out: Path, kfs: SessionKeyframes, camera: Intrinsics,
+                            tracking_size: Sequence[int], ba_size: Sequence[int], config: dict,
+                            package_version: str) -> Path:
+    """The tracker's part of ``out/session/``: keyframes.npz and the manifest's camera,
+    sizes, counts and configuration. Returns the session folder."""
+    d = Path(out) / SESSION_DIR
+    d.mkdir(parents=True, exist_ok=True)
+    _write_npz(d / KEYFRAMES, {k: getattr(kfs, k) for k in ARRAYS})
+    _merge_manifest(d, {
+        "package_version": package_version, "camera": camera.to_dict(),
+        "tracking_size": [int(x) for x in tracking_size], "ba_size": [int(x) for x in ba_size],
+        "keyframes": len(kfs),
+        "frames": [int(kfs.frame_indices.min()), int(kfs.frame_indices.max())] if len(kfs)
+        else None,
+        "files": {KEYFRAMES: sha256(d / KEYFRAMES)}, "config": config})
+    return d
+
+
+def write_map_state(out: Path, mapper) -> Path:
+    """The mapper's part of ``out/session/`` (after ``out/map.ply``): map_state.npz, the
+    map's checksum and the mapping camera in the manifest."""
+    d = Path(out) / SESSION_DIR
+    d.mkdir(parents=True, exist_ok=True)
+    arrays, meta = mapper_arrays(mapper)
+    # the metadata (window visibility lists: large) inside the file, not the manifest
+    arrays[META_KEY] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    _write_npz(d / MAP_STATE, arrays)
+    ply = Path(out) / MAP
+    _merge_manifest(d, {
+        "files": {MAP_STATE: sha256(d / MAP_STATE)},
+        "map": {"path": f"../{MAP}", "sha256": sha256(ply), "bytes": ply.stat().st_size}
+        if ply.is_file() else None,
+        "map_state": {"camera": mapper.K.to_dict(), "gaussians": len(arrays["means"]),
+                      "mapped_keyframes": len(arrays["kf_ids"])}})
+    return d
+
+
 def write_session(out: Path, kfs: SessionKeyframes, camera: Intrinsics,
                   tracking_size: Sequence[int], ba_size: Sequence[int], config: dict,
                   package_version: str, mapper=None) -> Path:
     """Write ``out/session/`` (keyframes.npz + manifest.json, and map_state.npz of
     ``mapper``); the map is ``out/map.ply`` when it exists. Returns the session folder."""
-    d = Path(out) / SESSION_DIR
-    d.mkdir(parents=True, exist_ok=True)
-    _write_npz(d / KEYFRAMES, {k: getattr(kfs, k) for k in ARRAYS})
-    files = {KEYFRAMES: sha256(d / KEYFRAMES)}
-    state = None
+    d = write_session_keyframes(out, kfs, camera, tracking_size, ba_size, config,
+                                package_version)
     if mapper is not None:
-        arrays, meta = mapper_arrays(mapper)
-        # the metadata (window visibility lists: large) inside the file, not the manifest
-        arrays[META_KEY] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
-        _write_npz(d / MAP_STATE, arrays)
-        files[MAP_STATE] = sha256(d / MAP_STATE)
-        state = {"camera": mapper.K.to_dict(), "gaussians": len(arrays["means"]),
-                 "mapped_keyframes": len(arrays["kf_ids"])}
-    ply = Path(out) / MAP
-    map_entry = {"path": f"../{MAP}", "sha256": sha256(ply), "bytes": ply.stat().st_size} \
-        if ply.is_file() else None
-    manifest = {
-        "format": FORMAT, "version": VERSION, "package_version": package_version,
-        "camera": camera.to_dict(),
-        "tracking_size": [int(x) for x in tracking_size], "ba_size": [int(x) for x in ba_size],
-        "keyframes": len(kfs),
-        "frames": [int(kfs.frame_indices.min()), int(kfs.frame_indices.max())] if len(kfs)
-        else None,
-        "files": files, "map": map_entry, "map_state": state,
-        "map_note": None if map_entry else "tracking-only run: no map was made",
-        "config": config,
-    }
-    (d / MANIFEST).write_text(json.dumps(manifest, indent=2, default=str))
+        write_map_state(out, mapper)
     return d
 
 
 def remove_session(out: Path) -> None:
     """Remove the session files an earlier run left in ``out`` (a new run replaces them)."""
-    for name in (MANIFEST, KEYFRAMES, MAP_STATE):
+    for name in (MANIFEST, KEYFRAMES, MAP_STATE, LOCK):
         (Path(out) / SESSION_DIR / name).unlink(missing_ok=True)
 
 
@@ -264,23 +296,33 @@ def descriptor_ranking(session_desc: np.ndarray, desc: np.ndarray) -> np.ndarray
     return np.argsort(-(session_desc @ desc), kind="stable")
 
 
+def map_camera(session: Session) -> Intrinsics:
+    """The mapping camera of the session's map state; SessionError when it has none (a
+    tracking-only run)."""
+    entry = session.manifest.get("map_state")
+    if not isinstance(entry, dict) or MAP_STATE not in session.manifest["files"]:
+        raise SessionError(f"the session in {session.path.parent} has no map to extend (a "
+                           f"tracking-only run); --localize tracks in its keyframes without "
+                           f"a map")
+    try:
+        c = entry["camera"]
+        return Intrinsics(float(c["fx"]), float(c["fy"]), float(c["cx"]), float(c["cy"]),
+                          int(c["width"]), int(c["height"]))
+    except (KeyError, TypeError, ValueError):
+        raise SessionError(f"session file {session.path / MANIFEST} is corrupt (no mapping "
+                           f"camera)") from None
+
+
 def map_state(session: Session) -> Tuple[Dict[str, np.ndarray], dict, Intrinsics]:
     """The mapper state a full run saved (arrays, metadata, the mapping camera), checked
     against its checksum; SessionError when the session has none (a tracking-only run) or
     the file is corrupt."""
-    entry = session.manifest.get("map_state")
-    run_dir = session.path.parent
-    if not isinstance(entry, dict) or MAP_STATE not in session.manifest["files"]:
-        raise SessionError(f"the session in {run_dir} has no map to extend (a tracking-only "
-                           f"run); --localize tracks in its keyframes without a map")
+    cam = map_camera(session)
     path = session.path / MAP_STATE
     _check_file(path, session.manifest["files"].get(MAP_STATE), "the mapper state")
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: np.asarray(z[k]) for k in z.files}
-        c = entry["camera"]
-        cam = Intrinsics(float(c["fx"]), float(c["fy"]), float(c["cx"]), float(c["cy"]),
-                         int(c["width"]), int(c["height"]))
         meta = json.loads(bytes(arrays.pop(META_KEY)).decode())
         missing = [k for k in ("means", "kf_ids", "kf_pose") if k not in arrays]
         missing += [f"kf{k}_{n}" for k in arrays.get("kf_ids", []) for n in
@@ -290,6 +332,21 @@ def map_state(session: Session) -> Tuple[Dict[str, np.ndarray], dict, Intrinsics
     if missing:
         raise SessionError(f"session file {path} is corrupt (no {missing[0]!r})")
     return arrays, meta, cam
+
+
+def keyframe_data(kfs: SessionKeyframes, intrinsics: Intrinsics) -> List[KeyframeData]:
+    """Session keyframes as the stages take keyframes: images resized to ``intrinsics``'
+    size (a graph node gets the mapping camera, the tracker the tracking camera), BA-grid
+    disparities, full confidence."""
+    size = (intrinsics.width, intrinsics.height)
+    return [KeyframeData(kf_id=int(k), frame_index=int(kfs.frame_indices[n]),
+                         timestamp=float(kfs.timestamps[n]), pose=kfs.poses[n].copy(),
+                         image=kfs.images[n] if kfs.images[n].shape[1::-1] == size else
+                         cv2.resize(kfs.images[n], size, interpolation=cv2.INTER_AREA),
+                         intrinsics=intrinsics,
+                         disparity=kfs.disparities[n].astype(np.float32),
+                         confidence=np.ones(kfs.disparities[n].shape, np.float32))
+            for n, k in enumerate(kfs.kf_ids)]
 
 
 def restore_map_state(arrays: Dict[str, np.ndarray], meta: dict, cfg, intrinsics: Intrinsics):

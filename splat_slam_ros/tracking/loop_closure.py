@@ -247,6 +247,12 @@ class LoopCloser:
         self.loop_pairs = {p for p in self.loop_pairs if k not in p}
         self.checked = {p for p in self.checked if k not in p}
 
+    def loop_stats(self) -> dict:
+        """Keyframes merged into older views, loop edges, and loop edges to a loaded map's
+        keyframes (extend runs)."""
+        return {"merged": len(self.merged), "loop_edges": len(self.loop_pairs),
+                "loop_edges_to_loaded": sum(1 for p in self.loop_pairs if set(p) & self.fixed_ids)}
+
     def merged_list(self) -> List[List]:
         """[kf_id, anchor, timestamp] of every merged keyframe (a checkpoint's part)."""
         return [[int(k), int(m.anchor), float(m.timestamp)] for k, m in sorted(self.merged.items())]

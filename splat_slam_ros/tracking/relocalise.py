@@ -18,16 +18,19 @@ keyframe is added and no BA runs: poses stay in the session's frame.
 from __future__ import annotations
 
 import logging
-from typing import List, Optional, Tuple
+from typing import Dict, List, Optional, Tuple
 
+import cv2
 import numpy as np
 import torch
 
 from splat_slam_ros import __version__
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.geometry import se3_inverse, se3_log
-from splat_slam_ros.io.session import (Session, SessionKeyframes, check_camera, descriptor,
-                                       descriptor_ranking, write_session)
+from splat_slam_ros.io.session import (Session, SessionError, SessionKeyframes, check_camera,
+                                       descriptor, descriptor_ranking, keyframe_data,
+                                       map_camera, pinhole_diffs, write_map_state,
+                                       write_session_keyframes)
 from splat_slam_ros.runtime import limit_threads
 from splat_slam_ros.tracking.flow_frontend import image_is_degenerate
 from splat_slam_ros.tracking.keyframe_set import KeyframeState
@@ -53,10 +56,9 @@ def _ba_state(trk: Tracker, ids: List[int]) -> Tuple[np.ndarray, np.ndarray]:
             np.stack([trk.kfs[k].disp.cpu().numpy() for k in ids]).astype(np.float32))
 
 
-def session_keyframes(trk: Tracker, frames, ids: Optional[List[int]] = None) -> SessionKeyframes:
-    """The tracker's published keyframes (or ``ids`` of them) as session arrays; ``frames``
-    (the run's input, iterated once more) gives their images again at the tracking size."""
-    ids = trk.keyframe_ids() if ids is None else list(ids)
+def input_images(trk: Tracker, frames, ids: List[int]) -> Dict[int, np.ndarray]:
+    """The tracking-size images of keyframes ``ids``, read again from the run's input
+    (``frames``, iterated once more: the tracker drops keyframe images once published)."""
     by_frame = {trk.kfs[k].frame_index: k for k in ids}
     images = {}
     for f in frames:
@@ -65,7 +67,22 @@ def session_keyframes(trk: Tracker, frames, ids: Optional[List[int]] = None) -> 
             images[by_frame[f.index]] = img if img.ndim == 3 else np.repeat(img[..., None], 3, -1)
         if len(images) == len(ids):
             break
-    ids = [k for k in ids if k in images]
+    return images
+
+
+def published_images(trk: Tracker, images: Dict[int, np.ndarray]) -> Dict[int, np.ndarray]:
+    """Tracking-size images from the keyframes' published (mapping-size) images: a node
+    keeps what it published, the input is gone."""
+    w, h = trk.intrinsics.width, trk.intrinsics.height
+    return {k: im if im.shape[:2] == (h, w) else
+            cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA) for k, im in images.items()}
+
+
+def session_keyframes(trk: Tracker, images: Dict[int, np.ndarray],
+                      ids: Optional[List[int]] = None) -> SessionKeyframes:
+    """The tracker's published keyframes (or ``ids`` of them) that ``images`` holds (kf id ->
+    tracking-size RGB), as session arrays."""
+    ids = [k for k in (trk.keyframe_ids() if ids is None else ids) if k in images]
     imgs = np.stack([images[k] for k in ids]) if ids else \
         np.zeros((0, trk.intrinsics.height, trk.intrinsics.width, 3), np.uint8)
     poses, disps = _ba_state(trk, ids)
@@ -78,18 +95,25 @@ def session_keyframes(trk: Tracker, frames, ids: Optional[List[int]] = None) -> 
         np.zeros((0, 192), np.float32))
 
 
-def save_session(trk: Tracker, frames, cfg: SlamConfig, camera: Intrinsics, out,
-                 mapper=None) -> None:
-    """Write ``out/session/`` for a finished tracker (after ``out/map.ply``, if any) and,
-    with a ``mapper``, its state. An :class:`ExtendTracker`'s session holds the loaded
-    keyframes (as they are now) and the new ones: a map extended again and again."""
+def session_ids(trk: Tracker) -> List[int]:
+    """The keyframes whose images a session of ``trk`` needs (an extend run's loaded ones
+    come with the loaded session)."""
+    return trk.new_keyframe_ids() if isinstance(trk, ExtendTracker) else trk.keyframe_ids()
+
+
+def save_session(trk: Tracker, images: Dict[int, np.ndarray], cfg: SlamConfig,
+                 camera: Intrinsics, out, mapper=None) -> None:
+    """Write the tracker's part of ``out/session/`` (``images``: kf id -> tracking-size RGB
+    of :func:`session_ids`) and, with a ``mapper``, its state (after ``out/map.ply``). An
+    :class:`ExtendTracker`'s session holds the loaded keyframes (as they are now) and the
+    new ones: a map extended again and again."""
+    kfs = session_keyframes(trk, images, session_ids(trk))
     if isinstance(trk, ExtendTracker):
-        new = session_keyframes(trk, frames, trk.new_keyframe_ids())
-        kfs = concat_keyframes(trk.loaded_keyframes(), new)
-    else:
-        kfs = session_keyframes(trk, frames)
+        kfs = concat_keyframes(trk.loaded_keyframes(), kfs)
     if len(kfs):
-        write_session(out, kfs, camera, *_sizes(trk), cfg.to_dict(), __version__, mapper)
+        write_session_keyframes(out, kfs, camera, *_sizes(trk), cfg.to_dict(), __version__)
+        if mapper is not None:
+            write_map_state(out, mapper)
 
 
 def concat_keyframes(a: SessionKeyframes, b: SessionKeyframes) -> SessionKeyframes:
@@ -221,6 +245,37 @@ class Localizer:
         return (np.array(self.stamps, np.float64),
                 np.stack(self.poses) if self.poses else np.zeros((0, 4, 4)))
 
+    # what a graph's tracker node reads of its tracker (localize.LocalizeRole)
+    trajectory_full = trajectory
+    published: frozenset = frozenset()  # no keyframe is ever added
+    timings: dict = {}
+    on_pose_estimate = None
+
+    @property
+    def initialized(self) -> bool:      # located in the loaded map (now)
+        return self.located
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        return self.trk.intrinsics
+
+    @property
+    def last_pose(self) -> torch.Tensor:
+        return self.trk.last_pose
+
+    def predict(self) -> np.ndarray:
+        return self.trk.predict()
+
+    def skip(self, index: int, timestamp: float) -> None:
+        """A frame the busy node did not track: not posed (no keyframe to place it by)."""
+
+    def keyframe_ids(self) -> List[int]:
+        return list(self.ids)
+
+    def trajectory_keyframes(self) -> Tuple[np.ndarray, np.ndarray]:
+        """The loaded map's keyframes (markers of the map the frames are posed in)."""
+        return self.trk.kfs.trajectory(self.ids)
+
 
 class ExtendTracker(Tracker):
     """The tracker of an extend run (``--load-map RUN`` without ``--localize``): the loaded
@@ -239,6 +294,11 @@ class ExtendTracker(Tracker):
                  flow_predictor=None):
         super().__init__(cfg, intrinsics, flow_predictor=flow_predictor)
         self.loaded_ids, self.desc = add_session_keyframes(self, session, intrinsics)
+        diffs = pinhole_diffs(map_camera(session).to_dict(), self.map_intrinsics.to_dict())
+        if diffs:
+            raise SessionError(f"the map in {session.path.parent} was made at another mapping "
+                               f"size (saved vs this configuration): {', '.join(diffs)}; use "
+                               f"the camera.* settings of the run that made it")
         self.session_kfs = session.keyframes
         self.published.update(self.loaded_ids)
         # new ids continue loop_time_gap after the loaded ones: to loop detection, every
@@ -263,14 +323,7 @@ class ExtendTracker(Tracker):
 
     def loaded_keyframe_data(self) -> List[KeyframeData]:
         """The loaded keyframes as the other stages take keyframes (tracking-size images)."""
-        s = self.session_kfs
-        return [KeyframeData(kf_id=k, frame_index=int(s.frame_indices[n]),
-                             timestamp=float(s.timestamps[n]),
-                             pose=self.kfs[k].pose.cpu().numpy().copy(), image=s.images[n],
-                             intrinsics=self.intrinsics,
-                             disparity=self.kfs[k].disp.cpu().numpy().astype(np.float32),
-                             confidence=np.ones((self.h, self.w), np.float32))
-                for n, k in enumerate(self.loaded_ids)]
+        return keyframe_data(self.loaded_keyframes(), self.intrinsics)
 
     def _warmup(self, frame, img, prep) -> TrackStep:
         hit = relocalise(self, self.loaded_ids, self.desc, img, prep)
