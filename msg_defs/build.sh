@@ -52,6 +52,6 @@ build_pkg "$HERE" "$BUILD"
 # Check: the generated Python classes import through the venv's interpreter.
 "$PY" -c "from tf2_msgs.msg import TFMessage, TF2Error; from tf2_msgs.srv import FrameGraph; from tf2_msgs.action import LookupTransform" \
   || err "tf2_msgs was installed into $VENV but does not import"
-"$PY" -c "from splat_slam_msgs.msg import Keyframe, PoseGraphUpdate, ProxyDepth, MapperStatus, FrameAck; from splat_slam_msgs.srv import SaveMap, RenderPose" \
+"$PY" -c "from splat_slam_msgs.msg import Keyframe, PoseGraphUpdate, ProxyDepth, MapperStatus, FrameAck; from splat_slam_msgs.srv import SaveMap, RenderPose, LoadMap" \
   || err "splat_slam_msgs was installed into $VENV but does not import"
 echo "tf2_msgs and splat_slam_msgs installed into $VENV"

@@ -198,6 +198,7 @@ class Launcher:
         self.t_eos = None
         self.t_mapped = None
         self.keep_up_note = ""
+        self.services = None                     # /splat/save_map, /splat/load_map (init_ros)
 
     # ------------------------------------------------------------ setup
     def plan(self) -> None:
@@ -228,6 +229,11 @@ class Launcher:
         if self.out_dir is not None:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             self._check_state()
+        from . import launch_map
+        try:
+            self.session = launch_map.plan(a, self.cfg, self.overrides, self.out_dir)
+        except launch_map.LoadMapError as e:
+            raise LaunchError(str(e)) from None
         self.bag = None
         if a.bag:
             from .bag_player import BagReader, PlayerError
@@ -237,8 +243,10 @@ class Launcher:
                 raise LaunchError(str(e)) from None
         self._realtime_keep_up()
         tc = self.cfg.tracking
-        self.with_loop = bool(tc.loop_closure or tc.global_ba) and not a.no_loop_closure
-        self.with_mapping = not a.tracking_only
+        localize = bool(a.localize)     # --load-map RUN --localize: the tracker alone
+        self.with_loop = bool(tc.loop_closure or tc.global_ba) and not (a.no_loop_closure or
+                                                                         localize)
+        self.with_mapping = not (a.tracking_only or localize)
         ec = self.cfg.evaluation
         if self.with_mapping and (ec.lpips_backbone or ec.lpips_weights):
             from splat_slam_ros.pipeline import check_lpips_config
@@ -345,6 +353,9 @@ class Launcher:
             if self.bag is not None and name == "tracker":
                 param("node.input_qos", "reliable")
                 param("node.max_queue", 0 if a.mode == "lockstep" else 1)
+        from .launch_map import node_params
+        for k, v in node_params(self.session, name).items():
+            param(k, v)
         if name == "mapper" and a.allow_reset:
             param("node.allow_reset", True)          # /splat/map/reset is off by default
         if name == "rerun":
@@ -390,6 +401,11 @@ class Launcher:
                  f"network {self.dds_range})")
         if self.keep_up_note:
             self.say(self.keep_up_note)
+        if self.session is not None:
+            s = self.session
+            self.say(f"{'localizing' if s['localize'] else 'extending the map'} in the session "
+                     f"of {s['run']} ({s['keyframes']} keyframes)" +
+                     (f"; {', '.join(s['notes'])}" if s["notes"] else ""))
 
     def nice_of(self, name: str) -> int:
         """OS priority of a node: on realtime input the tracker (and the input) get the CPU
@@ -416,6 +432,9 @@ class Launcher:
         self.String = String
         self.ev_pub = self.node.create_publisher(String, TOPICS["events"], events_qos())
         self.node.create_subscription(String, TOPICS["events"], self._on_event, events_qos())
+        if self.out_dir is not None:             # /splat/save_map, /splat/load_map
+            from .launch_services import LaunchServices
+            self.services = LaunchServices(self)
 
     def _on_event(self, m) -> None:
         from .node_common import graph_event
@@ -424,6 +443,8 @@ class Launcher:
             return
         self.events.append(d)
         ev, node = d.get("event"), d.get("node")
+        if self.services is not None:
+            self.services.on_event(d)
         if node == "player" and ev == "start" and self.t_play is None:
             self.t_play = time.monotonic()
         if ev == "end_of_stream" and self.t_eos is None:
@@ -432,6 +453,9 @@ class Launcher:
             self.t_mapped = time.monotonic()       # the map is done: refined and written
         if ev in ("finalized", "saved"):
             self.say(f"{node} {ev}")
+        if ev == "relocalised":
+            self.say(f"{node}: frame {d.get('frame')} relocalised in the loaded map (keyframe "
+                     f"{d.get('keyframe')})" + ("" if d.get("first") else ", again"))
 
     def has_event(self, node: str, event: str) -> Optional[dict]:
         for d in reversed(self.events):
@@ -546,6 +570,8 @@ class Launcher:
         if self.t_eos is not None and self.t_mapped is not None:
             m["map_done_after_stream_s"] = round(self.t_mapped - self.t_eos, 3)
         m["keyframes"] = trk.get("keyframes", 0)
+        m["session_info"] = trk.get("session")      # --load-map (launch_map.finish)
+        m["loop_info"] = self.has_event("loop_closure", "finalized")
         m["wall_s"] = round(wall, 3)
         m["wall_total_s"] = round(end_wall - self.t0, 3)
         m["fps"] = round(frames / max(wall, 1e-9), 3)
@@ -589,7 +615,10 @@ class Launcher:
         m["nodes"] = self.node_stats()
         m["warnings"] = getattr(self.out, "lines", [])
         rc = 0
-        reason = no_result_reason(self.cfg, m)     # never a success without keyframes or map
+        from .launch_map import finish as session_finish
+        reason = session_finish(self.session, self.out_dir, m)    # --load-map: relocalised?
+        if reason is None and not (self.session or {}).get("localize"):
+            reason = no_result_reason(self.cfg, m)  # never a success without keyframes or map
         if reason:
             m["error"] = reason
             rc = 3
@@ -682,6 +711,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--allow-reset", action="store_true",
                     help="enable the /splat/map/reset service (disabled by default)")
     ap.add_argument("--tracking-only", action="store_true", help="no depth / mapper nodes")
+    ap.add_argument("--load-map", metavar="RUN", help="the saved session of an earlier run "
+                    "(RUN/session/, written by splat-slam-run and splat-slam-launch): extend its "
+                    "map, or with --localize track in it; the tracker relocalises first")
+    ap.add_argument("--localize", action="store_true", help="with --load-map: localize-only "
+                    "(the tracker alone, the map read-only; poses in the loaded map's frame)")
     ap.add_argument("--no-loop-closure", action="store_true", help="no loop_closure node")
     ap.add_argument("--background-nice", type=int, default=10, metavar="N",
                     help="realtime input: run the depth, mapper, loop-closure (and rerun) nodes "
@@ -741,6 +775,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     finally:
         L.stop_children()
         try:
+            if L.services is not None:
+                L.services.close()
             L.node.destroy_node()
         except Exception:
             pass

@@ -14,6 +14,10 @@ Publishes   /splat/map/rendered_rgb + rendered_depth (at the latest keyframe, ev
             CameraInfo; images in ros.optical_frame), /splat/map/points (PointCloud2 of
             Gaussian centres with colours), /splat/map/status (MapperStatus),
             /splat/frame_ack (consumer "mapper", one per keyframe consumed: lockstep).
+Outputs     (node.output_dir) at the end map.ply, renders/, mapper_metrics.json and the map's
+            part of session/ (map_state.npz: a later run can load or extend the map).
+Options     node.load_map (set by ``splat-slam-launch --load-map RUN``: start from the map
+            the session RUN saved; new keyframes join it).
 Services    /splat/map/save (SaveMap: PLY + trajectory + metrics), /splat/map/reset (Trigger),
             /splat/map/render (RenderPose). Inputs are checked by service_guard (save inside
             node.output_dir, reset only with node.allow_reset, renders <= node.max_render_pixels).
@@ -28,6 +32,7 @@ import time
 import numpy as np
 import torch
 
+from .launch_services import load_request, loaded_by_tracker, reply
 from .map_services import MapServices
 from .node_common import TOPICS, SplatNode, run_node
 
@@ -38,7 +43,8 @@ class MapperNode(SplatNode):
     def __init__(self):
         super().__init__("mapper", {"loop_closure": True, "mapping": True, "snapshot_every": 1,
                                     "points_every": 1, "render_width": 0, "render_height": 0,
-                                    "allow_reset": False, "max_render_pixels": 0})
+                                    "allow_reset": False, "max_render_pixels": 0,
+                                    "load_map": ""})
         from geometry_msgs.msg import PoseStamped
         from sensor_msgs.msg import CameraInfo, Image, PointCloud2
         from splat_slam_msgs.msg import MapperStatus
@@ -71,6 +77,8 @@ class MapperNode(SplatNode):
         if self.role.offered:
             self.log.info(f"resumed from {self.state_dir}: {sum(self.role.offered.values())} "
                           f"mapped keyframes, {len(self.role.offered)} consumed")
+        elif self.opts["load_map"]:
+            self._load_map(str(self.opts["load_map"]))
         self.route(self.role, keyframes=True, updates=True, proxy_depth=True, after=self._after)
         # live input (mapping.time_budget): input that waits cuts the optimisation steps, and
         # background steps run while none waits (mapping.background_steps): the map keeps pace
@@ -79,6 +87,7 @@ class MapperNode(SplatNode):
         self.subscribe(PoseStamped, TOPICS["render_request"], Q.pose_qos(),
                        lambda m, raw: self.worker.submit(self._view, m), "render request")
         self.services = MapServices(self)                 # save / reset / render
+        self.on_events(self._on_request)                  # the launcher's map services
         self._lack_prev: tuple = ()
         self._resync_queued = False
         # steady clock: with use_sim_time (bag replay) ROS time stops with the player's
@@ -87,6 +96,65 @@ class MapperNode(SplatNode):
         self.node.create_timer(RESYNC_S, self._resync_tick,
                                clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.publish_event("ready")
+
+    def _load_map(self, run_dir: str) -> None:
+        """Extend runs (node.load_map): the map the session in ``run_dir`` saved, restored
+        with its mapped keyframes; new keyframes join it (splat_slam_ros.extend). A session
+        that cannot be read stops the node (exit 2)."""
+        from splat_slam_ros.io.session import SessionError
+        try:
+            self._restore(run_dir)
+        except SessionError as e:
+            self.log.fatal(f"cannot load the map: {e}")
+            raise SystemExit(2)
+
+    def _restore(self, run_dir: str) -> None:
+        from pathlib import Path
+
+        from splat_slam_ros.io.session import load_session, map_state, restore_map_state
+        arrays, meta, cam = map_state(load_session(Path(run_dir)))
+        self.role.restore(restore_map_state(arrays, meta, self.cfg, cam), cam)
+        self.log.info(f"loaded the map of {run_dir}: {len(self.role.mapper.map)} Gaussians, "
+                      f"{len(self.role.mapper.keyframes)} mapped keyframes")
+        self._status()
+
+    def _on_request(self, d: dict) -> None:
+        if d.get("event") == "save_map" and load_request(d, self.started):
+            self.worker.submit(self._save_map, d)
+        elif loaded_by_tracker(d, self.started):
+            self.worker.submit(self._load_requested, d)
+
+    def _save_map(self, d: dict) -> None:
+        """/splat/save_map: map.ply, renders/, mapper_metrics.json and DIR/session/'s map
+        state now."""
+        from pathlib import Path
+
+        from splat_slam_ros.io.session import write_map_state
+        if self.role.mapper is None:
+            return reply(self, "map_saved", d, False, "the map is empty: nothing to save")
+        try:
+            out = Path(str(d["directory"]))
+            self.role.save(out, final=True)
+            write_map_state(out, self.role.mapper)
+        except Exception as e:              # a disk error: the answer says so, mapping goes on
+            return reply(self, "map_saved", d, False, f"{type(e).__name__}: {e}")
+        reply(self, "map_saved", d, True, "saved", files=["map.ply", "renders/",
+                                                            "mapper_metrics.json"])
+
+    def _load_requested(self, d: dict) -> None:
+        """The launcher's /splat/load_map (extend), once the tracker took it: the loaded map,
+        with the extend run's mapping settings the launcher chose."""
+        from splat_slam_ros.io.session import SessionError
+        if self.role.mapper is not None:
+            return reply(self, "map_loaded", d, False, "the mapper holds a map already")
+        for key, value in (d.get("mapping") or {}).items():
+            self.cfg.set(f"mapping.{key}", value)
+            self.log.info(f"extend run: mapping.{key} {value}")
+        try:
+            self._restore(str(d.get("run")))
+        except SessionError as e:
+            return reply(self, "map_loaded", d, False, str(e))
+        reply(self, "map_loaded", d, True, f"{len(self.role.mapper.map)} Gaussians loaded")
 
     # ------------------------------------------------------------ lost depth
     def _resync_tick(self) -> None:
@@ -131,6 +199,9 @@ class MapperNode(SplatNode):
             if self.output_dir is not None:
                 metrics = self.role.save(self.output_dir, final=True)
                 metrics["refine_s"] = (info.get("refine") or {}).get("refine_s")
+                # the map's part of the run's session (the tracker writes the keyframes')
+                from splat_slam_ros.io.session import write_map_state
+                write_map_state(self.output_dir, mp)
             if mp.keyframes:
                 kf = mp.keyframes[max(mp.keyframes)]
                 self._publish_renders(kf.pose, kf.timestamp)

@@ -54,6 +54,8 @@ SERVICES = {
     "save_map": f"{NS}/map/save",                    # splat_slam_msgs/SaveMap
     "reset_map": f"{NS}/map/reset",                  # std_srvs/Trigger
     "render": f"{NS}/map/render",                    # splat_slam_msgs/RenderPose
+    "graph_save_map": f"{NS}/save_map",              # splat_slam_msgs/SaveMap (launcher)
+    "graph_load_map": f"{NS}/load_map",              # splat_slam_msgs/LoadMap (launcher)
 }
 NODE_NAMES = ("tracker", "depth", "loop_closure", "mapper")
 TRIM_EVERY_S = 1.0        # free heap pages go back to the OS at most this often (after work)
@@ -130,6 +132,7 @@ class SplatNode:
         from splat_slam_ros.config import ConfigError, load_config
 
         self.name = name
+        self.started = time.time()          # graph requests older than this are not ours
         self.node: Node = rclpy.create_node(name)
         self.log = self.node.get_logger()
         self.throttle = Throttle()
@@ -250,11 +253,13 @@ class SplatNode:
 
     def route(self, role, keyframes: bool = False, updates: bool = False,
               proxy_depth: bool = False, after: Optional[Callable] = None,
-              on_update: Optional[Callable] = None) -> None:
+              on_update: Optional[Callable] = None,
+              on_keyframe: Optional[Callable] = None) -> None:
         """Subscribe the protocol channels to ``role``'s handlers (on the worker thread) and
         the ``finalized`` graph events to ``role.on_final``; each Outbox is emitted, then
-        ``after(out)`` runs (node-specific outputs). ``on_update`` replaces
-        ``role.on_update`` (``self.waiting["updates"]``: updates queued behind this one)."""
+        ``after(out)`` runs (node-specific outputs). ``on_update`` / ``on_keyframe`` replace
+        ``role.on_update`` (``self.waiting["updates"]``: updates queued behind this one) /
+        ``role.on_keyframe``."""
         from splat_slam_msgs.msg import Keyframe, PoseGraphUpdate, ProxyDepth
 
         from splat_slam_ros.config import ConfigError
@@ -294,7 +299,7 @@ class SplatNode:
                 lambda m: msg_to_update(check_update(m)),
                 lambda m: takes_update(m, role.update_sources))
         if keyframes:
-            sub(Keyframe, "keyframes", Q.keyframe_qos(), role.on_keyframe,
+            sub(Keyframe, "keyframes", Q.keyframe_qos(), on_keyframe or role.on_keyframe,
                 lambda m: msg_to_keyframe(check_keyframe(m)))
         if proxy_depth:
             sub(ProxyDepth, "proxy_depth", Q.proxy_depth_qos(), role.on_proxy_depth,

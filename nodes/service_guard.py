@@ -1,6 +1,7 @@
 """Input checks of the mapper's services (pure Python: testable without ROS).
 
-- ``/splat/map/save`` writes only inside the run's output directory (``node.output_dir``):
+- ``/splat/map/save`` (and the launcher's ``/splat/save_map`` and ``/splat/load_map``)
+  write and read only inside the run's output directory (``node.output_dir``, ``--out``):
   the request names a relative sub-directory ("" = the output directory itself); absolute
   paths, ``..`` and symlinks leading outside are refused.
 - ``/splat/map/reset`` is refused unless the node parameter ``node.allow_reset`` is true.
@@ -37,8 +38,8 @@ def save_dir(requested: str, output_dir: Optional[Path]) -> Path:
         raise ServiceInputError(f"directory {name!r} is absolute: give a name relative to the "
                                 f"output directory {output_dir}")
     if ".." in p.parts:
-        raise ServiceInputError(f"directory {name!r} contains '..': saves stay inside the "
-                                f"output directory {output_dir}")
+        raise ServiceInputError(f"directory {name!r} contains '..': map services stay inside "
+                                f"the output directory {output_dir}")
     base = Path(output_dir).resolve()
     target = (base / p).resolve()
     if target != base and base not in target.parents:

@@ -7,7 +7,9 @@ Frames (names from ``ros.map_frame``, ``ros.odom_frame``, ``ros.camera_frame``,
 - ``map``: the SLAM world frame (the first camera's optical frame, as every pose, path and
   point cloud of the graph).
 - ``map -> odom``: the correction that loop closure and global BA applied to the current
-  camera pose (identity until the first correction). It jumps; odometry does not.
+  camera pose (identity until the first correction), and in a loaded map (``--load-map``)
+  each relocalisation: the first places odom at the camera where it was located, a later
+  one (after a loss) moves the map under the odometry. It jumps; odometry does not.
 - ``odom -> camera``: the tracking pose (frame-to-keyframe tracking + local BA), continuous.
   ``camera`` is the ROS body frame of the camera (x forward, y left, z up, REP-103).
 - ``camera -> camera_optical`` (static): OpenCV axes (z forward, x right, y down), the frame
@@ -78,6 +80,16 @@ class MapOdomSplit:
         self.map_odom = _rigid(after @ inverse(before) @ self.map_odom)
         self.corrections += 1
         return True
+
+    def relocalise(self, T_map_optical, last_map_pose=None) -> None:
+        """Located in a loaded map (relocalisation) at ``T_map_optical``: ``odom`` stays
+        continuous, the jump goes into ``map -> odom``. The first time (nothing published
+        yet) odom starts at the camera; after a loss the odometry holds its last pose."""
+        if last_map_pose is None:
+            self.map_odom = _rigid(np.asarray(T_map_optical, np.float64))
+            self.corrections += 1
+        else:
+            self.correct(last_map_pose, T_map_optical)
 
 
 def camera_body_pose(T_x_optical) -> np.ndarray:
@@ -173,6 +185,7 @@ class TrackerFrames:
                                               status_qos())
         self.split = MapOdomSplit()
         self.last_stamp: Optional[float] = None
+        self.last_map_pose: Optional[np.ndarray] = None     # of the newest on_pose
         self.pub_static.publish(TFMessage(transforms=[transform_stamped(
             OPTICAL_IN_CAMERA, owner.now(), self.camera, self.optical)]))
 
@@ -183,6 +196,12 @@ class TrackerFrames:
             transform_stamped(self.split.map_odom, stamp, self.map, self.odom),
             transform_stamped(T_odom_cam, stamp, self.odom, self.camera)]))
         self.last_stamp = stamp
+        self.last_map_pose = np.asarray(T_map_optical, np.float64).copy()
+
+    def relocalised(self, T_map_optical) -> None:
+        """Located in a loaded map: see :meth:`MapOdomSplit.relocalise` (published with the
+        frame's pose by :meth:`on_pose`)."""
+        self.split.relocalise(T_map_optical, self.last_map_pose)
 
     def around_update(self, tracker, ev, apply) -> None:
         """Run ``apply(ev)``; a loop closure / global BA / final update that moved the

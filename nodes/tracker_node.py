@@ -29,6 +29,7 @@ import numpy as np
 
 from splat_slam_ros.types import TRACKER_REASONS
 
+from .launch_services import load_request, reply
 from .node_common import TOPICS, SplatNode, run_node, takes_update
 
 
@@ -36,7 +37,8 @@ class TrackerNode(SplatNode):
     def __init__(self):
         super().__init__("tracker", {"input_qos": "sensor", "max_queue": 1, "max_backlog": 60,
                                      "camera_info_timeout": 2.0, "intrinsics_file": "",
-                                     "loop_closure": True, "mapping": True, "path_every": 10})
+                                     "loop_closure": True, "mapping": True, "path_every": 10,
+                                     "load_map": "", "localize": False})
         from geometry_msgs.msg import PoseStamped
         from nav_msgs.msg import Path as PathMsg
         from splat_slam_msgs.msg import PoseGraphUpdate
@@ -58,6 +60,8 @@ class TrackerNode(SplatNode):
         self.camera = CameraInput(self, self._track, self._skip)
         self.on_events(self._on_event)
         self.role = None                    # splat_slam_ros.roles.TrackerRole, on the first frame
+        self.localize = bool(self.opts["localize"])
+        self.kf_images: dict = {}           # kf id -> published image (the session's keyframes)
         self.eos = self.saved = False
         self.stamps: List[float] = []
         self.poses: List = []
@@ -79,8 +83,7 @@ class TrackerNode(SplatNode):
         from splat_slam_ros.tracking.tracker_state import TrackerStateError
         intr = TrackerRole.stored_intrinsics(self._store)
         try:
-            self.role = TrackerRole(self.cfg, intr, bool(self.opts["loop_closure"]),
-                                    store=self._store)
+            self.role = self._make_role(intr)
         except (TrackingError, TrackerStateError, ValueError) as e:
             self.log.fatal(f"cannot resume the tracker from {self.state_dir}: {e}")
             raise SystemExit(2)
@@ -103,15 +106,63 @@ class TrackerNode(SplatNode):
             self.worker.submit(self._finalize)
         elif d.get("event") == "finalized":
             self.worker.submit(self._on_final, d)
+        elif d.get("event") in ("save_map", "load_map") and load_request(d, self.started):
+            self.worker.submit(self._save_map if d["event"] == "save_map" else self._load_map, d)
+
+    # ------------------------------------------------------------ the launcher's map services
+    def _save_map(self, d: dict) -> None:
+        """/splat/save_map: the trajectories and the keyframes' part of DIR/session/ now."""
+        from pathlib import Path
+        trk = self.role.tracker if self.role is not None else None
+        if trk is None or self.localize or not trk.keyframe_ids():
+            return reply(self, "map_saved", d, False, "no keyframe yet: nothing to save" if
+                         not self.localize else "localize-only: the map is read-only")
+        try:
+            out = Path(str(d["directory"]))
+            out.mkdir(parents=True, exist_ok=True)
+            files = self._write_outputs(trk, *trk.trajectory_full(), out=out)
+        except Exception as e:              # a disk error: the answer says so, tracking goes on
+            return reply(self, "map_saved", d, False, f"{type(e).__name__}: {e}")
+        reply(self, "map_saved", d, True, "saved", files=files)
+
+    def _load_map(self, d: dict) -> None:
+        """/splat/load_map: the session (checked by the launcher) becomes node.load_map, taken
+        by the role the first frame makes; refused once a frame was tracked."""
+        if self.role is not None or self.opts["load_map"]:
+            why = (f"a map is loaded already ({self.opts['load_map']})" if self.opts["load_map"]
+                   else "frames were tracked already: load a map before the first frame, or "
+                   "start splat-slam-launch with --load-map")
+            return reply(self, "map_loaded", d, False, why)
+        self.opts["load_map"], self.localize = str(d.get("run")), bool(d.get("localize"))
+        self.log.info(f"loaded map {self.opts['load_map']} "
+                      f"({'localize-only' if self.localize else 'extend'})")
+        reply(self, "map_loaded", d, True, "the next frame relocalises in it",
+              run=self.opts["load_map"], localize=self.localize, mapping=d.get("mapping") or {})
+
+    def _make_role(self, intr):
+        """TrackerRole; with node.load_map the session it continues (an ExtendTracker) or,
+        with node.localize, a LocalizeRole in it (SessionError: a ValueError)."""
+        from pathlib import Path
+
+        from splat_slam_ros.roles import TrackerRole
+        loop, path = bool(self.opts["loop_closure"]), str(self.opts["load_map"])
+        if not path:
+            return TrackerRole(self.cfg, intr, loop, store=self._store)
+        from splat_slam_ros.io.session import load_session
+        session = load_session(Path(path))
+        if self.localize:
+            from splat_slam_ros.localize import LocalizeRole
+            return LocalizeRole(self.cfg, intr, session)
+        from splat_slam_ros.tracking.relocalise import ExtendTracker
+        return TrackerRole(self.cfg, intr, loop, store=self._store,
+                           tracker=ExtendTracker(self.cfg, intr, session))
 
     # ------------------------------------------------------------ work (worker thread)
     def _track(self, frame) -> Optional[int]:
-        from splat_slam_ros.roles import TrackerRole
         from splat_slam_ros.tracking.tracker import TrackingError
         if self.role is None:
             try:
-                self.role = TrackerRole(self.cfg, frame.intrinsics, bool(self.opts["loop_closure"]),
-                                        store=self._store)
+                self.role = self._make_role(frame.intrinsics)
             except (TrackingError, ValueError) as e:
                 self.log.fatal(f"cannot start the tracker: {e}")
                 raise SystemExit(2)
@@ -119,12 +170,17 @@ class TrackerNode(SplatNode):
             self.role.tracker.on_pose_estimate = self._early_pose
             self.log.info(f"tracker started on {frame.intrinsics.width}x{frame.intrinsics.height} "
                           f"frames (tracking at {ti.width}x{ti.height})")
+        trk = self.role.tracker
+        relocs = getattr(trk, "n_relocalisations", 0)
         try:
             step, out = self.role.on_frame(frame)
         except TrackingError as e:
             return self.camera.drop(frame.index, f"{e}")
         self.emit(out)                            # local BA first, then the new keyframe(s)
+        self.kf_images.update((kd.kf_id, kd.image) for kd in out.keyframes)
         stamp = frame.timestamp
+        if getattr(trk, "n_relocalisations", 0) > relocs:     # in a loaded map (node.load_map)
+            self._relocalised(frame.index, trk, step.pose)
         if out.keyframes:
             self.frames.on_keyframes(self.role.tracker, stamp)
         if self.role.tracker.initialized and not step.lost:
@@ -134,6 +190,15 @@ class TrackerNode(SplatNode):
             if step.is_keyframe or len(self.stamps) % max(1, int(self.opts["path_every"])) == 0:
                 self._publish_path(stamp)
         return step.kf_id if step.is_keyframe else None
+
+    def _relocalised(self, index: int, trk, T) -> None:
+        """Located in the loaded map: the jump goes into map -> odom; a graph event says so."""
+        self.frames.relocalised(T)
+        first = trk.relocalised_frame == index
+        self.log.info(f"frame {index}: {'relocalised' if first else 'relocalised again'} in the "
+                      f"loaded map ({self.opts['load_map']})")
+        self.publish_event("relocalised", frame=int(index), first=bool(first),
+                           keyframe=trk.relocalised_keyframe, count=int(trk.n_relocalisations))
 
     def _publish_pose(self, index: int, stamp: float, T, tf: bool = True) -> None:
         """A frame's pose on /splat/camera_pose (and /tf), its latency recorded."""
@@ -192,6 +257,7 @@ class TrackerNode(SplatNode):
         out.final = dict(out.final or {}, keyframes=self._keyframes(), frames=c.n_frames,
                          dropped=c.n_dropped)
         self.emit(out)
+        self.kf_images.update((kd.kf_id, kd.image) for kd in out.keyframes)
         self._maybe_save()
 
     def _keyframes(self) -> int:
@@ -204,23 +270,55 @@ class TrackerNode(SplatNode):
         files, trk = [], (self.role.tracker if self.role is not None else None)
         posed = 0
         if self.output_dir is not None and trk is not None:
-            from splat_slam_ros.io.trajectory_io import write_tum
             self.output_dir.mkdir(parents=True, exist_ok=True)
             ts, P = trk.trajectory_full()
-            write_tum(self.output_dir / "trajectory_full.txt", ts, P)
-            write_tum(self.output_dir / "trajectory_keyframes.txt", *trk.trajectory_keyframes())
-            files = ["trajectory_full.txt", "trajectory_keyframes.txt"]
+            files = self._write_outputs(trk, ts, P)
             posed = len(ts)
             if len(ts):
                 self.stamps, self.poses = list(ts), list(P)
                 self._publish_path(float(ts[-1]))
         self.publish_event("saved", files=files, frames=self.camera.n_frames,
+                           session=self._session_info(trk),
                            dropped=self.camera.n_dropped, skipped=self.camera.n_skipped,
                            lost=trk.n_lost if trk is not None else 0,
                            posed=posed, latency_ms=self.camera.latency_stats(),
                            keyframes=self._keyframes(),
                            timings={k: round(float(v), 3) for k, v in
                                     (trk.timings.items() if trk is not None else [])})
+
+    def _write_outputs(self, trk, ts, P, out=None) -> List[str]:
+        """trajectory_full.txt (the posed frames), and unless localizing
+        trajectory_keyframes.txt and the keyframes' part of session/ (the mapper node writes
+        its map state there): a later run can load this one's map. Into node.output_dir or
+        ``out``."""
+        from splat_slam_ros.io.trajectory_io import write_tum
+        out = out or self.output_dir
+        if len(ts) or not self.localize:
+            write_tum(out / "trajectory_full.txt", ts, P)
+        if self.localize:
+            return ["trajectory_full.txt"] if len(ts) else []
+        write_tum(out / "trajectory_keyframes.txt", *trk.trajectory_keyframes())
+        from splat_slam_ros.tracking.relocalise import (published_images, save_session,
+                                                        session_ids)
+        images = dict(self.kf_images)
+        for k in session_ids(trk):          # published before a restart: the checkpoint's
+            if k not in images and self._store is not None and self._store.has(f"timg{k}"):
+                images[k] = self._store.get(f"timg{k}")["image"]
+        save_session(trk, published_images(trk, images), self.cfg, self.role.intrinsics, out)
+        return ["trajectory_full.txt", "trajectory_keyframes.txt", "session/"]
+
+    def _session_info(self, trk) -> Optional[dict]:
+        """The loaded session's part of the launcher's metrics (node.load_map)."""
+        if trk is None or not self.opts["load_map"]:
+            return None
+        info = {"session": str(self.opts["load_map"]), "localize": self.localize,
+                "relocalised_frame": trk.relocalised_frame,
+                "relocalised_keyframe": trk.relocalised_keyframe,
+                "relocalisations": int(trk.n_relocalisations)}
+        if not self.localize:
+            info.update(loaded_keyframes=len(trk.loaded_ids),
+                        new_keyframes=len(trk.new_keyframe_ids()))
+        return info
 
 
 def main(argv=None) -> int:

@@ -56,6 +56,21 @@ def test_correction_goes_to_map_odom_and_odometry_stays_continuous():
     assert s.corrections == 3
 
 
+def test_relocalisation_in_a_loaded_map_goes_to_map_odom():
+    P = _poses(10, seed=2)
+    s = F.MapOdomSplit()
+    s.relocalise(P[0])                  # the first located frame: odom starts at the camera
+    np.testing.assert_allclose(s.odom_pose(P[0]), np.eye(4), atol=1e-9)
+    np.testing.assert_allclose(s.map_odom @ s.odom_pose(P[3]), P[3], atol=1e-9)
+    # lost after frame 4, relocalised at frame 8 (the map pose jumped): the odometry holds
+    # frame 4's pose, map -> odom takes the jump, map -> odom -> optical is the map pose
+    odom4 = s.odom_pose(P[4])
+    s.relocalise(P[8], last_map_pose=P[4])
+    np.testing.assert_allclose(s.odom_pose(P[8]), odom4, atol=1e-9)
+    np.testing.assert_allclose(s.map_odom @ s.odom_pose(P[9]), P[9], atol=1e-9)
+    assert s.corrections == 2
+
+
 def test_optical_frame_convention():
     # the optical z axis (viewing direction) is the body x axis; optical y (down) is body -z
     R = F.OPTICAL_IN_CAMERA[:3, :3]
