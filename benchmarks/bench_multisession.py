@@ -4,7 +4,7 @@ first's saved map (``splat-slam-run --load-map RUN --localize``) and extending i
 (``--load-map RUN``).
 
     .venv/bin/python benchmarks/bench_multisession.py [--sequence fr2desk] [--split 150]
-        [--data-dir DIR] [--json benchmarks/results/multisession.json]
+        [--data-dir DIR] [--json benchmarks/results/multisession.json] [--graph]
 
 The first session: frames ``0 .. split-1`` with the full default pipeline (``--max-frames split``),
 which saves ``session/``. The second, in both modes: frames ``split ..`` with ``--start-frame
@@ -16,6 +16,9 @@ whole command); localize: whether the map stayed byte-identical; extend: keyfram
 Gaussians before and after, and the PSNR of the first session's keyframes in the extended map
 against the first session's own (target: no loss above 0.5 dB). The sequence is
 ``bench_defaults.py``'s realistic 640x480 render (rendered into ``--data-dir`` when missing).
+With ``--graph`` both second sessions run through the node graph instead:
+``splat-slam-launch --bag B --load-map S1 [--localize]`` on a bag of frames ``split ..``
+(lockstep; its frame indices start at 0, so "frames until relocalised" is its own count).
 """
 from __future__ import annotations
 
@@ -46,8 +49,13 @@ def main(argv=None) -> int:
     ap.add_argument("--split", type=int, default=150, help="first frame of the second session")
     ap.add_argument("--data-dir", default=str(REPO / "benchmarks" / "results" / "data"))
     ap.add_argument("--work", default=str(REPO / "benchmarks" / "results" / "multisession_work"))
-    ap.add_argument("--json", default=str(REPO / "benchmarks" / "results" / "multisession.json"))
+    ap.add_argument("--json", default=None, help="results file (default "
+                    "benchmarks/results/multisession[_graph].json)")
+    ap.add_argument("--graph", action="store_true", help="second sessions through "
+                    "splat-slam-launch (a bag of the second part)")
     a = ap.parse_args(argv)
+    a.json = a.json or str(REPO / "benchmarks" / "results" /
+                           f"multisession{'_graph' if a.graph else ''}.json")
     import numpy as np
     from splat_slam_ros.evaluation import ate
     from splat_slam_ros.io.datasets import open_dataset
@@ -65,11 +73,18 @@ def main(argv=None) -> int:
                           work / "single.log", None)
     res["first"] = timed([run, str(seq), "--out", str(s1), "--no-progress",
                              "--max-frames", str(a.split)], work / "first.log", None)
-    res["second"] = timed([run, str(seq), "--out", str(s2), "--no-progress", "--start-frame",
-                             str(a.split), "--load-map", str(s1), "--localize"],
-                            work / "second.log", None)
-    res["extend"] = timed([run, str(seq), "--out", str(s3), "--no-progress", "--start-frame",
-                           str(a.split), "--load-map", str(s1)], work / "extend.log", None)
+    if a.graph:                         # the second part as a bag, through the graph
+        from splat_slam_ros.io.bagio import write_bag
+        from splat_slam_ros.io.datasets import FromFrame
+        bag = work / "second_bag"
+        write_bag(FromFrame(open_dataset(seq), a.split), bag, progress=False, overwrite=True)
+        second = [tool("splat-slam-launch"), "--bag", str(bag), "--fresh", "--load-map", str(s1)]
+    else:
+        second = [run, str(seq), "--no-progress", "--start-frame", str(a.split), "--load-map",
+                  str(s1)]
+    res["second"] = timed(second + ["--out", str(s2), "--localize"], work / "second.log", None)
+    res["extend"] = timed(second + ["--out", str(s3)], work / "extend.log", None)
+    offset = 0 if a.graph else a.split  # the second session's first frame index
     for k, frames in (("single", n), ("first", a.split), ("second", n - a.split),
                       ("extend", n - a.split)):
         if res[k]["rc"] != 0:
@@ -78,6 +93,8 @@ def main(argv=None) -> int:
             return 1
         res[k]["fps"] = round(frames / res[k]["wall_command_s"], 3)
     m2 = json.loads((s2 / "metrics.json").read_text())
+    if isinstance(m2.get("localize"), dict):     # the graph's metrics keep these apart
+        m2.update(m2["localize"])
     gt_ts, gt = open_dataset(seq).gt_trajectory()
     t1, P1 = _trajectory(s1)
     t2, P2 = _trajectory(s2)
@@ -87,7 +104,7 @@ def main(argv=None) -> int:
     one = ate(gt_ts, gt, ts[keep], Ps[keep])
     res.update(relocalised_frame=m2.get("relocalised_frame"),
                frames_until_relocalised=None if m2.get("relocalised_frame") is None else
-               int(m2["relocalised_frame"]) - a.split,
+               int(m2["relocalised_frame"]) - offset,
                second_posed=m2.get("frames_posed"), second_lost=m2.get("frames_lost"),
                ate_two_sessions_cm=both["rmse_cm"], ate_single_run_cm=one["rmse_cm"],
                ratio=both["rmse_cm"] / max(one["rmse_cm"], 1e-9),
@@ -99,7 +116,7 @@ def main(argv=None) -> int:
     p1, p3 = _keyframe_psnr(s1), _keyframe_psnr(s3)
     drop = [p1[k] - p3[k] for k in p1 if k in p3]
     res.update(extend_frames_until_relocalised=None if x["relocalised_frame"] is None else
-               int(x["relocalised_frame"]) - a.split,
+               int(x["relocalised_frame"]) - offset,
                extend_posed=m3.get("frames_posed"), extend_lost=m3.get("frames_lost"),
                extend_ate_two_sessions_cm=both3["rmse_cm"],
                extend_ratio=both3["rmse_cm"] / max(one["rmse_cm"], 1e-9),
@@ -111,7 +128,8 @@ def main(argv=None) -> int:
                                            f"{np.mean([p3[k] for k in p1 if k in p3]):.2f}",
                extend_first_keyframes_max_loss_db=max(drop) if drop else None,
                extend_psnr_all=m3.get("psnr"))
-    print(f"\n| {a.sequence}, split at {a.split} | value |\n|---|---|")
+    print(f"\n| {a.sequence}, split at {a.split}{', graph' if a.graph else ''} | value |\n"
+          f"|---|---|")
     for k in ("frames_until_relocalised", "second_posed", "second_lost",
               "ate_two_sessions_cm", "ate_single_run_cm", "ratio", "map_unchanged",
               "extend_frames_until_relocalised", "extend_posed", "extend_lost",

@@ -216,6 +216,12 @@ def test_prune_opacity_and_size():
     mp.iteration = 20
     assert mp._prune() == 2          # low opacity (old enough) + oversized; young one spared
     assert len(g) == 2 and torch.isclose(g.opacities(), torch.tensor([0.9, 0.3])).all()
+    # a loaded map's Gaussians (uid < settled_uid) are spared too, new ones are not
+    mp.settled_uid = g.next_uid
+    g.add(torch.zeros(1, 3), torch.zeros(1, 3), torch.log(torch.full((1, 3), 0.01)),
+          opacity_logits=torch.tensor([logit(0.3)]), born=0)
+    mp.iteration = 40
+    assert mp._prune() == 1 and len(g) == 2 and (g.uid < mp.settled_uid).all()
 
 
 # ---------------------------------------------------------------- mapping

@@ -370,6 +370,8 @@ def test_map_state_round_trip(ext):
     arrays, meta, cam = ss.map_state(s)
     mp = ss.restore_map_state(arrays, meta, load_config(None), cam)
     again, meta2 = ss.mapper_arrays(mp)
+    # restored settled: its Gaussians are a finished map's (opacity pruning spares them)
+    assert meta2.pop("settled_uid") == meta["next_uid"] and meta.pop("settled_uid") == 0
     assert sorted(again) == sorted(arrays) and meta2 == meta
     for k, v in arrays.items():
         np.testing.assert_array_equal(again[k], v, err_msg=k)

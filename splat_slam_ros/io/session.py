@@ -351,7 +351,11 @@ def keyframe_data(kfs: SessionKeyframes, intrinsics: Intrinsics) -> List[Keyfram
 
 def restore_map_state(arrays: Dict[str, np.ndarray], meta: dict, cfg, intrinsics: Intrinsics):
     """The Mapper that :func:`map_state`'s arrays and metadata describe
-    (:func:`keyframe_store.restore_mapper`)."""
-    return restore_mapper(arrays, meta, cfg, intrinsics, lambda k: arrays[f"kf{k}_image"],
-                          lambda k: {n: arrays[f"kf{k}_{n}"] for n in KEYFRAME_DEPTH
-                                     if f"kf{k}_{n}" in arrays})
+    (:func:`keyframe_store.restore_mapper`), settled (``Mapper.settled_uid``): a later run
+    maps new places, and the loaded Gaussians, whose own views it rarely revisits, are not
+    pruned for the opacity that optimising those new views leaves them."""
+    mp = restore_mapper(arrays, meta, cfg, intrinsics, lambda k: arrays[f"kf{k}_image"],
+                        lambda k: {n: arrays[f"kf{k}_{n}"] for n in KEYFRAME_DEPTH
+                                   if f"kf{k}_{n}" in arrays})
+    mp.settled_uid = mp.map.next_uid
+    return mp

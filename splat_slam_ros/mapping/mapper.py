@@ -66,12 +66,12 @@ class Mapper:
                                      m.kf_cutoff)
         self.keyframes: Dict[int, MappedKeyframe] = {}
         self._exp_opt: Optional[torch.optim.Optimizer] = None
-        # (v1, v2) of the radial vignetting, learned from the second keyframe on
-        self.vignette = torch.zeros(2, device=self.device, requires_grad=m.vignetting)
+        self.vignette = torch.zeros(2, device=self.device, requires_grad=m.vignetting)  # v1, v2
         self._r2: Dict[tuple, torch.Tensor] = {}        # (H, W, cx, cy) -> r^2 map
         self.gen = torch.Generator().manual_seed(int(m.seed))
         self.rng = np.random.default_rng(int(m.seed))
         self.iteration = 0
+        self.settled_uid = 0            # opacity pruning spares uids below (a loaded map's)
         self.n_deformations = 0
         self.n_deformed_gaussians = 0
         self.counts = {"cloned": 0, "split": 0, "pruned_opacity": 0, "pruned_size": 0,
@@ -474,13 +474,13 @@ class Mapper:
 
     @torch.no_grad()
     def _prune(self) -> int:
-        """Remove low-opacity (old enough) and oversized Gaussians (supplementary)."""
-        g = self.map
+        """Remove low-opacity (old enough, not a loaded map's: ``settled_uid``) and oversized
+        Gaussians (supplementary)."""
+        g, m = self.map, self.mcfg
         if len(g) == 0:
             return 0
-        m = self.mcfg
-        old = (self.iteration - g.born) >= m.prune_min_age
-        low = (g.opacities() < m.prune_opacity) & old
+        low = (g.opacities() < m.prune_opacity) & ((self.iteration - g.born) >= m.prune_min_age) \
+            & (g.uid >= self.settled_uid)
         big = torch.zeros_like(low)
         if m.prune_max_screen_px > 0:
             big |= g.max_radii > m.prune_max_screen_px
@@ -668,9 +668,8 @@ class Mapper:
         """(arrays, JSON metadata) that :meth:`load_state_dict` turns back into an equal map:
         Gaussians with kf_id/created/born/uid, mapped keyframes with pose and exposure, the
         window and its visibility sets, counters. Adam moments are not kept (they restart at
-        zero, as for freshly added Gaussians). Keyframe images and depths are not included:
-        the caller stores them per keyframe, so a snapshot costs O(map), not O(keyframes x
-        image)."""
+        zero, as for new Gaussians). Keyframe images and depths are not included: the caller
+        stores them per keyframe, so a snapshot costs O(map), not O(keyframes x image)."""
         g = self.map
         arrays = {k: v.detach().cpu().numpy() for k, v in g.tensors().items()}
         ids = sorted(self.keyframes)
@@ -684,8 +683,8 @@ class Mapper:
         win = self.window
         vis = {str(k): v.detach().cpu().numpy().tolist() for k, v in win.visibility.items()}
         meta = {"window": list(win.window), "last": win.last, "visibility": vis,
-                "next_uid": g.next_uid, "iteration": int(self.iteration),
-                "n_deformations": int(self.n_deformations),
+                "next_uid": g.next_uid, "settled_uid": int(self.settled_uid),
+                "iteration": int(self.iteration), "n_deformations": int(self.n_deformations),
                 "n_deformed_gaussians": int(self.n_deformed_gaussians),
                 "scene_depth": float(self._scene_depth), "next_index": int(self._next_index),
                 "counts": dict(self.counts),
@@ -724,7 +723,8 @@ class Mapper:
         win.last = meta.get("last")
         win.visibility = {int(k): torch.tensor(v, dtype=torch.long, device=dev)
                           for k, v in (meta.get("visibility") or {}).items()}
-        self.iteration = int(meta.get("iteration", 0))
+        self.iteration, self.settled_uid = (int(meta.get(k, 0)) for k in ("iteration",
+                                                                           "settled_uid"))
         self.n_deformations = int(meta.get("n_deformations", 0))
         self.n_deformed_gaussians = int(meta.get("n_deformed_gaussians", 0))
         self._scene_depth = float(meta.get("scene_depth", 0.0))
