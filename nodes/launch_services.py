@@ -149,18 +149,27 @@ class LaunchServices:
                             f"tracker relocalises in it from the next frame")
 
 
+def _newer(d: dict, started: float) -> bool:
+    """Sent after ``started`` (not an old event that TRANSIENT_LOCAL delivers again to a node
+    started after it); a malformed time is never newer."""
+    try:
+        return float(d.get("t", 0.0)) >= started
+    except (TypeError, ValueError):
+        return False
+
+
 def load_request(d: dict, started: float) -> bool:
-    """A launcher's request event for this process (not an old one that TRANSIENT_LOCAL
-    delivers again to a node started after it)."""
-    return d.get("node") == "launch" and float(d.get("t", 0.0)) >= started
+    """A launcher's request event for this process."""
+    return d.get("node") == "launch" and isinstance(d.get("request"), str) and \
+        _newer(d, started)
 
 
 def loaded_by_tracker(d: dict, started: float) -> bool:
     """The tracker's yes to a /splat/load_map request that extends the map: the loop-closure
     and mapper nodes load the session then."""
     return (d.get("event") == "map_loaded" and d.get("node") == "tracker" and
-            bool(d.get("ok")) and not d.get("localize") and
-            float(d.get("t", 0.0)) >= started)
+            d.get("ok") is True and d.get("localize") is False and
+            isinstance(d.get("run"), str) and _newer(d, started))
 
 
 def reply(node, event: str, d: dict, ok: bool, message: str, **fields) -> None:

@@ -127,13 +127,13 @@ class MapperNode(SplatNode):
     def _save_map(self, d: dict) -> None:
         """/splat/save_map: map.ply, renders/, mapper_metrics.json and DIR/session/'s map
         state now."""
-        from pathlib import Path
-
         from splat_slam_ros.io.session import write_map_state
+
+        from . import service_guard as G
         if self.role.mapper is None:
             return reply(self, "map_saved", d, False, "the map is empty: nothing to save")
         try:
-            out = Path(str(d["directory"]))
+            out = G.inside(d.get("directory"), self.output_dir)
             self.role.save(out, final=True)
             write_map_state(out, self.role.mapper)
         except Exception as e:              # a disk error: the answer says so, mapping goes on
@@ -144,15 +144,17 @@ class MapperNode(SplatNode):
     def _load_requested(self, d: dict) -> None:
         """The launcher's /splat/load_map (extend), once the tracker took it: the loaded map,
         with the extend run's mapping settings the launcher chose."""
+        from splat_slam_ros.config import ConfigError
         from splat_slam_ros.io.session import SessionError
         if self.role.mapper is not None:
             return reply(self, "map_loaded", d, False, "the mapper holds a map already")
-        for key, value in (d.get("mapping") or {}).items():
-            self.cfg.set(f"mapping.{key}", value)
-            self.log.info(f"extend run: mapping.{key} {value}")
         try:
+            mapping = d.get("mapping") or {}
+            for key, value in (mapping.items() if isinstance(mapping, dict) else ()):
+                self.cfg.set(f"mapping.{key}", value)
+                self.log.info(f"extend run: mapping.{key} {value}")
             self._restore(str(d.get("run")))
-        except SessionError as e:
+        except (SessionError, ConfigError) as e:
             return reply(self, "map_loaded", d, False, str(e))
         reply(self, "map_loaded", d, True, f"{len(self.role.mapper.map)} Gaussians loaded")
 

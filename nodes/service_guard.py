@@ -47,6 +47,17 @@ def save_dir(requested: str, output_dir: Optional[Path]) -> Path:
     return target
 
 
+def inside(path, output_dir: Optional[Path]) -> Path:
+    """``path`` (absolute, as the launcher resolved it from a request) when it lies inside
+    ``output_dir``: a node checks again what a graph event asks it to write."""
+    if output_dir is None or not isinstance(path, str) or not path:
+        raise ServiceInputError("no output directory to save into (node.output_dir)")
+    base, target = Path(output_dir).resolve(), Path(path).resolve()
+    if target != base and base not in target.parents:
+        raise ServiceInputError(f"{path!r} is outside the output directory {base}")
+    return target
+
+
 def check_reset(allowed: bool) -> None:
     if not allowed:
         raise ServiceInputError("map reset is disabled (set the node parameter "

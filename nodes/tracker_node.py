@@ -112,13 +112,13 @@ class TrackerNode(SplatNode):
     # ------------------------------------------------------------ the launcher's map services
     def _save_map(self, d: dict) -> None:
         """/splat/save_map: the trajectories and the keyframes' part of DIR/session/ now."""
-        from pathlib import Path
+        from . import service_guard as G
         trk = self.role.tracker if self.role is not None else None
         if trk is None or self.localize or not trk.keyframe_ids():
             return reply(self, "map_saved", d, False, "no keyframe yet: nothing to save" if
                          not self.localize else "localize-only: the map is read-only")
         try:
-            out = Path(str(d["directory"]))
+            out = G.inside(d.get("directory"), self.output_dir)
             out.mkdir(parents=True, exist_ok=True)
             files = self._write_outputs(trk, *trk.trajectory_full(), out=out)
         except Exception as e:              # a disk error: the answer says so, tracking goes on
@@ -128,12 +128,16 @@ class TrackerNode(SplatNode):
     def _load_map(self, d: dict) -> None:
         """/splat/load_map: the session (checked by the launcher) becomes node.load_map, taken
         by the role the first frame makes; refused once a frame was tracked."""
+        from pathlib import Path
+        run = d.get("run")
         if self.role is not None or self.opts["load_map"]:
             why = (f"a map is loaded already ({self.opts['load_map']})" if self.opts["load_map"]
                    else "frames were tracked already: load a map before the first frame, or "
                    "start splat-slam-launch with --load-map")
             return reply(self, "map_loaded", d, False, why)
-        self.opts["load_map"], self.localize = str(d.get("run")), bool(d.get("localize"))
+        if not isinstance(run, str) or not (Path(run) / "session").is_dir():
+            return reply(self, "map_loaded", d, False, f"no saved session in {run!r}")
+        self.opts["load_map"], self.localize = run, d.get("localize") is True
         self.log.info(f"loaded map {self.opts['load_map']} "
                       f"({'localize-only' if self.localize else 'extend'})")
         reply(self, "map_loaded", d, True, "the next frame relocalises in it",
