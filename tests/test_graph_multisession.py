@@ -10,7 +10,7 @@ import pytest
 from splat_slam_ros.evaluation import umeyama_alignment
 from splat_slam_ros.io import session as ss
 from splat_slam_ros.io.trajectory_io import read_trajectory
-from test_graph_support import PY, isolated_env, need_ros, run_launch
+from test_graph_support import PY, SERVICE_CALLER, isolated_env, need_ros, run_launch
 from test_multisession import CFG, _render, _run
 
 pytestmark = pytest.mark.ros
@@ -155,29 +155,13 @@ def test_graph_never_relocalised_writes_no_result(graph, tmp_path):
     assert not (out / "trajectory_full.txt").exists() and not (out / "map.ply").exists()
 
 
-CALLER = r'''
-import json, sys, time
-from splat_slam_ros.ros_env import apply_ros_environment
-apply_ros_environment()
-import rclpy
+CALLER = SERVICE_CALLER + r'''
 from splat_slam_msgs.srv import LoadMap, SaveMap
-from splat_slam_nodes.node_common import SERVICES
-rclpy.init()
-node = rclpy.create_node("caller")
 res = []
-for call in json.loads(sys.argv[1]):
-    if call[0] == "load":
-        srv, name, req = LoadMap, "graph_load_map", LoadMap.Request(directory=call[1],
-                                                                    localize=call[2])
-    else:
-        srv, name, req = SaveMap, "graph_save_map", SaveMap.Request(directory=call[1])
-    c = node.create_client(srv, SERVICES[name])
-    assert c.wait_for_service(timeout_sec=120), name
-    f = c.call_async(req)
-    t0 = time.monotonic()
-    while not f.done() and time.monotonic() - t0 < 300:
-        rclpy.spin_once(node, timeout_sec=0.1)
-    res.append([f.result().success, f.result().message])
+for c in json.loads(sys.argv[1]):
+    res.append(call(LoadMap, "graph_load_map", LoadMap.Request(directory=c[1], localize=c[2]))
+               if c[0] == "load" else
+               call(SaveMap, "graph_save_map", SaveMap.Request(directory=c[1])))
 print("RESULT " + json.dumps(res), flush=True)
 rclpy.try_shutdown()
 '''

@@ -172,6 +172,28 @@ def write_tiny_bag(path: Path, n: int = 12, w: int = 64, h: int = 48, with_depth
 
 # A probe process: subscribes to topics (raw, any type), acks frames like a tracker would
 # (optionally with a delay), records what it saw as JSON lines on stdout.
+# the start of a script (``python -c``) that calls services of the graph:
+# ``call(srv, name, req)`` -> [success, message] (a request that got no answer: false)
+SERVICE_CALLER = r'''
+import json, math, sys, time
+from splat_slam_ros.ros_env import apply_ros_environment
+apply_ros_environment()
+import rclpy
+from splat_slam_nodes.node_common import SERVICES
+rclpy.init()
+node = rclpy.create_node("caller")
+def call(srv, name, req, timeout=300):
+    c = node.create_client(srv, SERVICES[name])
+    assert c.wait_for_service(timeout_sec=120), name
+    f = c.call_async(req)
+    t0 = time.monotonic()
+    while not f.done() and time.monotonic() - t0 < timeout:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    r = f.result()
+    return [False, "no answer"] if r is None else [r.success, r.message]
+'''
+
+
 PROBE = r'''
 import json, sys, time
 from splat_slam_ros.ros_env import apply_ros_environment

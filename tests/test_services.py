@@ -8,7 +8,7 @@ import pytest
 
 from splat_slam_nodes import service_guard as G
 
-from test_graph_support import PY, isolated_env, need_ros, start, stop
+from test_graph_support import PY, SERVICE_CALLER, isolated_env, need_ros, start, stop
 
 
 def test_save_dir_stays_inside_the_output_dir(tmp_path):
@@ -53,25 +53,9 @@ def test_render_size_pose_intrinsics_and_reset_checks():
     assert G.message(G.ServiceInputError("x")) == "x" and G.message(KeyError("k")) == "KeyError: 'k'"
 
 
-CALLER = r'''
-import json, math, sys, time
-from splat_slam_ros.ros_env import apply_ros_environment
-apply_ros_environment()
-import rclpy
+CALLER = SERVICE_CALLER + r'''
 from splat_slam_msgs.srv import RenderPose, SaveMap
 from std_srvs.srv import Trigger
-from splat_slam_nodes.node_common import SERVICES
-rclpy.init()
-node = rclpy.create_node("caller")
-def call(srv, name, req):
-    c = node.create_client(srv, SERVICES[name])
-    assert c.wait_for_service(timeout_sec=60), name
-    f = c.call_async(req)
-    t0 = time.monotonic()
-    while not f.done() and time.monotonic() - t0 < 60:
-        rclpy.spin_once(node, timeout_sec=0.1)
-    r = f.result()
-    return [r.success, r.message]
 res = {}
 res["reset"] = call(Trigger, "reset_map", Trigger.Request())
 for k, d in (("abs", sys.argv[1]), ("dotdot", "../evil"), ("rel", "snap")):
