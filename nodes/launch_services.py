@@ -120,7 +120,7 @@ class LaunchServices:
             resp.success, resp.message = False, str(e)
             return resp
         L.say(f"saving the map into {d}")
-        replies = self._ask("save_map", self._stages(False, True), directory=str(d))
+        replies = self._ask("save_map", self._stages(True, True), directory=str(d))
         return self._answer(resp, replies, f"saved into {d}: " + ", ".join(
             f for r in replies for f in r.get("files", [])) + " (splat-slam-launch / "
             "splat-slam-run --load-map loads it)")

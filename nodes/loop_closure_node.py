@@ -9,12 +9,14 @@ disparities) and its loop edges persist in ``node.state_dir``: a restarted node 
 keeps the accepted loops and continues its update numbers where it stopped.
 Options: node.load_map (set by ``splat-slam-launch --load-map RUN``: the keyframes of the
 session RUN saved join before the first new one, held fixed: loops onto the loaded map).
+Outputs: at the end the loop-closure graph (edges, loop pairs, merged keyframes) in
+node.output_dir's session/ manifest; the launcher's /splat/save_map the same into DIR.
 """
 from __future__ import annotations
 
 import sys
 
-from .launch_services import loaded_by_tracker, reply
+from .launch_services import load_request, loaded_by_tracker, reply
 from .node_common import SplatNode, run_node
 
 
@@ -25,13 +27,11 @@ class LoopClosureNode(SplatNode):
         from splat_slam_ros.roles import LoopRole
         self.publishers("updates", "ack")
         self.role = LoopRole(self.cfg, store=self.store())
-        self.loaded = None              # node.load_map: the loaded session's keyframes
+        self.loaded = self.loaded_graph = None   # node.load_map: the session's keyframes, graph
         if self.opts["load_map"]:
-            from pathlib import Path
-
-            from splat_slam_ros.io.session import SessionError, load_session
+            from splat_slam_ros.io.session import SessionError
             try:
-                self.loaded = load_session(Path(str(self.opts["load_map"]))).keyframes
+                self._read(str(self.opts["load_map"]))
             except SessionError as e:
                 self.log.fatal(f"cannot load the map: {e}")
                 raise SystemExit(2)
@@ -42,19 +42,45 @@ class LoopClosureNode(SplatNode):
                 self._add_loaded(self.role.loop.raw_intrinsics)
         self.route(self.role, keyframes=True, updates=True, after=self._after,
                    on_keyframe=self._on_keyframe)
-        self.on_events(lambda d: loaded_by_tracker(d, self.started) and
-                       self.worker.submit(self._load_requested, d))
+        self.on_events(self._on_request)
         self.publish_event("ready")
+
+    def _read(self, run: str) -> None:
+        from pathlib import Path
+
+        from splat_slam_ros.io.session import load_session, loop_graph
+        session = load_session(Path(run))
+        self.loaded, self.loaded_graph = session.keyframes, loop_graph(session)
+
+    def _on_request(self, d: dict) -> None:
+        if loaded_by_tracker(d, self.started):
+            self.worker.submit(self._load_requested, d)
+        elif d.get("event") == "save_map" and load_request(d, self.started):
+            self.worker.submit(self._save_map, d)
+
+    def _save_map(self, d: dict) -> None:
+        """/splat/save_map: the loop-closure graph in DIR/session/'s manifest."""
+        from splat_slam_ros.io.session import write_loop_graph
+
+        from . import service_guard as G
+        try:
+            write_loop_graph(G.inside(d.get("directory"), self.output_dir), self._summary())
+        except Exception as e:              # a disk error: the answer says so
+            return reply(self, "map_saved", d, False, f"{type(e).__name__}: {e}")
+        reply(self, "map_saved", d, True, "saved", files=["session/ (loop-closure graph)"])
+
+    def _summary(self) -> dict:
+        lc = self.role.loop
+        return lc.graph_summary() if lc is not None else {"edges": [], "loop_pairs": [],
+                                                            "merged": []}
 
     def _load_requested(self, d: dict) -> None:
         """The launcher's /splat/load_map (extend), once the tracker took it."""
-        from pathlib import Path
-
-        from splat_slam_ros.io.session import SessionError, load_session
+        from splat_slam_ros.io.session import SessionError
         if self.role.kf_ids or self.loaded is not None:
             return reply(self, "map_loaded", d, False, "keyframes were consumed already")
         try:
-            self.loaded = load_session(Path(str(d.get("run")))).keyframes
+            self._read(str(d.get("run")))
         except SessionError as e:
             return reply(self, "map_loaded", d, False, str(e))
         reply(self, "map_loaded", d, True, f"{len(self.loaded)} keyframes to hold fixed")
@@ -62,6 +88,7 @@ class LoopClosureNode(SplatNode):
     def _add_loaded(self, intrinsics) -> None:
         from splat_slam_ros.io.session import keyframe_data
         self.role.add_fixed(keyframe_data(self.loaded, intrinsics))
+        self.role.loop.restore_graph_summary(self.loaded_graph)
         self.log.info(f"{len(self.loaded)} keyframes of the loaded map held fixed")
         self.loaded = None
 
@@ -79,6 +106,9 @@ class LoopClosureNode(SplatNode):
             self.log.info(f"keyframe {out.acks[-1][1] if out.acks else '?'}: "
                           f"{len(out.updates)} update(s) "
                           f"({', '.join(sorted({e.reason for e in out.updates}))})")
+        if out.final is not None and self.output_dir is not None:
+            from splat_slam_ros.io.session import write_loop_graph
+            write_loop_graph(self.output_dir, self._summary())   # the session's graph part
         if out.final is not None:
             self.log.info(f"finalized: {out.final['keyframes']} keyframes "
                           f"({out.final['merged']} merged into older views), "

@@ -32,7 +32,7 @@ from typing import Dict, List
 
 from splat_slam_ros.config import MappingConfig, SlamConfig
 from splat_slam_ros.coordinator import Coordinator
-from splat_slam_ros.io.session import Session, map_state, restore_map_state
+from splat_slam_ros.io.session import Session, loop_graph, map_state, restore_map_state
 from splat_slam_ros.tracking.relocalise import ExtendTracker
 from splat_slam_ros.types import Intrinsics
 
@@ -62,6 +62,7 @@ def extend_coordinator(cfg: SlamConfig, intrinsics: Intrinsics, session: Session
     co.mapper.restore(restore_map_state(arrays, meta, cfg, map_cam), map_cam)
     if co.loop is not None:             # loops from new keyframes to loaded ones (fixed)
         co.loop.add_fixed(trk.loaded_keyframe_data())
+        co.loop.loop.restore_graph_summary(loop_graph(session))
     co.loaded = {"keyframes": len(trk.loaded_ids),
                  "mapped_keyframes": len(co.mapper.mapper.keyframes),
                  "gaussians": len(co.mapper.mapper.map)}

@@ -372,4 +372,5 @@ def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics, co
         metrics["map"] = mp.stats()
     # the session a later run loads (--load-map OUT --localize): after map.ply, which it sums
     images = input_images(trk, itertools.islice(dataset, max_frames), session_ids(trk))
-    save_session(trk, images, cfg, dataset.intrinsics, out, mp)
+    save_session(trk, images, cfg, dataset.intrinsics, out, mp,
+                 co.loop.loop if co.loop is not None else None)

@@ -98,6 +98,13 @@ def test_graph_extend_grows_the_loaded_map_and_saves_a_session(graph):
     assert k2.kf_ids[len(k1):].min() > k1.kf_ids.max()
     arrays, _meta, _cam = ss.map_state(s2)
     assert len(arrays["means"]) == e["gaussians"] and s2.map_path == (out / "map.ply").resolve()
+    # the loop closer's part: the loaded graph kept, the new loops to loaded keyframes added
+    g1, g2 = ss.loop_graph(first), ss.loop_graph(s2)
+    assert {tuple(x) for x in g1["edges"]} <= {tuple(x) for x in g2["edges"]}
+    pairs = {tuple(p) for p in g2["loop_pairs"]}
+    assert len(pairs) == e["loop_edges"]
+    assert sum(len(set(p) & set(k1.kf_ids.tolist())) == 1 for p in pairs) == \
+        e["loop_edges_to_loaded"]
     # both runs' frames under one Sim(3) against the ground truth: one map, one frame
     gt = {round(float(r[0]), 3): np.array(r[1:4], float) for r in
           (ln.split() for ln in (graph["seq"] / "groundtruth.txt").read_text().splitlines()
@@ -225,5 +232,6 @@ def test_graph_services_load_then_save_a_map_live(graph, tmp_path):
         assert set(first.keyframes.kf_ids) <= set(s.keyframes.kf_ids), d
         arrays, _meta, _cam = ss.map_state(s)
         assert len(arrays["means"]) >= first.manifest["map_state"]["gaussians"], d
+        assert len(ss.loop_graph(s)["edges"]) > len(ss.loop_graph(first)["edges"]), d
     m = json.loads((out / "metrics.json").read_text())
     assert m["extend"]["relocalised_frame"] is not None and m["extend"]["new_keyframes"] >= 1

@@ -106,6 +106,11 @@ def test_full_run_saves_its_keyframes(work):
     assert k.images.shape[1:] == (120, 160, 3) and k.disparities.shape[1:] == (30, 40)
     assert k.frame_indices.max() <= 39
     assert s.map_path is not None and s.manifest["map"]["bytes"] > 1000
+    # the loop-closure graph: edges between the session's keyframes (each joined to the graph)
+    g, ids = ss.loop_graph(s), set(k.kf_ids.tolist())
+    assert g is not None and len(g["edges"]) >= len(k) - 1
+    assert all(i in ids and j in ids for i, j, _kind in g["edges"])
+    assert {i for e in g["edges"] for i in e[:2]} == ids - {m[0] for m in g["merged"]}
 
 
 def _gt(seq: Path):
@@ -362,6 +367,14 @@ def test_extend_a_revisited_view_adds_no_gaussians(ext):
     assert x["mapped_keyframes"] <= x["loaded"]["mapped_keyframes"] + 1, x
     # the same views again: loops from the new keyframes to the loaded ones (held fixed)
     assert x["loop_edges_to_loaded"] >= 1, x
+    # the extended session keeps the loaded graph and adds the new edges and loops
+    first, again = (ss.load_session(ext[n]) for n in ("a", "again"))
+    g1, g2 = ss.loop_graph(first), ss.loop_graph(again)
+    assert {tuple(e) for e in g1["edges"]} <= {tuple(e) for e in g2["edges"]}
+    pairs = {tuple(p) for p in g2["loop_pairs"]}
+    assert {tuple(p) for p in g1["loop_pairs"]} <= pairs
+    loaded = set(first.keyframes.kf_ids.tolist())
+    assert sum(len(set(p) & loaded) == 1 for p in pairs) == x["loop_edges_to_loaded"]
 
 
 def test_map_state_round_trip(ext):

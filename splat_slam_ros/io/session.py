@@ -8,7 +8,8 @@ map is the run's ``map.ply``, referenced by checksum (none in a tracking-only ru
 run also writes ``map_state.npz``: the mapper's state (Gaussians with their bookkeeping, the
 mapped keyframes' poses, exposures, images and proxy depths, the mapping window), which a
 later run that extends the map restores (:func:`map_state`); the mapping camera is in the
-manifest.
+manifest. With a loop closer the manifest also holds the loop-closure graph (``loop_graph``:
+edges with their kind, accepted loop pairs, merged keyframes), which an extend run keeps.
 
 Plain numpy / json: :func:`load_session` validates everything (presence, checksums, version,
 keys and shapes) and raises :class:`SessionError` with one line naming what is wrong.
@@ -171,15 +172,32 @@ def write_map_state(out: Path, mapper) -> Path:
     return d
 
 
+def write_loop_graph(out: Path, summary: dict) -> None:
+    """The loop closer's part of ``out/session/``: the loop-closure graph
+    (``LoopCloser.graph_summary``: edges, loop pairs, merged keyframes) in the manifest."""
+    d = Path(out) / SESSION_DIR
+    d.mkdir(parents=True, exist_ok=True)
+    _merge_manifest(d, {"loop_graph": summary})
+
+
+def loop_graph(session: Session) -> Optional[dict]:
+    """The loop-closure graph the session holds (None: a run without a loop closer)."""
+    g = session.manifest.get("loop_graph")
+    return g if isinstance(g, dict) else None
+
+
 def write_session(out: Path, kfs: SessionKeyframes, camera: Intrinsics,
                   tracking_size: Sequence[int], ba_size: Sequence[int], config: dict,
-                  package_version: str, mapper=None) -> Path:
-    """Write ``out/session/`` (keyframes.npz + manifest.json, and map_state.npz of
-    ``mapper``); the map is ``out/map.ply`` when it exists. Returns the session folder."""
+                  package_version: str, mapper=None, loop_summary: Optional[dict] = None) -> Path:
+    """Write ``out/session/`` (keyframes.npz + manifest.json, map_state.npz of ``mapper``,
+    the loop-closure graph); the map is ``out/map.ply`` when it exists. Returns the session
+    folder."""
     d = write_session_keyframes(out, kfs, camera, tracking_size, ba_size, config,
                                 package_version)
     if mapper is not None:
         write_map_state(out, mapper)
+    if loop_summary is not None:
+        write_loop_graph(out, loop_summary)
     return d
 
 

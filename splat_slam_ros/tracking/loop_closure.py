@@ -74,6 +74,7 @@ class LoopCloser:
         self.timings: Dict[str, float] = defaultdict(float)
         self.n_loops = 0
         self.fixed_ids: set = set()            # a loaded map's keyframes (add_fixed)
+        self.loaded_edges: List[List] = []     # its graph's edges (restore_graph_summary)
 
     # ------------------------------------------------------------ inputs
     def _setup(self, kd: KeyframeData) -> None:
@@ -248,10 +249,36 @@ class LoopCloser:
         self.checked = {p for p in self.checked if k not in p}
 
     def loop_stats(self) -> dict:
-        """Keyframes merged into older views, loop edges, and loop edges to a loaded map's
-        keyframes (extend runs)."""
+        """Keyframes merged into older views, loop edges, and loop edges from a new keyframe
+        to a loaded map's (extend runs)."""
         return {"merged": len(self.merged), "loop_edges": len(self.loop_pairs),
-                "loop_edges_to_loaded": sum(1 for p in self.loop_pairs if set(p) & self.fixed_ids)}
+                "loop_edges_to_loaded": sum(1 for p in self.loop_pairs
+                                            if len(set(p) & self.fixed_ids) == 1)}
+
+    def graph_summary(self) -> dict:
+        """The loop-closure graph as a session keeps it: its edges ([i, j, kind]: odometry,
+        loop, global), the accepted loop pairs and the merged keyframes; with a loaded map's
+        (restore_graph_summary) included."""
+        edges = {(int(i), int(j)): str(k) for i, j, k in self.loaded_edges}
+        edges.update({(int(i), int(j)): str(k) for (i, j), k in
+                      (self.graph.kind.items() if self.graph is not None else ())})
+        return {"edges": [[i, j, k] for (i, j), k in sorted(edges.items())],
+                "loop_pairs": sorted([int(a), int(b)] for a, b in self.loop_pairs),
+                "merged": self.merged_list()}
+
+    def restore_graph_summary(self, summary: Optional[dict]) -> None:
+        """A loaded map's :meth:`graph_summary` (after :meth:`add_fixed`): its loop pairs
+        count as found and checked, its edges are kept for the next session. Their flow
+        terms are not measured again: between fixed keyframes they would move nothing."""
+        if not summary:
+            return
+
+        def loaded(p) -> bool:
+            return int(p[0]) in self.fixed_ids and int(p[1]) in self.fixed_ids
+        self.loaded_edges = [e for e in summary.get("edges", []) if loaded(e)]
+        pairs = {(int(a), int(b)) for a, b in summary.get("loop_pairs", []) if loaded((a, b))}
+        self.loop_pairs |= pairs
+        self.checked |= pairs
 
     def merged_list(self) -> List[List]:
         """[kf_id, anchor, timestamp] of every merged keyframe (a checkpoint's part)."""

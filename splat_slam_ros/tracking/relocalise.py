@@ -29,8 +29,7 @@ from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.geometry import se3_inverse, se3_log
 from splat_slam_ros.io.session import (Session, SessionError, SessionKeyframes, check_camera,
                                        descriptor, descriptor_ranking, keyframe_data,
-                                       map_camera, pinhole_diffs, write_map_state,
-                                       write_session_keyframes)
+                                       map_camera, pinhole_diffs, write_session)
 from splat_slam_ros.runtime import limit_threads
 from splat_slam_ros.tracking.flow_frontend import image_is_degenerate
 from splat_slam_ros.tracking.keyframe_set import KeyframeState
@@ -102,18 +101,17 @@ def session_ids(trk: Tracker) -> List[int]:
 
 
 def save_session(trk: Tracker, images: Dict[int, np.ndarray], cfg: SlamConfig,
-                 camera: Intrinsics, out, mapper=None) -> None:
+                 camera: Intrinsics, out, mapper=None, loop=None) -> None:
     """Write the tracker's part of ``out/session/`` (``images``: kf id -> tracking-size RGB
-    of :func:`session_ids`) and, with a ``mapper``, its state (after ``out/map.ply``). An
-    :class:`ExtendTracker`'s session holds the loaded keyframes (as they are now) and the
-    new ones: a map extended again and again."""
+    of :func:`session_ids`) and, with a ``mapper``, its state (after ``out/map.ply``), with
+    a ``loop`` closer its graph. An :class:`ExtendTracker`'s session holds the loaded
+    keyframes (as they are now) and the new ones: a map extended again and again."""
     kfs = session_keyframes(trk, images, session_ids(trk))
     if isinstance(trk, ExtendTracker):
         kfs = concat_keyframes(trk.loaded_keyframes(), kfs)
     if len(kfs):
-        write_session_keyframes(out, kfs, camera, *_sizes(trk), cfg.to_dict(), __version__)
-        if mapper is not None:
-            write_map_state(out, mapper)
+        write_session(out, kfs, camera, *_sizes(trk), cfg.to_dict(), __version__, mapper,
+                      loop.graph_summary() if loop is not None else None)
 
 
 def concat_keyframes(a: SessionKeyframes, b: SessionKeyframes) -> SessionKeyframes:
