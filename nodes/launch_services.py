@@ -49,17 +49,27 @@ class LaunchServices:
         self.ids = itertools.count(1)
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(n)
+        self.stop = threading.Event()
         self.thread = threading.Thread(target=self._spin, name="launch_services", daemon=True)
         self.thread.start()
 
     def _spin(self) -> None:
-        try:
-            self.executor.spin()
-        except Exception:                   # rclpy shut down under it: the launcher stops
-            pass
+        """Spin in short steps until :meth:`close` (never shut the executor down under a
+        running wait: the process would abort in rclpy's C++ layer)."""
+        while not self.stop.is_set():
+            try:
+                self.executor.spin_once(timeout_sec=0.1)
+            except Exception:               # rclpy shut down under it: the launcher stops
+                return
 
     def close(self) -> None:
-        self.executor.shutdown(timeout_sec=2.0)
+        """Stop the thread, then the executor and the node (before rclpy shuts down)."""
+        self.stop.set()
+        with self.lock:                     # a request still waiting answers "no answer"
+            for w in self.waiting.values():
+                w["done"].set()
+        self.thread.join(timeout=10.0)
+        self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
 
     def on_event(self, d: dict) -> None:
