@@ -570,8 +570,6 @@ class Launcher:
         if self.t_eos is not None and self.t_mapped is not None:
             m["map_done_after_stream_s"] = round(self.t_mapped - self.t_eos, 3)
         m["keyframes"] = trk.get("keyframes", 0)
-        m["session_info"] = trk.get("session")      # --load-map (launch_map.finish)
-        m["loop_info"] = self.has_event("loop_closure", "finalized")
         m["wall_s"] = round(wall, 3)
         m["wall_total_s"] = round(end_wall - self.t0, 3)
         m["fps"] = round(frames / max(wall, 1e-9), 3)
@@ -616,7 +614,8 @@ class Launcher:
         m["warnings"] = getattr(self.out, "lines", [])
         rc = 0
         from .launch_map import finish as session_finish
-        reason = session_finish(self.session, self.out_dir, m)    # --load-map: relocalised?
+        reason = session_finish(self.session, self.out_dir, m, self.has_event("tracker", "saved"),
+                                self.has_event("loop_closure", "finalized"))  # --load-map
         if reason is None and not (self.session or {}).get("localize"):
             reason = no_result_reason(self.cfg, m)  # never a success without keyframes or map
         if reason:

@@ -105,14 +105,16 @@ def node_params(info: Optional[dict], name: str) -> Dict[str, object]:
     return p
 
 
-def finish(info: Optional[dict], out_dir: Path, m: dict) -> Optional[str]:
-    """metrics.json's ``localize`` / ``extend`` part from the tracker's ``saved`` event (in
-    ``m["session_info"]``); copies the loaded map in localize runs. Returns the error of a
-    run that never relocalised (its outputs removed), else None."""
-    s = m.pop("session_info", None) or {}
-    lc = m.pop("loop_info", None) or {}
+def finish(info: Optional[dict], out_dir: Path, m: dict, tracker_saved: Optional[dict],
+           loop_final: Optional[dict]) -> Optional[str]:
+    """metrics.json's ``localize`` / ``extend`` part from the tracker's ``saved`` event
+    (``session``) and the loop closer's ``finalized`` (loop edges); copies the loaded map in
+    localize runs. Returns the error of a run that never relocalised (its outputs removed),
+    else None."""
     if info is None:
         return None
+    s = (tracker_saved or {}).get("session") or {}
+    lc = loop_final or {}
     part = dict(s, session=info["run"], loaded=info["loaded"])
     if info["localize"]:
         m["localize"] = part

@@ -23,7 +23,8 @@ from __future__ import annotations
 import itertools
 import json
 import time
-from typing import Dict, List
+from pathlib import Path
+from typing import Callable, Dict, List
 
 from . import service_guard as G
 from .node_common import SERVICES
@@ -185,3 +186,17 @@ def loaded_by_tracker(d: dict, started: float) -> bool:
 def reply(node, event: str, d: dict, ok: bool, message: str, **fields) -> None:
     """A node's answer to the launcher's request ``d`` (graph event ``event``)."""
     node.publish_event(event, request=d.get("request"), ok=bool(ok), message=message, **fields)
+
+
+def answer_save(node, d: dict, write: Callable[[Path], List[str]]) -> None:
+    """A node's part of the launcher's save request ``d``: ``write(directory)`` (the
+    request's directory, which must lie inside node.output_dir) returns the files it wrote.
+    A failure (a disk error) is the answer (``map_saved`` not ok); the node goes on."""
+    from . import service_guard as G
+    try:
+        out = G.inside(d.get("directory"), node.output_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        files = write(out)
+    except Exception as e:
+        return reply(node, "map_saved", d, False, f"{type(e).__name__}: {e}")
+    reply(node, "map_saved", d, True, "saved", files=files)

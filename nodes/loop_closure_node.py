@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import sys
 
-from .launch_services import load_request, loaded_by_tracker, reply
+from .launch_services import answer_save, load_request, loaded_by_tracker, reply
 from .node_common import SplatNode, run_node
 
 
@@ -62,12 +62,10 @@ class LoopClosureNode(SplatNode):
         """/splat/save_map: the loop-closure graph in DIR/session/'s manifest."""
         from splat_slam_ros.io.session import write_loop_graph
 
-        from . import service_guard as G
-        try:
-            write_loop_graph(G.inside(d.get("directory"), self.output_dir), self._summary())
-        except Exception as e:              # a disk error: the answer says so
-            return reply(self, "map_saved", d, False, f"{type(e).__name__}: {e}")
-        reply(self, "map_saved", d, True, "saved", files=["session/ (loop-closure graph)"])
+        def write(out):
+            write_loop_graph(out, self._summary())
+            return ["session/ (loop-closure graph)"]
+        answer_save(self, d, write)
 
     def _summary(self) -> dict:
         lc = self.role.loop

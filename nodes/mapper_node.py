@@ -32,7 +32,7 @@ import time
 import numpy as np
 import torch
 
-from .launch_services import load_request, loaded_by_tracker, reply
+from .launch_services import answer_save, load_request, loaded_by_tracker, reply
 from .map_services import MapServices
 from .node_common import TOPICS, SplatNode, run_node
 
@@ -128,18 +128,14 @@ class MapperNode(SplatNode):
         """/splat/save_map: map.ply, renders/, mapper_metrics.json and DIR/session/'s map
         state now."""
         from splat_slam_ros.io.session import write_map_state
-
-        from . import service_guard as G
         if self.role.mapper is None:
             return reply(self, "map_saved", d, False, "the map is empty: nothing to save")
-        try:
-            out = G.inside(d.get("directory"), self.output_dir)
+
+        def write(out):
             self.role.save(out, final=True)
             write_map_state(out, self.role.mapper)
-        except Exception as e:              # a disk error: the answer says so, mapping goes on
-            return reply(self, "map_saved", d, False, f"{type(e).__name__}: {e}")
-        reply(self, "map_saved", d, True, "saved", files=["map.ply", "renders/",
-                                                            "mapper_metrics.json"])
+            return ["map.ply", "renders/", "mapper_metrics.json"]
+        answer_save(self, d, write)
 
     def _load_requested(self, d: dict) -> None:
         """The launcher's /splat/load_map (extend), once the tracker took it: the loaded map,

@@ -29,7 +29,7 @@ import numpy as np
 
 from splat_slam_ros.types import TRACKER_REASONS
 
-from .launch_services import load_request, reply
+from .launch_services import answer_save, load_request, reply
 from .node_common import TOPICS, SplatNode, run_node, takes_update
 
 
@@ -112,18 +112,11 @@ class TrackerNode(SplatNode):
     # ------------------------------------------------------------ the launcher's map services
     def _save_map(self, d: dict) -> None:
         """/splat/save_map: the trajectories and the keyframes' part of DIR/session/ now."""
-        from . import service_guard as G
         trk = self.role.tracker if self.role is not None else None
         if trk is None or self.localize or not trk.keyframe_ids():
             return reply(self, "map_saved", d, False, "no keyframe yet: nothing to save" if
                          not self.localize else "localize-only: the map is read-only")
-        try:
-            out = G.inside(d.get("directory"), self.output_dir)
-            out.mkdir(parents=True, exist_ok=True)
-            files = self._write_outputs(trk, *trk.trajectory_full(), out=out)
-        except Exception as e:              # a disk error: the answer says so, tracking goes on
-            return reply(self, "map_saved", d, False, f"{type(e).__name__}: {e}")
-        reply(self, "map_saved", d, True, "saved", files=files)
+        answer_save(self, d, lambda out: self._write_outputs(trk, *trk.trajectory_full(), out))
 
     def _load_map(self, d: dict) -> None:
         """/splat/load_map: the session (checked by the launcher) becomes node.load_map, taken

@@ -22,7 +22,9 @@ from splat_slam_ros.io.session import Session, remove_session
 from splat_slam_ros.io.trajectory_io import write_tum
 from splat_slam_ros.pipeline import (NotInitializedError, RunResult, _write_json,
                                      evaluate_trajectories, frame_counts)
+from splat_slam_ros.roles import Outbox
 from splat_slam_ros.tracking.relocalise import Localizer
+from splat_slam_ros.types import TrackStep
 
 
 class NeverRelocalisedError(NotInitializedError):
@@ -94,22 +96,18 @@ class LocalizeRole:
         self.finalized = False
 
     def on_frame(self, frame):
-        from splat_slam_ros.roles import Outbox
-        from splat_slam_ros.types import TrackStep
         T = self.loc.track(frame)
         pose = T if T is not None else self.loc.predict()
         return TrackStep(int(frame.index), float(frame.timestamp), False, None, pose,
                          lost=T is None, initialized=self.loc.initialized), Outbox()
 
     def on_update(self, ev):
-        from splat_slam_ros.roles import Outbox
         return Outbox()
 
     def on_final(self, node, info):
         return self.on_update(None)
 
     def finalize(self):
-        from splat_slam_ros.roles import Outbox
         self.finalized = True
         return Outbox(final={"last_seq": 0, "keyframes": 0})
 

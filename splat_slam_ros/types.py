@@ -62,6 +62,15 @@ class Intrinsics:
                     distortion_model=self.distortion_model,
                     distortion=[float(x) for x in self.distortion])
 
+    @staticmethod
+    def from_dict(d: dict) -> "Intrinsics":
+        """The inverse of :meth:`to_dict` (distortion optional); KeyError / TypeError /
+        ValueError when a value is missing or not a number."""
+        return Intrinsics(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]),
+                          int(d["width"]), int(d["height"]),
+                          str(d.get("distortion_model", "plumb_bob")),
+                          [float(x) for x in (d.get("distortion") or [])])
+
     def to_yaml(self, path, **extra) -> None:
         """Write :meth:`to_dict` (+ extra keys) as YAML."""
         Path(path).write_text(yaml.safe_dump({**self.to_dict(), **extra}, sort_keys=False))
@@ -86,10 +95,7 @@ class Intrinsics:
                                   int(d["image_width"]), int(d["image_height"]),
                                   d.get("distortion_model", "plumb_bob"),
                                   [float(x) for x in dist])
-            return Intrinsics(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]),
-                              int(d["width"]), int(d["height"]),
-                              str(d.get("distortion_model", "plumb_bob")),
-                              [float(x) for x in (d.get("distortion") or [])])
+            return Intrinsics.from_dict(d)
         except (KeyError, TypeError, IndexError, ValueError) as e:
             raise IntrinsicsError(
                 f"intrinsics file {p} lacks a valid entry ({e}); expected keys fx, fy, cx, cy, "

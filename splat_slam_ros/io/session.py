@@ -323,9 +323,7 @@ def map_camera(session: Session) -> Intrinsics:
                            f"tracking-only run); --localize tracks in its keyframes without "
                            f"a map")
     try:
-        c = entry["camera"]
-        return Intrinsics(float(c["fx"]), float(c["fy"]), float(c["cx"]), float(c["cy"]),
-                          int(c["width"]), int(c["height"]))
+        return Intrinsics.from_dict(entry["camera"])
     except (KeyError, TypeError, ValueError):
         raise SessionError(f"session file {session.path / MANIFEST} is corrupt (no mapping "
                            f"camera)") from None
@@ -352,15 +350,20 @@ def map_state(session: Session) -> Tuple[Dict[str, np.ndarray], dict, Intrinsics
     return arrays, meta, cam
 
 
+def image_at(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``image`` at ``width`` x ``height`` (itself when it is that size already)."""
+    if image.shape[:2] == (height, width):
+        return image
+    return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+
+
 def keyframe_data(kfs: SessionKeyframes, intrinsics: Intrinsics) -> List[KeyframeData]:
     """Session keyframes as the stages take keyframes: images resized to ``intrinsics``'
     size (a graph node gets the mapping camera, the tracker the tracking camera), BA-grid
     disparities, full confidence."""
-    size = (intrinsics.width, intrinsics.height)
     return [KeyframeData(kf_id=int(k), frame_index=int(kfs.frame_indices[n]),
                          timestamp=float(kfs.timestamps[n]), pose=kfs.poses[n].copy(),
-                         image=kfs.images[n] if kfs.images[n].shape[1::-1] == size else
-                         cv2.resize(kfs.images[n], size, interpolation=cv2.INTER_AREA),
+                         image=image_at(kfs.images[n], intrinsics.width, intrinsics.height),
                          intrinsics=intrinsics,
                          disparity=kfs.disparities[n].astype(np.float32),
                          confidence=np.ones(kfs.disparities[n].shape, np.float32))

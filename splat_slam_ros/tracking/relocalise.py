@@ -20,7 +20,6 @@ from __future__ import annotations
 import logging
 from typing import Dict, List, Optional, Tuple
 
-import cv2
 import numpy as np
 import torch
 
@@ -28,8 +27,8 @@ from splat_slam_ros import __version__
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.geometry import se3_inverse, se3_log
 from splat_slam_ros.io.session import (Session, SessionError, SessionKeyframes, check_camera,
-                                       descriptor, descriptor_ranking, keyframe_data,
-                                       map_camera, pinhole_diffs, write_session)
+                                       descriptor, descriptor_ranking, image_at,
+                                       keyframe_data, map_camera, pinhole_diffs, write_session)
 from splat_slam_ros.runtime import limit_threads
 from splat_slam_ros.tracking.flow_frontend import image_is_degenerate
 from splat_slam_ros.tracking.keyframe_set import KeyframeState
@@ -72,9 +71,8 @@ def input_images(trk: Tracker, frames, ids: List[int]) -> Dict[int, np.ndarray]:
 def published_images(trk: Tracker, images: Dict[int, np.ndarray]) -> Dict[int, np.ndarray]:
     """Tracking-size images from the keyframes' published (mapping-size) images: a node
     keeps what it published, the input is gone."""
-    w, h = trk.intrinsics.width, trk.intrinsics.height
-    return {k: im if im.shape[:2] == (h, w) else
-            cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA) for k, im in images.items()}
+    return {k: image_at(im, trk.intrinsics.width, trk.intrinsics.height)
+            for k, im in images.items()}
 
 
 def session_keyframes(trk: Tracker, images: Dict[int, np.ndarray],
