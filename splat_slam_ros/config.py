@@ -344,7 +344,7 @@ class EvaluationConfig:
     """Extra metrics of a run (metrics.json)."""
 
     # LPIPS of the mapped keyframes in metrics.json (``lpips``): a backbone file you supply
-    # (TorchScript or torch.export, see evaluation.lpips); "" = no LPIPS (``lpips: null``)
+    # (TorchScript or torch.export, see evaluation.perceptual.lpips); "" = no LPIPS (``lpips: null``)
     lpips_backbone: str = ""
     lpips_weights: str = ""              # optional per-layer channel weights file ("" = none)
 
@@ -425,6 +425,50 @@ def _assign(obj, name: str, value: Any, dotted: str) -> None:
     setattr(obj, name, value)
 
 
+# The core: the keys a user tunes for a camera, a machine or an output (docs/configuration.md
+# "Core keys"). Every other key is advanced: a method constant, a CPU budget or an ablation
+# switch whose default was measured (its effect is in the reference and in docs/*.md). In a
+# YAML file advanced keys go under the top-level ``advanced:`` section, nested the same way
+# (``advanced: {tracking: {loop_nms: 10}}``); dotted names (``--set``, ROS parameters) are
+# the same for both.
+CORE_KEYS = (
+    "dataset",
+    "camera.width", "camera.height", "camera.max_pixels", "camera.crop", "camera.undistort",
+    "tracking.device", "tracking.threads", "tracking.flow_model", "tracking.motion_filter_thresh",
+    "tracking.keyframe_thresh", "tracking.max_keyframe_rate", "tracking.loop_closure",
+    "tracking.global_ba", "tracking.dspo",
+    "depth.mono_model", "depth.device",
+    "mapping.device", "mapping.raster_backend", "mapping.iters_per_keyframe",
+    "mapping.iters_first", "mapping.final_refine_iters", "mapping.time_budget",
+    "mapping.window_size", "mapping.vignetting", "mapping.mesh", "mapping.seed",
+    "mapping.revisit_cull_deg",
+    "ros.map_frame", "ros.odom_frame", "ros.camera_frame", "ros.optical_frame",
+    "ros.image_topic", "ros.camera_info_topic",
+    "evaluation.lpips_backbone", "evaluation.lpips_weights",
+)
+ADVANCED = "advanced"                # the YAML section holding every key not in CORE_KEYS
+
+
+def is_core(dotted: str) -> bool:
+    """Whether ``dotted`` (``section.key``) is one of the core keys a user tunes."""
+    return dotted in CORE_KEYS
+
+
+def _apply_advanced(cfg: SlamConfig, value: Any, where: str) -> None:
+    """The ``advanced:`` section of a YAML file: {section: {key: value}} of advanced keys."""
+    if not isinstance(value, dict):
+        raise ConfigError(f"{where}: '{ADVANCED}' must be a mapping of sections")
+    for sec, keys in value.items():
+        if not isinstance(keys, dict):
+            raise ConfigError(f"{where}: '{ADVANCED}.{sec}' must be a mapping of keys")
+        for k, v in keys.items():
+            dotted = f"{sec}.{k}"
+            if is_core(dotted):
+                raise ConfigError(f"{where}: '{dotted}' is a core key: write it under "
+                                  f"'{sec}:', not under '{ADVANCED}:'")
+            cfg.set(dotted, v)
+
+
 def _apply_yaml(cfg: SlamConfig, p: Path) -> None:
     if not p.is_file():
         raise ConfigError(f"config file not found: {p}")
@@ -437,6 +481,9 @@ def _apply_yaml(cfg: SlamConfig, p: Path) -> None:
     for k, v in data.items():
         if k == "dataset":
             cfg.dataset = str(v)
+            continue
+        if k == ADVANCED:
+            _apply_advanced(cfg, v, str(p))
             continue
         _assign(cfg, k, v, k)
 
@@ -466,14 +513,20 @@ def load_config(path: Optional[str | Path] = None,
     return cfg
 
 
-def dump_config(cfg: SlamConfig, path: str | Path) -> Path:
-    """Write ``cfg`` as a YAML file that :func:`load_config` reads back to an equal config."""
-    def plain(v):
-        if isinstance(v, dict):
-            return {k: plain(x) for k, x in v.items()}
-        return list(v) if isinstance(v, tuple) else v
+def dump_config(cfg: SlamConfig, path: str | Path, header: str = "") -> Path:
+    """Write ``cfg`` as a YAML file that :func:`load_config` reads back to an equal config:
+    the core keys under their sections, every other key under ``advanced:``; ``header``
+    (comment lines) first."""
+    core: Dict[str, Any] = {}
+    advanced: Dict[str, Any] = {}
+    for dotted, v in cfg.flat().items():
+        if "." not in dotted:
+            core[dotted] = v
+            continue
+        sec, key = dotted.split(".", 1)
+        (core if is_core(dotted) else advanced).setdefault(sec, {})[key] = v
     p = Path(path)
-    p.write_text(yaml.safe_dump(plain(cfg.to_dict()), sort_keys=False))
+    p.write_text(header + yaml.safe_dump({**core, ADVANCED: advanced}, sort_keys=False))
     return p
 
 

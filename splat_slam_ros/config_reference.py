@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 from splat_slam_ros import config as config_module
-from splat_slam_ros.config import SlamConfig, config_dir, load_config
+from splat_slam_ros.config import ADVANCED, SlamConfig, config_dir, is_core, load_config
 
 DEFAULT_OUT = Path(__file__).resolve().parent.parent / "docs" / "configuration.md"
 REGENERATE = "python -m splat_slam_ros.config_reference"
@@ -42,13 +42,22 @@ winning:
 2. `--preset NAME`: the shipped file `config/NAME.yaml` (see [Presets](#presets)),
    e.g. `splat-slam-run DATA --out runs/paper --preset paper`;
 3. `--config FILE.yaml`: a YAML file nesting keys under their section, e.g.
-   `tracking: {{keyframe_thresh: 3.0}}`; unknown keys and wrong types are errors;
+   `tracking: {{keyframe_thresh: 3.0}}`, the advanced keys under a top-level `{ADVANCED}:`
+   section nested the same way, e.g. `{ADVANCED}: {{tracking: {{loop_nms: 10}}}}` (an
+   advanced key is also read at its section; a core key under `{ADVANCED}:` is an error);
+   unknown keys and wrong types are errors;
 4. `--set KEY=VALUE`, repeatable, the value read as YAML, e.g.
    `--set tracking.keyframe_thresh=3.0 --set mapping.raster_backend=torch`.
 
 `splat-slam-run` and `splat-slam-launch` take all four. A single node takes the file and
 the keys as ROS parameters: `splat-slam-tracker-node --ros-args -p config_file:=my.yaml
 -p tracking.keyframe_thresh:=3.0`.
+
+The [core keys](#core-keys) are what a user sets for a camera, a machine or the outputs.
+Every other key is advanced: a method constant, a CPU budget or an ablation switch whose
+default was measured; its effect is described below and in the stage's page in docs/. A
+preset changes advanced keys for a data set or a schedule (see [Presets](#presets)).
+Every run writes the whole configuration it used to `OUT/config.yaml` in this layout.
 
 This file is generated; to regenerate it: `{REGENERATE}`
 (`--check` only tests that it is up to date).
@@ -164,7 +173,8 @@ def rows() -> List[Tuple[str, str, List[dict]]]:
             if dataclasses.is_dataclass(v):
                 continue
             typ = "list" if isinstance(v, tuple) else getattr(f.type, "__name__", f.type)
-            items.append({"key": f"{name}.{f.name}" if name else f.name, "type": typ,
+            key = f"{name}.{f.name}" if name else f.name
+            items.append({"key": key, "type": typ, "core": is_core(key),
                           "default": format_value(v), "description": comments.get(f.name, ""),
                           "choices": list(f.metadata.get("choices", ()))})
         out.append((name, text, items))
@@ -198,21 +208,31 @@ def _cell(text: str) -> str:
     return text.replace("|", "\\|")
 
 
+def _row(r: dict) -> str:
+    desc = r["description"]
+    if r["choices"]:
+        desc = _sentences(desc + ("." if desc and desc[-1] not in ".!?" else ""),
+                          "Choices: " + ", ".join(f"`{c}`" for c in r["choices"]))
+    return f"| `{r['key']}` | {r['type']} | `{r['default']}` | {_cell(desc)} |"
+
+
 def render() -> str:
-    """The whole reference as Markdown."""
+    """The whole reference as Markdown: the core keys in one table, then each section's
+    advanced keys."""
     lines = [HEADER]
-    for name, text, items in rows():
-        lines += [f"## {name or 'Top level'}", ""]
+    table = ["| key | type | default | description |", "|---|---|---|---|"]
+    sections = rows()
+    lines += ["## Core keys", "", "Written under their section in a YAML file.", ""] + table
+    lines += [_row(r) for _, _, items in sections for r in items if r["core"]] + [""]
+    for name, text, items in sections:
+        advanced = [r for r in items if not r["core"]]
+        if not advanced:
+            continue
+        lines += [f"## {name} (advanced)", ""]
         if text:
             lines += [text, ""]
-        lines += ["| key | type | default | description |", "|---|---|---|---|"]
-        for r in items:
-            desc = r["description"]
-            if r["choices"]:
-                desc = _sentences(desc + ("." if desc and desc[-1] not in ".!?" else ""),
-                                  "Choices: " + ", ".join(f"`{c}`" for c in r["choices"]))
-            lines.append(f"| `{r['key']}` | {r['type']} | `{r['default']}` | {_cell(desc)} |")
-        lines.append("")
+        lines += [f"Written under `{ADVANCED}: {{{name}: ...}}` in a YAML file.", ""] + table
+        lines += [_row(r) for r in advanced] + [""]
     lines += ["## Presets", "",
               "The files in `config/`: pass one as `--preset NAME` (without `.yaml`) or "
               "`--config config/NAME.yaml`. The last column lists the keys each changes "
