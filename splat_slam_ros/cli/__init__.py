@@ -1,0 +1,1 @@
+"""Command-line entry points of the library: argument parsing and printing over its packages."""

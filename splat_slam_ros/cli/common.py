@@ -7,14 +7,13 @@ from typing import Callable, Dict, List, Tuple, Type
 import yaml
 
 from splat_slam_ros.config import ConfigError
-from splat_slam_ros.depth.mono_depth import MonoDepthError
+from splat_slam_ros.tracking.mono_depth import MonoDepthError
 from splat_slam_ros.depth.proxy_depth import ProxyDepthError
-from splat_slam_ros.evaluation import MetricError
+from splat_slam_ros.evaluation.inputs import MetricError
 from splat_slam_ros.io.dataset_base import DatasetError
 from splat_slam_ros.io.keyframe_store import StoreError
 from splat_slam_ros.io.sensor_codec import ConversionError
 from splat_slam_ros.io.session import SessionError
-from splat_slam_ros.io.synth import SynthError
 from splat_slam_ros.io.trajectory_io import TrajectoryFormatError
 from splat_slam_ros.mapping.mapper import MapError
 from splat_slam_ros.mapping.mesh import MeshError
@@ -28,7 +27,7 @@ from splat_slam_ros.types import IntrinsicsError
 # Every project exception type that signals a user mistake (printed as ``error: ...``).
 USER_ERRORS: Tuple[Type[BaseException], ...] = (
     ConfigError, IntrinsicsError, DeviceError, TrajectoryFormatError, DatasetError,
-    ConversionError, MetricError, MonoDepthError, ProxyDepthError, SynthError,
+    ConversionError, MetricError, MonoDepthError, ProxyDepthError,
     RasterizerBuildError, MapError, MeshError, PlyError, TrackingError, FrontendError, StoreError,
     SessionError, FileNotFoundError)
 
@@ -38,9 +37,10 @@ def user_errors() -> Tuple[Type[BaseException], ...]:
     return USER_ERRORS
 
 
-def run_main(body: Callable[[], int]) -> int:
-    """Run a CLI body; user errors become `error: ...` and exit code 2."""
-    errs = user_errors()
+def run_main(body: Callable[[], int], extra_errors: Tuple[Type[BaseException], ...] = ()) -> int:
+    """Run a CLI body; user errors (and ``extra_errors``, those of a package beside the
+    library such as the scene generator's) become `error: ...` and exit code 2."""
+    errs = user_errors() + tuple(extra_errors)
     try:
         return body() or 0
     except KeyboardInterrupt:

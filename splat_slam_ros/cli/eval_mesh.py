@@ -10,14 +10,13 @@ ground-truth cameras saw (``--intrinsics`` needed; ``--no-cull`` to skip).
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Optional
 
-from splat_slam_ros.io.datasets import DatasetError, load_intrinsics
+from splat_slam_ros.evaluation.files import write_mesh_json
+from splat_slam_ros.evaluation.mesh import (DEFAULT_OCCLUSION_TOL_M, DEFAULT_SAMPLES,
+                                            DEFAULT_THRESHOLD_M, evaluate_mesh_files)
 from splat_slam_ros.mapping.mesh import MeshError
-from splat_slam_ros.mesh_eval import (DEFAULT_OCCLUSION_TOL_M, DEFAULT_SAMPLES,
-                                      DEFAULT_THRESHOLD_M, evaluate_meshes)
 
 MESH_KEYS = ("accuracy_cm", "completion_cm", "completion_ratio_pct")
 RUN_DIR_MESH = "map_mesh.ply"
@@ -67,23 +66,15 @@ def check_mesh_args(args) -> bool:
 
 
 def run_mesh_eval(args, ate_result: Optional[dict], gt_poses=None) -> dict:
-    """Evaluate, print the table and ``MESH_*`` lines, merge into ``--json``; returns numbers."""
-    align = None
-    if ate_result is not None:
-        align = (ate_result["scale"], ate_result["rotation"], ate_result["translation"])
-    poses, K = None, None
-    if gt_poses is not None and not args.no_cull:
-        try:
-            K, _ = load_intrinsics(args.intrinsics)
-        except DatasetError as e:
-            raise MeshError(str(e)) from None
-        poses = gt_poses[::args.cull_every]
-    m = evaluate_meshes(args.mesh, args.mesh_gt, align=align, poses=poses, K=K,
-                        occlusion=not args.no_occlusion, occlusion_tol=args.occlusion_tol,
-                        n_samples=args.samples, threshold_m=args.mesh_threshold,
-                        progress=True)
+    """Evaluate (:func:`~splat_slam_ros.evaluation.mesh.evaluate_mesh_files`), print the table and
+    ``MESH_*`` lines, merge into ``--json``; returns numbers."""
+    m = evaluate_mesh_files(args.mesh, args.mesh_gt, ate_result, gt_poses, args.intrinsics,
+                            cull=not args.no_cull, cull_every=args.cull_every,
+                            occlusion=not args.no_occlusion, occlusion_tol=args.occlusion_tol,
+                            n_samples=args.samples, threshold_m=args.mesh_threshold,
+                            progress=True)
     how = (f"aligned with the trajectory ({args.align}, scale {m['scale']:.4f})"
-           if align is not None else "not aligned (no --gt/--est)")
+           if ate_result is not None else "not aligned (no --gt/--est)")
     cull = (f"culled to {m['cull_views']} GT views"
             + (" with occlusion" if m["occlusion"] else " (frustum only)")
             + f": kept {m['est_faces_kept_pct']:.1f}% est / {m['gt_faces_kept_pct']:.1f}% GT faces"
@@ -103,10 +94,6 @@ def run_mesh_eval(args, ate_result: Optional[dict], gt_poses=None) -> dict:
     for k in MESH_KEYS:
         print(f"MESH_{k} {m[k]:.4f}")
     if args.json:
-        p = Path(args.json)
-        out = json.loads(p.read_text()) if ate_result is not None and p.is_file() else {}
-        out["mesh"] = {"est": str(args.mesh), "gt": str(args.mesh_gt), **m}
-        p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(json.dumps(out, indent=2) + "\n")
+        write_mesh_json(args.json, m, args.mesh, args.mesh_gt, merge=ate_result is not None)
         print(f"wrote {args.json}")
     return m

@@ -31,7 +31,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from splat_slam_ros.cli.common import run_main
-    from splat_slam_ros.report import ReportError, write_report
+    from splat_slam_ros.report.build import write_report
+    from splat_slam_ros.report.run_record import ReportError
 
     def body() -> int:
         try:

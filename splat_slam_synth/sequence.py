@@ -14,14 +14,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from splat_slam_ros.io.synth.camera import CameraEffects
-from splat_slam_ros.io.synth.options import (DEPTH_SCALE, GAP_WARN_S, RealismOptions, SynthError,
-                                            check_scene, default_intrinsics, parse_size,
-                                            resolve_realism)
-from splat_slam_ros.io.synth.render import render_view
-from splat_slam_ros.io.synth.scene import Scene
-from splat_slam_ros.io.synth.variants import build_scene
-from splat_slam_ros.io.synth.trajectories import PoseInterpolator, frame_stamps, load_trajectory
+from splat_slam_synth.camera import CameraEffects
+from splat_slam_synth.options import (DEPTH_SCALE, GAP_WARN_S, RealismOptions, SynthError,
+                                     check_scene, default_intrinsics, parse_size,
+                                     resolve_realism)
+from splat_slam_synth.render import render_view
+from splat_slam_synth.scene import Scene
+from splat_slam_synth.variants import build_scene
+from splat_slam_synth.trajectories import PoseInterpolator, frame_stamps, load_trajectory
 from splat_slam_ros.io.trajectory_io import write_tum
 from splat_slam_ros.runtime import DeviceError, limit_threads, resolve_device
 from splat_slam_ros.types import Frame, Intrinsics

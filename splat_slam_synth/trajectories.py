@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from splat_slam_ros.geometry import pose_from_tq, pose_to_tq, quat_slerp
-from splat_slam_ros.io.synth.options import GAP_WARN_S, SynthError
+from splat_slam_synth.options import GAP_WARN_S, SynthError
 from splat_slam_ros.io.trajectory_io import detect_format, read_trajectory
 
 

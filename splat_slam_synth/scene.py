@@ -10,9 +10,9 @@ from typing import Dict, List, Optional, Tuple, Union
 import numpy as np
 import torch
 
-from splat_slam_ros.io.synth.options import TEX_LEVELS, TEX_SIZE, SynthError
-from splat_slam_ros.io.synth.textures import load_texture_images, mip_levels, to_u8, procedural_texture
-from splat_slam_ros.io.synth.trajectories import UP_AXES, estimate_up
+from splat_slam_synth.options import TEX_LEVELS, TEX_SIZE, SynthError
+from splat_slam_synth.textures import load_texture_images, mip_levels, to_u8, procedural_texture
+from splat_slam_synth.trajectories import UP_AXES, estimate_up
 
 
 def _point_box_distance(P: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

@@ -9,11 +9,11 @@ from typing import Dict, List, NamedTuple, Optional, Sequence
 
 import numpy as np
 
-from splat_slam_ros.io.synth.options import TEX_SIZE, SynthError, check_scene
-from splat_slam_ros.io.synth.scene import (Scene, build_room, _exit_dist, _fit_context, _fit_room, _overlaps,
-                                          _place_boxes, _point_box_distance, _scene_info,
-                                          make_scene)
-from splat_slam_ros.io.synth.textures import PERIODIC, procedural_texture
+from splat_slam_synth.options import TEX_SIZE, SynthError, check_scene
+from splat_slam_synth.scene import (Scene, build_room, _exit_dist, _fit_context, _fit_room, _overlaps,
+                                   _place_boxes, _point_box_distance, _scene_info,
+                                   make_scene)
+from splat_slam_synth.textures import PERIODIC, procedural_texture
 
 _SLOT0 = 1000          # texture slots of the variants (apart from make_scene's 0, 1, 2 ...)
 

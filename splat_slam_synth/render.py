@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import torch
 
-from splat_slam_ros.io.synth.options import TEX_LEVELS, TEX_SIZE
-from splat_slam_ros.io.synth.scene import Scene
+from splat_slam_synth.options import TEX_LEVELS, TEX_SIZE
+from splat_slam_synth.scene import Scene
 from splat_slam_ros.types import Intrinsics
 
 

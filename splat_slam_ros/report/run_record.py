@@ -2,17 +2,14 @@
 
 Only files are read (metrics.json, trajectory_*.txt, groundtruth.txt, config.yaml, renders/),
 never a live pipeline, so a report built at the end of a run and one rebuilt later by
-``splat-slam-report`` are the same. Also here: what a run records for the report
-(:func:`save_config`, :class:`WarningRecorder`).
+``splat-slam-report`` are the same.
 """
 from __future__ import annotations
 
 import base64
 import html
 import json
-import logging
 import math
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
@@ -20,95 +17,22 @@ from typing import Dict, List, Optional, Tuple
 import cv2
 import numpy as np
 import torch
-import yaml
 
-from splat_slam_ros import report_plots as rp
-from splat_slam_ros.evaluation import MetricError, align_poses, ate
+from splat_slam_ros.evaluation.inputs import MetricError
+from splat_slam_ros.evaluation.trajectory import align_poses, ate
 from splat_slam_ros.io.trajectory_io import TrajectoryFormatError, read_trajectory
 from splat_slam_ros.mapping.keyframe_views import KEYFRAMES_JSON
+from splat_slam_ros.report import plots as rp
 
 REPORT_HTML = "report.html"
 REPORT_PNG = "report.png"
 CONFIG_YAML = "config.yaml"
 GROUNDTRUTH = "groundtruth.txt"
 THUMB_WIDTH = 256
-MAX_WARNINGS = 200
 
 
 class ReportError(ValueError):
     """A user-facing report mistake (not a run directory, unreadable metrics)."""
-
-
-# ====================================================================== recording
-def save_config(cfg, path) -> Path:
-    """The configuration a run used, as YAML that ``--config`` loads back."""
-    def plain(v):
-        if isinstance(v, dict):
-            return {k: plain(x) for k, x in v.items()}
-        if isinstance(v, (list, tuple)):
-            return [plain(x) for x in v]
-        return v
-    p = Path(path)
-    p.write_text("# configuration used by this run (load it back with --config)\n"
-                 + yaml.safe_dump(plain(cfg.to_dict()), sort_keys=False))
-    return p
-
-
-class WarningRecorder(logging.Handler):
-    """Collects the WARNING (and worse) log records of the project's loggers during a run.
-
-    ``WarningRecorder()`` starts listening; ``close()`` stops and returns the messages.
-    Messages still reach stderr as before when no other handler is configured."""
-
-    def __init__(self, logger_name: str = "splat_slam_ros"):
-        super().__init__(logging.WARNING)
-        self.messages: List[str] = []
-        self.n_dropped = 0
-        self._logger = logging.getLogger(logger_name)
-        self._logger.addHandler(self)
-
-    def emit(self, record: logging.LogRecord) -> None:
-        if len(self.messages) < MAX_WARNINGS:
-            self.messages.append(f"{record.levelname.lower()}: {record.getMessage()}")
-        else:
-            self.n_dropped += 1
-        lg: Optional[logging.Logger] = logging.getLogger(record.name)
-        others, recorders = 0, []
-        while lg is not None:
-            for h in lg.handlers:
-                if isinstance(h, WarningRecorder):
-                    recorders.append(h)
-                else:
-                    others += 1
-            lg = lg.parent if lg.propagate else None
-        if others == 0 and recorders[0] is self and logging.lastResort is not None:
-            logging.lastResort.handle(record)     # keep the default stderr output, once
-
-    def close(self) -> List[str]:
-        self._logger.removeHandler(self)
-        super().close()
-        more = [f"... and {self.n_dropped} more warnings"] if self.n_dropped else []
-        return self.messages + more
-
-
-class WarningTee:
-    """A text stream (the launcher's console) that passes everything on and keeps the lines
-    that are warnings: ROS ``[WARN]``/``[ERROR]`` logs, ``warning`` lines and tracking-lost
-    messages of any node. ``lines`` holds them (at most MAX_WARNINGS)."""
-    PATTERN = re.compile(r"\[(WARN|ERROR|FATAL)\]|\bwarning\b|tracking lost", re.IGNORECASE)
-
-    def __init__(self, stream):
-        self.stream = stream
-        self.lines: List[str] = []
-
-    def write(self, text: str) -> int:
-        for line in text.splitlines():
-            if len(self.lines) < MAX_WARNINGS and self.PATTERN.search(line):
-                self.lines.append(" ".join(line.split()))
-        return self.stream.write(text)
-
-    def flush(self) -> None:
-        self.stream.flush()
 
 
 # ====================================================================== loading

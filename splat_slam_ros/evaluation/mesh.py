@@ -6,11 +6,12 @@ samples to the nearest estimated sample. Completion ratio [%]: share of ground-t
 within 5 cm of the estimate. This follows the NICE-SLAM / Point-SLAM evaluation the paper
 uses: both meshes are sampled uniformly by area (200k points each by default), the estimate
 is first brought into the ground-truth frame with the trajectory alignment (Sim(3) or SE(3)
-from ``evaluation.ate``), and mesh parts no camera saw are culled: a face is kept when one of
-its vertices projects into some camera's image in front of it and is not hidden behind the
-ground-truth surface (depth ray-cast on the ground-truth mesh, tolerance ``occlusion_tol``).
+from :func:`~splat_slam_ros.evaluation.trajectory.ate`), and mesh parts no camera saw are
+culled: a face is kept when one of its vertices projects into some camera's image in front
+of it and is not hidden behind the ground-truth surface (depth ray-cast on the ground-truth
+mesh, tolerance ``occlusion_tol``).
 
-    from splat_slam_ros.mesh_eval import evaluate_meshes
+    from splat_slam_ros.evaluation.mesh import evaluate_meshes
     m = evaluate_meshes("est.ply", "gt.ply", align=(s, R, t), poses=gt_c2w, K=intrinsics)
     m["accuracy_cm"], m["completion_cm"], m["completion_ratio_pct"]
 """
@@ -24,6 +25,7 @@ import torch
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
+from splat_slam_ros.io.datasets import DatasetError, load_intrinsics
 from splat_slam_ros.mapping.mesh import MeshError, load_mesh
 from splat_slam_ros.types import Intrinsics
 
@@ -178,3 +180,27 @@ def evaluate_meshes(est: MeshLike, gt: MeshLike,
                             "poses or intrinsics?")
     out.update(mesh_metrics(est, gt, n_samples, threshold_m, seed))
     return out
+
+
+def evaluate_mesh_files(est: str, gt: str, ate_result: Optional[dict] = None, gt_poses=None,
+                        intrinsics: Optional[str] = None, cull: bool = True, cull_every: int = 1,
+                        occlusion: bool = True, occlusion_tol: float = DEFAULT_OCCLUSION_TOL_M,
+                        n_samples: int = DEFAULT_SAMPLES, threshold_m: float = DEFAULT_THRESHOLD_M,
+                        progress: bool = True) -> Dict:
+    """:func:`evaluate_meshes` of two mesh files as ``splat-slam-eval --mesh`` runs it: aligned
+    with the trajectory's ATE alignment (``ate_result``, or not aligned), culled to every
+    ``cull_every``-th ground-truth pose with the intrinsics file ``intrinsics``."""
+    align = None
+    if ate_result is not None:
+        align = (ate_result["scale"], ate_result["rotation"], ate_result["translation"])
+    poses, K = None, None
+    if gt_poses is not None and cull:
+        try:
+            K, _ = load_intrinsics(intrinsics)
+        except DatasetError as e:
+            raise MeshError(str(e)) from None
+        poses = gt_poses[::cull_every]
+    return evaluate_meshes(est, gt, align=align, poses=poses, K=K,
+                           occlusion=occlusion, occlusion_tol=occlusion_tol,
+                           n_samples=n_samples, threshold_m=threshold_m,
+                           progress=progress)

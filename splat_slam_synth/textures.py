@@ -10,7 +10,7 @@ from typing import Dict, List, Tuple
 import cv2
 import numpy as np
 
-from splat_slam_ros.io.synth.options import IMAGE_EXTS, TEX_SIZE, SynthError
+from splat_slam_synth.options import IMAGE_EXTS, TEX_SIZE, SynthError
 
 
 _FREQ_CACHE: Dict = {}

@@ -1,4 +1,4 @@
-"""The run report: ``report.html`` + ``report.png`` built from a run directory's files only.
+"""Building the run report: ``report.html`` + ``report.png`` from a run directory's files only.
 
 A run directory (``splat-slam-run`` / ``splat-slam-launch`` / ``./run.sh demo`` output) holds
 ``metrics.json``, ``trajectory_full.txt``, ``trajectory_keyframes.txt``, ``groundtruth.txt``
@@ -13,17 +13,13 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Tuple
 
-from splat_slam_ros import report_plots as rp
-from splat_slam_ros.report_data import (CONFIG_YAML, REPORT_HTML, REPORT_PNG, TILE_NAMES,
-                                        ReportError, RunRecord, WarningRecorder, WarningTee,
-                                        headline,
-                                        keyframe_positions, keyframe_tiles, load_run,
-                                        save_config, stage_times, worst_keyframe)
-from splat_slam_ros.report_html import build_html
-
-__all__ = ["write_report", "summary_figure", "load_run", "save_config", "ReportError",
-           "RunRecord", "WarningRecorder", "WarningTee", "REPORT_HTML", "REPORT_PNG",
-           "CONFIG_YAML"]
+from splat_slam_ros.report import plots as rp
+from splat_slam_ros.report.page import build_html
+from splat_slam_ros.report.recording import save_config
+from splat_slam_ros.report.run_record import (CONFIG_YAML, REPORT_HTML, REPORT_PNG, TILE_NAMES,
+                                              ReportError, RunRecord, headline,
+                                              keyframe_positions, keyframe_tiles, load_run,
+                                              stage_times, worst_keyframe)
 
 
 # ====================================================================== summary figure
@@ -79,5 +75,3 @@ def write_report(run_dir, cfg=None, out_dir=None,
     (out / REPORT_PNG).write_bytes(png)
     (out / REPORT_HTML).write_text(page, encoding="utf-8")
     return out / REPORT_HTML, out / REPORT_PNG
-
-

@@ -1,5 +1,8 @@
 """Synthetic RGB-D sequences in the TUM layout, driven by real recorded camera trajectories.
 
+The scene generator, installed beside the library (``splat_slam_ros``, whose types, geometry
+and trajectory files it uses); its command is ``splat-slam-synth`` (``cli``).
+
 ``generate_sequence`` samples N camera frames at ``fps`` along a trajectory (TUM, KITTI,
 EuRoC or the built-in hand-held path), fits a textured room with furniture-like boxes
 around it, renders RGB + exact z-depth by vectorised ray casting (analytic ray/box slab
@@ -16,7 +19,7 @@ the ``variants`` module). Camera realism (motion blur, rolling shutter, auto-exp
 vignetting, shot/read noise, JPEG; presets ``realistic`` and ``harsh``) is applied to RGB
 only; depth stays clean for evaluation.
 
-Conventions follow ``types.py``: poses camera-to-world, OpenCV camera axes (x right,
+Conventions follow ``splat_slam_ros.types``: poses camera-to-world, OpenCV camera axes (x right,
 y down, z forward), pixel centres at integer coordinates. Internally the scene lives in a
 "room frame" (z up, origin at the mean camera position); ``Scene.T_room_world`` maps
 world points into it.
@@ -24,21 +27,22 @@ world points into it.
 Modules: ``options`` (constants, errors, realism settings), ``trajectories`` (built-in path,
 file loading, interpolation), ``textures``, ``scene`` (room + boxes fitted to a trajectory),
 ``variants`` (the other scenes),
-``render`` (ray casting), ``camera`` (photometric effects) and ``sequence`` (plan + write).
+``render`` (ray casting), ``camera`` (photometric effects), ``sequence`` (plan + write) and
+``cli`` (the command line).
 """
-from splat_slam_ros.io.synth.camera import CameraEffects
-from splat_slam_ros.io.synth.options import (DEPTH_SCALE, GAP_WARN_S, REALISM_PRESETS, SCENES,
-                                            TEX_LEVELS, TEX_SIZE, RealismOptions, SynthError,
-                                            check_scene, default_intrinsics, parse_size,
-                                            resolve_realism)
-from splat_slam_ros.io.synth.render import render_frame
-from splat_slam_ros.io.synth.scene import Scene, make_scene
-from splat_slam_ros.io.synth.variants import build_scene
-from splat_slam_ros.io.synth.sequence import (SequencePlan, depth_to_png16, generate_sequence,
-                                             plan_sequence, rolling_shutter_bands)
-from splat_slam_ros.io.synth.textures import PROCEDURAL, procedural_texture
-from splat_slam_ros.io.synth.trajectories import (PoseInterpolator, builtin_trajectory, estimate_up,
-                                                 frame_stamps, load_trajectory)
+from splat_slam_synth.camera import CameraEffects
+from splat_slam_synth.options import (DEPTH_SCALE, GAP_WARN_S, REALISM_PRESETS, SCENES,
+                                     TEX_LEVELS, TEX_SIZE, RealismOptions, SynthError,
+                                     check_scene, default_intrinsics, parse_size,
+                                     resolve_realism)
+from splat_slam_synth.render import render_frame
+from splat_slam_synth.scene import Scene, make_scene
+from splat_slam_synth.variants import build_scene
+from splat_slam_synth.sequence import (SequencePlan, depth_to_png16, generate_sequence,
+                                      plan_sequence, rolling_shutter_bands)
+from splat_slam_synth.textures import PROCEDURAL, procedural_texture
+from splat_slam_synth.trajectories import (PoseInterpolator, builtin_trajectory, estimate_up,
+                                          frame_stamps, load_trajectory)
 
 __all__ = [
     "CameraEffects", "DEPTH_SCALE", "GAP_WARN_S", "REALISM_PRESETS", "TEX_LEVELS", "TEX_SIZE",

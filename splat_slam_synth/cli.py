@@ -6,7 +6,7 @@ import sys
 from typing import List, Optional
 
 from splat_slam_ros.cli.common import run_main
-from splat_slam_ros.io.synth.options import REALISM_PRESETS, SCENES
+from splat_slam_synth.options import REALISM_PRESETS, SCENES, SynthError
 
 
 def _scene_lines() -> str:
@@ -124,7 +124,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
 
     def body() -> int:
-        from splat_slam_ros.io.synth import generate_sequence
+        from splat_slam_synth import generate_sequence
         stats: dict = {}
         out = generate_sequence(
             args.trajectory, args.frames, args.size, args.out, fps=args.fps, start=args.start,
@@ -141,7 +141,7 @@ def main(argv: Optional[List[str]] = None) -> int:
               f"scene setup {stats['setup_s']:.1f} s)")
         return 0
 
-    return run_main(body)
+    return run_main(body, extra_errors=(SynthError,))
 
 
 if __name__ == "__main__":

@@ -11,11 +11,11 @@ from typing import Dict, List, Sequence
 
 import numpy as np
 
-from splat_slam_ros import report_plots as rp
-from splat_slam_ros.report_data import (TILE_NAMES, THUMB_WIDTH, RunRecord, data_uri,
-                                        depth_unit, fmt, headline, keyframe_positions,
-                                        keyframe_tiles, stage_times,
-                                        worst_keyframe)
+from splat_slam_ros.report import plots as rp
+from splat_slam_ros.report.run_record import (TILE_NAMES, THUMB_WIDTH, RunRecord, data_uri,
+                                              depth_unit, fmt, headline, keyframe_positions,
+                                              keyframe_tiles, stage_times,
+                                              worst_keyframe)
 
 CSS = """
 body{font-family:system-ui,sans-serif;margin:1.5em;color:#222;max-width:1500px}

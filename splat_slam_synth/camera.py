@@ -7,7 +7,7 @@ from typing import Tuple
 import cv2
 import numpy as np
 
-from splat_slam_ros.io.synth.options import RealismOptions
+from splat_slam_synth.options import RealismOptions
 from splat_slam_ros.types import Intrinsics
 
 
