@@ -20,7 +20,8 @@ from typing import Dict, Iterable, List, Optional
 
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.io.prefetch import read_frames
-from splat_slam_ros.roles import DepthRole, LoopRole, MapperRole, Outbox, TrackerRole
+from splat_slam_ros.mapper_role import MapperRole
+from splat_slam_ros.roles import DepthRole, LoopRole, Outbox, TrackerRole
 from splat_slam_ros.tracking.flow_frontend import make_flow_predictor
 from splat_slam_ros.types import TrackingResult, TrackStep
 from splat_slam_ros.types import Frame, Intrinsics, UpdateEvent

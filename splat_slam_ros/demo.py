@@ -43,7 +43,7 @@ def main(argv=None) -> int:
         from splat_slam_ros.config import load_config
         from splat_slam_ros.io.datasets import open_dataset
         from splat_slam_ros.io.bagio import write_bag
-        from splat_slam_ros.io.synth import generate_sequence
+        from splat_slam_synth import generate_sequence
 
         cfg = load_config(args.config)       # first: a bad file stops before any work
         out = Path(args.out)
@@ -71,7 +71,7 @@ def main(argv=None) -> int:
         if args.mode == "graph":
             import os
 
-            from splat_slam_nodes import launch as graph
+            from splat_slam_nodes.tools import launch as graph
             from splat_slam_ros.ros_env import random_domain_id
             # an isolated DDS domain, so another ROS graph on this machine or LAN cannot
             # cross-talk with the demo (set ROS_DOMAIN_ID yourself to choose one)
@@ -99,7 +99,8 @@ def main(argv=None) -> int:
               f"{run_dir / 'report.png'})")
         return 0
 
-    return run_main(body)
+    from splat_slam_synth import SynthError
+    return run_main(body, extra_errors=(SynthError,))
 
 
 if __name__ == "__main__":

@@ -32,7 +32,8 @@ from typing import Dict, List
 
 from splat_slam_ros.config import MappingConfig, SlamConfig
 from splat_slam_ros.coordinator import Coordinator
-from splat_slam_ros.io.session import Session, loop_graph, map_state, restore_map_state
+from splat_slam_ros.io.session import Session, loop_graph, map_state
+from splat_slam_ros.mapping.persistence import restore_map_state
 from splat_slam_ros.tracking.relocalise import ExtendTracker
 from splat_slam_ros.types import Intrinsics
 

@@ -5,7 +5,9 @@ transport: which inputs it takes, in which order, what it recognises as a replay
 groups the tracker's warm-up batch, what it persists for a restart and when it is final.
 A role never publishes; every handler returns an :class:`Outbox` of what the stage sends
 on. The in-process :class:`~splat_slam_ros.coordinator.Coordinator` routes outboxes between
-the four roles; each ROS node wraps one role and turns outboxes into messages.
+the four roles; each ROS node wraps one role and turns outboxes into messages. The tracker,
+loop-closure and depth roles are here; the mapper's,
+:class:`~splat_slam_ros.mapper_role.MapperRole`, is in mapper_role.py.
 
 Identity of a message (replays after a restart are skipped, never applied twice):
   keyframe        its ``kf_id``                     (dense from 0, never reused)
@@ -21,20 +23,14 @@ Finalisation (each ``final`` dict becomes a ``finalized`` graph event):
 """
 from __future__ import annotations
 
-import json
-import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple
 
-import numpy as np
 import torch
 
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.depth.proxy_depth import ProxyDepthEstimator, ProxyDepthResult
-from splat_slam_ros.io.keyframe_store import (KeyframeStore, keyframe_depth, mapper_state,
-                                              restore_mapper)
-from splat_slam_ros.io.trajectory_io import write_tum
+from splat_slam_ros.io.keyframe_store import KeyframeStore
 from splat_slam_ros.tracking.loop_closure import LoopCloser
 from splat_slam_ros.tracking.tracker import Tracker
 from splat_slam_ros.tracking.tracker_state import (TrackerCheckpoint, intrinsics_from_list,
@@ -86,18 +82,8 @@ def _newest_seq(seq: int, events) -> int:
     return max([int(seq)] + [int(e.seq) for e in events])
 
 
-MIN_DEPTH_FRACTION = 0.01   # a proxy depth anchoring fewer pixels is held by the mapper
-
-
-def _anchoring_fraction(pd: ProxyDepth, ba_weight: float) -> float:
-    """Share of pixels whose depth anchors new Gaussians: full-weight depth (the mapper
-    seeds none from down-weighted BA depth in multi-view holes)."""
-    d = np.asarray(pd.depth)
-    ok = np.isfinite(d) & (d > 0) & (np.asarray(pd.depth_weight(ba_weight)) >= 1)
-    return float(ok.mean()) if ok.size else 0.0
-
-
-def _ack(kf: KeyframeData) -> Tuple[int, int, float]:
+def ack(kf: KeyframeData) -> Tuple[int, int, float]:
+    """The (frame index, kf_id, timestamp) a stage acknowledges a consumed keyframe with."""
     return int(kf.frame_index), int(kf.kf_id), float(kf.timestamp)
 
 
@@ -324,7 +310,7 @@ class LoopRole:
     def on_keyframe(self, kf: KeyframeData) -> Outbox:
         # a replay of a keyframe consumed before a restart is acked again: the first ack may
         # have died with the old process, and the lockstep player waits for it
-        again = [_ack(kf)] if kf.kf_id in self.kf_ids else []
+        again = [ack(kf)] if kf.kf_id in self.kf_ids else []
         batch = self.batcher.add(kf, lambda k: k in self.kf_ids)
         if not batch:
             return Outbox(acks=again)
@@ -342,7 +328,7 @@ class LoopRole:
             staged = self._loop_edges_staged()
             self.store.commit(staged, None)          # the edge records ...
             self.store.commit({}, self.meta())       # ... then the pairs that use them
-        return Outbox(updates=events, acks=again + [_ack(k) for k in batch])
+        return Outbox(updates=events, acks=again + [ack(k) for k in batch])
 
     def on_update(self, ev: UpdateEvent) -> Outbox:
         if ev.source not in self.update_sources or ev.seq <= self.trk_seq:
@@ -502,299 +488,3 @@ class DepthRole:
         return Outbox(final={"digest": {str(k): v for k, v in self.revision.items()},
                              "keyframes": len(self.kf_stamp)})
 
-
-# ============================================================================ mapper
-class MapperRole:
-    """Keyframes + proxy depths -> Gaussian map (Eq. 11), deformed by every newer depth (§3.2)."""
-    name = "mapper"
-    update_sources = ("tracker", "loop")
-
-    def __init__(self, cfg: SlamConfig, store: Optional[KeyframeStore] = None,
-                 snapshot_every: int = 1):
-        self.cfg = cfg
-        self.mapper: Optional["Mapper"] = None   # noqa: F821 (mapping.mapper, imported in _map)
-        self.intr: Optional[Intrinsics] = None
-        self.pending_kf: Dict[int, KeyframeData] = {}
-        self.pending_depth: Dict[int, ProxyDepth] = {}
-        self.offered: Dict[int, bool] = {}          # kf_id -> mapped?
-        self.taken: Dict[int, int] = {}             # kf_id -> last revision taken
-        self.last_update_seq = 0
-        self.digest: Optional[Dict[int, int]] = None
-        self.finalized = False
-        self.dirty: set = set()                     # keyframes whose depth changed
-        self.held: set = set()                      # acked, waiting for a depth (see _try_map)
-        self.gone: set = set()                      # merged since the last snapshot
-        self.loop_seen = False                      # a loop closer's updates arrive
-        self.settled: set = set()                   # keyframes loop closure has corrected
-        self.newest_kf = -1
-        self.background_mark = 0                    # Mapper.background_iters at the last keyframe
-        self.input_waiting: Optional[Callable[[], bool]] = None  # the node's queue (live)
-        self.snapshot_every = max(1, int(snapshot_every))
-        self.n_since_snapshot = 0
-        self.timings: Dict[str, float] = {"mapping": 0.0, "deformation": 0.0, "refine": 0.0}
-        self.store = store
-        if store is not None and store.exists:
-            self._resume()
-
-    # ------------------------------------------------------------ persistence
-    def _resume(self) -> None:
-        meta = self.store.meta
-        self.offered = {int(k): bool(v) for k, v in meta.get("offered", {}).items()}
-        self.taken = {int(k): int(v) for k, v in meta.get("taken", {}).items()}
-        self.last_update_seq = int(meta.get("last_update_seq", 0))
-        if self.store.has("map") and meta.get("intrinsics"):
-            self.intr = Intrinsics(*meta["intrinsics"][:4], *map(int, meta["intrinsics"][4:6]))
-            self.mapper = restore_mapper(self.store.get("map"), meta["map"], self.cfg, self.intr,
-                                         lambda k: self.store.get(f"kf{k}_image")["image"],
-                                         lambda k: self.store.get(f"kf{k}_mdepth"))
-
-    def snapshot(self) -> None:
-        """Commit the map with exactly the inputs it reflects (offered, taken revisions)."""
-        if self.store is None or self.mapper is None:
-            return
-        arrays, meta = mapper_state(self.mapper)
-        staged = {f"kf{k}_mdepth": self.store.stage(f"kf{k}_mdepth",
-                                                     **keyframe_depth(self.mapper, k))
-                  for k in sorted(self.dirty) if k in self.mapper.keyframes}
-        staged.update({f"kf{k}_image": self.store.stage(f"kf{k}_image", image=np.asarray(
-            self.mapper.keyframes[k].image.cpu(), np.uint8)) for k in sorted(self.dirty) if
-            k in self.mapper.keyframes and not self.store.has(f"kf{k}_image")})
-        for k in sorted(self.gone):                    # merged keyframes: records deleted
-            staged[f"kf{k}_mdepth"] = staged[f"kf{k}_image"] = None
-        self.dirty.clear()
-        self.gone.clear()
-        i = self.intr
-        staged["map"] = self.store.stage("map", **arrays)
-        self.store.commit(staged, {"map": meta,
-                                   "offered": {str(k): v for k, v in self.offered.items()},
-                                   "taken": {str(k): v for k, v in self.taken.items()},
-                                   "intrinsics": [i.fx, i.fy, i.cx, i.cy, i.width, i.height],
-                                   "last_update_seq": self.last_update_seq})
-        self.n_since_snapshot = 0
-
-    def restore(self, mapper: "Mapper", intr: Intrinsics) -> None:  # noqa: F821
-        """Start from a loaded map (extend runs): its keyframes count as mapped."""
-        self.mapper, self.intr = mapper, intr
-        self.offered = {int(k): True for k in mapper.keyframes}
-        self.dirty = set(self.offered)
-        self.snapshot()
-
-    def reset(self) -> None:
-        """Drop the map and everything it consumed; the next keyframes start a new map."""
-        self.mapper = None
-        for d in (self.pending_kf, self.pending_depth, self.offered, self.taken, self.dirty,
-                  self.gone, self.settled):
-            d.clear()
-        if self.store is not None:
-            self.store.clear()
-
-    def save(self, directory: Path, final: bool = False) -> dict:
-        """map.ply (+ map_mesh.ply), renders/ and metrics of the map now (``final``: mapper_metrics.json, the
-        tracker writes the run's trajectories; else also trajectory_keyframes + metrics.json)."""
-        d = Path(directory)
-        d.mkdir(parents=True, exist_ok=True)
-        metrics: dict = {}
-        if self.mapper is None:
-            return metrics
-        self.mapper.save_ply(d / "map.ply")
-        if self.cfg.mapping.mesh:
-            # Open3D takes 1.5 s to import: loaded when a mesh is written, not by every stage
-            from splat_slam_ros.mapping.mesh import map_mesh_output
-            metrics["mesh"] = map_mesh_output(self.mapper, d / "map_mesh.ply")
-        metrics.update(self.mapper.evaluate_keyframes(d / "renders"))
-        metrics["map"] = self.mapper.stats()
-        if not final:
-            write_tum(d / "trajectory_keyframes.txt", *self.mapper.keyframe_trajectory())
-        (d / ("mapper_metrics.json" if final else "metrics.json")).write_text(
-            json.dumps(metrics, indent=2, default=str))
-        return metrics
-
-    # ------------------------------------------------------------ inputs
-    def on_keyframe(self, kf: KeyframeData) -> Outbox:
-        if kf.kf_id in self.offered:        # consumed before a restart: ack again (LoopRole)
-            return Outbox(acks=[_ack(kf)])
-        if kf.kf_id in self.pending_kf:
-            return Outbox()
-        self.newest_kf = max(self.newest_kf, int(kf.kf_id))
-        self.pending_kf[kf.kf_id] = kf
-        return self._try_map()
-
-    def on_proxy_depth(self, pd: ProxyDepth) -> Outbox:
-        k = int(pd.kf_id)
-        if pd.revision <= self.taken.get(k, -1):        # a replay
-            return Outbox()
-        if int(pd.update_seq) >= LOOP_SEQ_START:        # made after a loop-closure update
-            self.loop_seen = True
-            self.settled.add(k)
-        if self.mapper is not None and k in self.mapper.keyframes:
-            # Map deformation (§3.2): the keyframe's Gaussians follow its new pose and depth
-            t0 = time.perf_counter()
-            self.mapper.apply_update(k, pd.pose, pd.depth,
-                                     pd.depth_weight(self.cfg.mapping.ba_depth_weight))
-            self.taken[k] = int(pd.revision)
-            self.dirty.add(k)
-            self._merge_revisit(k, pd)
-            self.timings["deformation"] += time.perf_counter() - t0
-            self.last_update_seq = max(self.last_update_seq, int(pd.update_seq))
-            out = Outbox()
-        elif k in self.offered:                         # consumed, not mapped (redundant view)
-            self.taken[k] = int(pd.revision)
-            out = Outbox()
-        else:
-            old = self.pending_depth.get(k)
-            if old is None or pd.revision > old.revision:
-                self.pending_depth[k] = pd
-            out = self._try_map()
-        return out.extend(self._check_final())
-
-    def on_update(self, ev: UpdateEvent) -> Outbox:  # deformation: the ProxyDepth stream
-        self.last_update_seq = max(self.last_update_seq, int(ev.seq))
-        self.loop_seen |= int(ev.seq) >= LOOP_SEQ_START
-        return Outbox()
-
-    def on_final(self, node: str, info: dict) -> Outbox:
-        if node == "depth":
-            self.digest = {int(k): int(v) for k, v in (info.get("digest") or {}).items()}
-            return self._try_map()                  # held keyframes: mapped with what is there
-        return Outbox()
-
-    # ------------------------------------------------------------ work
-    def _try_map(self) -> Outbox:
-        """Map every keyframe that has its depth. A proxy depth with (almost) no valid pixel
-        (revision 0 of a keyframe that had no views yet: the first of a small warm-up batch)
-        would anchor no Gaussians and leave the map without a scene depth: such a keyframe
-        is acked (lockstep goes on) and held until a revision with depth or the final digest.
-        In revisit mode a keyframe is also held until loop closure has corrected its pose
-        (:meth:`_unsettled`)."""
-        out = Outbox()
-        for k in sorted(self.pending_kf):
-            if k not in self.pending_depth:
-                continue
-            pd = self.pending_depth[k]
-            thin = _anchoring_fraction(pd, self.cfg.mapping.ba_depth_weight) < MIN_DEPTH_FRACTION
-            if self.digest is None and (thin or self._unsettled(k)):
-                if k not in self.held:
-                    self.held.add(k)
-                    out.acks.append(_ack(self.pending_kf[k]))
-                continue
-            out.extend(self._map(self.pending_kf.pop(k), self.pending_depth.pop(k)))
-        return out.extend(self._check_final())
-
-    def _unsettled(self, k: int) -> bool:
-        """Revisit mode (``mapping.revisit_cull_deg``) with a loop closer: mapped with the
-        tracker's drifting pose a revisit looks like a new place (duplicate Gaussians). Such a
-        keyframe waits, acked, for a depth revision made after a loop-closure update, for at
-        most ``mapping.window_size`` newer keyframes (then mapped, merged later if need be),
-        or the final digest; the map's first keyframe never waits."""
-        return (self.cfg.mapping.revisit_cull_deg > 0 and self.loop_seen and
-                self.mapper is not None and bool(self.mapper.keyframes) and
-                k not in self.settled and self.newest_kf - k < self.cfg.mapping.window_size)
-
-    def _revisit(self, pd: ProxyDepth, exclude: Optional[int] = None) -> Optional[int]:
-        """The mapped keyframe (other than ``exclude``) nearest to ``pd``'s keyframe that sees
-        what it sees (``mapping.revisit_cull_deg``: centre within kf_translation x median
-        depth, optical axes within that angle); None when there is none or the test is off."""
-        mc = self.cfg.mapping
-        if mc.revisit_cull_deg <= 0 or self.mapper is None or not self.mapper.keyframes:
-            return None
-        d = np.asarray(pd.depth, np.float32)
-        ok = (d > 0) if pd.valid is None else (np.asarray(pd.valid, bool) & (d > 0))
-        med = float(np.median(d[ok])) if ok.any() else 0.0
-        T = np.asarray(pd.pose, np.float64)
-        cos_max = np.cos(np.radians(mc.revisit_cull_deg))
-        best = None
-        for k, m in self.mapper.keyframes.items():
-            if k == exclude:
-                continue
-            P = np.asarray(m.pose, np.float64)
-            dist = float(np.linalg.norm(P[:3, 3] - T[:3, 3]))
-            if dist < mc.kf_translation * med and float(P[:3, 2] @ T[:3, 2]) > cos_max and \
-                    (best is None or dist < best[0]):
-                best = (dist, k)
-        return None if best is None else best[1]
-
-    def _merge_revisit(self, k: int, pd: ProxyDepth) -> None:
-        """Keyframe ``k`` (mapped) moved: a new keyframe is mapped with the tracker's pose
-        before loop closure corrects it, so a revisit is often recognised only after a later
-        update. When ``k`` now sees what another mapped keyframe sees, the newer of the two
-        is merged into the older (``Mapper.merge_keyframe``: its Gaussians in the older view
-        are removed as duplicates, the rest follow the older keyframe), so keyframes and
-        Gaussians stay bounded in a revisited room."""
-        twin = self._revisit(pd, exclude=k)
-        if twin is None:
-            return
-        drop, keep = max(k, twin), min(k, twin)
-        if self.mapper.keyframes[drop].index == 0:       # the exposure gauge stays
-            drop, keep = keep, drop
-        self.mapper.merge_keyframe(drop, keep)
-        self.offered[drop] = False                      # later revisions: taken, not applied
-        self.dirty.discard(drop)
-        self.gone.add(drop)
-
-    def _map(self, kf: KeyframeData, pd: ProxyDepth) -> Outbox:
-        t0 = time.perf_counter()
-        if self.mapper is None:
-            # imported here: the mapper (and scipy) is ~30 MB a tracking-only run never needs
-            from splat_slam_ros.mapping.mapper import Mapper
-            self.intr = kf.intrinsics
-            self.mapper = Mapper(self.cfg, kf.intrinsics)
-        twin = self._revisit(pd)
-        cov = 0.0                           # a render, only when the pose test found no twin
-        if twin is None and self.cfg.mapping.revisit_cull_deg > 0:
-            cov = self.mapper.coverage(pd.pose)
-        if twin is not None or cov >= self.cfg.mapping.revisit_coverage:
-            # a revisit: consumed, not mapped (bounded map)
-            st = dict(self.mapper.stats(), kf_id=int(kf.kf_id), mapped=False,
-                      reason=f"revisit of {twin}" if twin is not None else
-                      f"map covers {cov:.0%} of its view")
-        else:
-            st = self.mapper.add_keyframe(kf.kf_id, kf.image, pd.pose, pd.depth,
-                                          pd.depth_weight(self.cfg.mapping.ba_depth_weight),
-                                          timestamp=kf.timestamp, yield_to=self.input_waiting)
-        self.timings["mapping"] += time.perf_counter() - t0
-        mapped = bool(st.get("mapped"))
-        self.background_mark = self.mapper.background_iters     # a new allowance
-        self.offered[kf.kf_id] = mapped
-        self.taken[kf.kf_id] = int(pd.revision)
-        if mapped:
-            self.dirty.add(kf.kf_id)
-        self.n_since_snapshot += 1
-        if self.n_since_snapshot >= self.snapshot_every:
-            self.snapshot()
-        info = dict(st, kf_id=int(kf.kf_id), pose=pd.pose, timestamp=float(kf.timestamp),
-                    n_mapped=sum(self.offered.values()))
-        held = kf.kf_id in self.held
-        self.held.discard(kf.kf_id)
-        return Outbox(acks=[] if held else [_ack(kf)], mapped=[info])
-
-    def wants_background(self) -> bool:
-        """Live input (``mapping.time_budget``): steps left of ``mapping.background_steps``
-        since the last mapped keyframe, until the final refinement. The node runs them
-        (:meth:`background`) while no input waits, and sets ``input_waiting``: input that
-        arrives cuts a keyframe's or the background's steps."""
-        m = self.mapper
-        return (self.cfg.mapping.time_budget and m is not None and not self.finalized and
-                m.background_iters - self.background_mark < self.cfg.mapping.background_steps)
-
-    def background(self, steps: int = 4) -> None:
-        self.mapper.background(steps, self.input_waiting)
-
-    def lacking(self) -> List[int]:
-        """Keyframes whose revision in the depth stage's final digest this stage has not taken
-        (empty before the digest and once final). A node asks the depth stage to send them
-        again: a DDS history can drop a message that a burst of newer ones overtook."""
-        if self.digest is None or self.finalized:
-            return []
-        return [k for k, rev in sorted(self.digest.items()) if self.taken.get(k, -1) < rev]
-
-    def _check_final(self) -> Outbox:
-        if self.digest is None or self.finalized or self.lacking():
-            return Outbox()
-        self.finalized = True
-        info: dict = {"keyframes": sum(self.offered.values())}
-        if self.mapper is not None:
-            t0 = time.perf_counter()
-            info["refine"] = self.mapper.final_refine()
-            self.timings["refine"] += time.perf_counter() - t0
-            self.snapshot()
-        return Outbox(final=info)

@@ -14,9 +14,8 @@ manifest (and stray temporaries) are removed at the next commit / open.
 
 :class:`KeyframeStore` adds keyframe helpers on top: per keyframe an ``image`` record
 (written once), a ``state`` record (pose, disparity, confidence, mono depth; rewritten on
-updates) and a ``depth`` record (proxy depth + source mask). :func:`mapper_state` /
-:func:`restore_mapper` turn a :class:`~splat_slam_ros.mapping.mapper.Mapper` into arrays and back
-(Gaussians with their bookkeeping, mapped keyframes, window, exposures).
+updates) and a ``depth`` record (proxy depth + source mask). The mapper stores its state
+here as arrays (mapping/persistence.py).
 """
 from __future__ import annotations
 
@@ -25,7 +24,7 @@ import os
 import re
 import threading
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional
 
 import numpy as np
 
@@ -298,31 +297,3 @@ class KeyframeStore(RecordStore):
     def keyframes(self) -> List[KeyframeData]:
         return [self.keyframe(k) for k in self.keyframe_ids()]
 
-
-# ====================================================================== mapper
-def mapper_state(mapper) -> Tuple[Dict[str, np.ndarray], Dict[str, Any]]:
-    """Arrays + JSON metadata of a Mapper (:meth:`Mapper.state_dict`); keyframe images and
-    depths are stored per keyframe by the caller (:func:`keyframe_depth`)."""
-    return mapper.state_dict()
-
-
-def keyframe_depth(mapper, kf_id: int) -> Dict[str, np.ndarray]:
-    """The proxy depth (float32), packed validity mask and (when the keyframe's depth loss is
-    weighted) float16 weights a mapped keyframe holds now."""
-    kf = mapper.keyframes[int(kf_id)]
-    out = {"depth": kf.depth.detach().cpu().numpy().astype(np.float32),
-           "valid": np.packbits(kf.valid.cpu().numpy(), axis=-1),
-           "width": np.array(kf.valid.shape[-1], np.int64)}
-    if kf.weight is not None:
-        out["weight"] = kf.weight.detach().cpu().numpy().astype(np.float16)
-    return out
-
-
-def restore_mapper(arrays: Dict[str, np.ndarray], meta: Dict[str, Any], cfg, intrinsics,
-                   image_of, depth_of) -> "Mapper":  # noqa: F821
-    """Rebuild a Mapper from :func:`mapper_state` output; ``image_of(kf_id)`` returns the
-    keyframe's H x W x 3 uint8 image, ``depth_of(kf_id)`` what :func:`keyframe_depth` gave."""
-    from splat_slam_ros.mapping.mapper import Mapper   # not on the tracking-only path (~30 MB)
-    mp = Mapper(cfg, intrinsics)
-    mp.load_state_dict(arrays, meta, image_of, depth_of)
-    return mp

@@ -27,7 +27,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 
-from splat_slam_ros.io.keyframe_store import keyframe_depth, mapper_state, restore_mapper
+from splat_slam_ros.imaging import image_at, to_gray
 from splat_slam_ros.types import Intrinsics, KeyframeData
 
 FORMAT = "splat-slam-session"
@@ -39,7 +39,7 @@ MAP = "map.ply"
 MAP_STATE = "map_state.npz"
 LOCK = ".lock"                      # held while the manifest is merged (_merge_manifest)
 META_KEY = "meta_json"              # map_state.npz: the mapper's JSON metadata as bytes
-# map_state.npz: kf<k>_<name> per mapped keyframe, as keyframe_store.keyframe_depth gives them
+# map_state.npz: kf<k>_<name> per mapped keyframe (mapping/persistence.py: keyframe_depth)
 KEYFRAME_DEPTH = ("depth", "valid", "width", "weight")
 DESCRIPTOR_SIZE = (16, 12)          # (w, h) of the grey thumbnail descriptor
 ARRAYS = ("kf_ids", "frame_indices", "timestamps", "poses", "disparities", "images",
@@ -75,8 +75,7 @@ class Session:
 def descriptor(image: np.ndarray) -> np.ndarray:
     """Global place descriptor: the grey image shrunk to 16x12, zero-mean, unit-norm
     (their dot product is the normalised cross-correlation of the thumbnails)."""
-    g = image if image.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(image),
-                                                   cv2.COLOR_RGB2GRAY)
+    g = to_gray(image)
     t = cv2.resize(g.astype(np.float32), DESCRIPTOR_SIZE, interpolation=cv2.INTER_AREA).ravel()
     t = t - t.mean()
     n = float(np.linalg.norm(t))
@@ -103,18 +102,6 @@ def _write_npz(path: Path, arrays: dict) -> None:
             np.lib.format.write_array(buf, a if a.flags.c_contiguous else a.copy(),
                                       allow_pickle=False)
             z.writestr(info, buf.getvalue())
-
-
-def mapper_arrays(mapper) -> Tuple[Dict[str, np.ndarray], dict]:
-    """(arrays, metadata) of a mapper for ``map_state.npz``: :meth:`Mapper.state_dict` plus,
-    per mapped keyframe ``k``, ``kf<k>_image`` and the ``kf<k>_<name>`` arrays of
-    :func:`keyframe_store.keyframe_depth` (depth, packed validity, width, weight)."""
-    arrays, meta = mapper_state(mapper)
-    for k, kf in mapper.keyframes.items():
-        arrays[f"kf{k}_image"] = kf.image.cpu().numpy().astype(np.uint8)
-        for name, a in keyframe_depth(mapper, k).items():
-            arrays[f"kf{k}_{name}"] = a
-    return arrays, meta
 
 
 def _merge_manifest(d: Path, part: dict) -> None:
@@ -153,12 +140,14 @@ def write_session_keyframes(out: Path, kfs: SessionKeyframes, camera: Intrinsics
     return d
 
 
-def write_map_state(out: Path, mapper) -> Path:
-    """The mapper's part of ``out/session/`` (after ``out/map.ply``): map_state.npz, the
-    map's checksum and the mapping camera in the manifest."""
+def write_map_state(out: Path, arrays: Dict[str, np.ndarray], meta: dict,
+                    camera: Intrinsics) -> Path:
+    """The mapper's part of ``out/session/`` (after ``out/map.ply``): map_state.npz (the
+    mapper's ``arrays`` and ``meta``: mapping.persistence.mapper_arrays), the map's checksum
+    and the mapping ``camera`` in the manifest."""
     d = Path(out) / SESSION_DIR
     d.mkdir(parents=True, exist_ok=True)
-    arrays, meta = mapper_arrays(mapper)
+    arrays = dict(arrays)
     # the metadata (window visibility lists: large) inside the file, not the manifest
     arrays[META_KEY] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     _write_npz(d / MAP_STATE, arrays)
@@ -167,7 +156,7 @@ def write_map_state(out: Path, mapper) -> Path:
         "files": {MAP_STATE: sha256(d / MAP_STATE)},
         "map": {"path": f"../{MAP}", "sha256": sha256(ply), "bytes": ply.stat().st_size}
         if ply.is_file() else None,
-        "map_state": {"camera": mapper.K.to_dict(), "gaussians": len(arrays["means"]),
+        "map_state": {"camera": camera.to_dict(), "gaussians": len(arrays["means"]),
                       "mapped_keyframes": len(arrays["kf_ids"])}})
     return d
 
@@ -188,14 +177,15 @@ def loop_graph(session: Session) -> Optional[dict]:
 
 def write_session(out: Path, kfs: SessionKeyframes, camera: Intrinsics,
                   tracking_size: Sequence[int], ba_size: Sequence[int], config: dict,
-                  package_version: str, mapper=None, loop_summary: Optional[dict] = None) -> Path:
-    """Write ``out/session/`` (keyframes.npz + manifest.json, map_state.npz of ``mapper``,
-    the loop-closure graph); the map is ``out/map.ply`` when it exists. Returns the session
-    folder."""
+                  package_version: str, map_state: Optional[tuple] = None,
+                  loop_summary: Optional[dict] = None) -> Path:
+    """Write ``out/session/`` (keyframes.npz + manifest.json, map_state.npz of ``map_state``:
+    the mapper's (arrays, metadata, camera), the loop-closure graph); the map is
+    ``out/map.ply`` when it exists. Returns the session folder."""
     d = write_session_keyframes(out, kfs, camera, tracking_size, ba_size, config,
                                 package_version)
-    if mapper is not None:
-        write_map_state(out, mapper)
+    if map_state is not None:
+        write_map_state(out, *map_state)
     if loop_summary is not None:
         write_loop_graph(out, loop_summary)
     return d
@@ -350,13 +340,6 @@ def map_state(session: Session) -> Tuple[Dict[str, np.ndarray], dict, Intrinsics
     return arrays, meta, cam
 
 
-def image_at(image: np.ndarray, width: int, height: int) -> np.ndarray:
-    """``image`` at ``width`` x ``height`` (itself when it is that size already)."""
-    if image.shape[:2] == (height, width):
-        return image
-    return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
-
-
 def keyframe_data(kfs: SessionKeyframes, intrinsics: Intrinsics) -> List[KeyframeData]:
     """Session keyframes as the stages take keyframes: images resized to ``intrinsics``'
     size (a graph node gets the mapping camera, the tracker the tracking camera), BA-grid
@@ -368,15 +351,3 @@ def keyframe_data(kfs: SessionKeyframes, intrinsics: Intrinsics) -> List[Keyfram
                          disparity=kfs.disparities[n].astype(np.float32),
                          confidence=np.ones(kfs.disparities[n].shape, np.float32))
             for n, k in enumerate(kfs.kf_ids)]
-
-
-def restore_map_state(arrays: Dict[str, np.ndarray], meta: dict, cfg, intrinsics: Intrinsics):
-    """The Mapper that :func:`map_state`'s arrays and metadata describe
-    (:func:`keyframe_store.restore_mapper`), settled (``Mapper.settled_uid``): a later run
-    maps new places, and the loaded Gaussians, whose own views it rarely revisits, are not
-    pruned for the opacity that optimising those new views leaves them."""
-    mp = restore_mapper(arrays, meta, cfg, intrinsics, lambda k: arrays[f"kf{k}_image"],
-                        lambda k: {n: arrays[f"kf{k}_{n}"] for n in KEYFRAME_DEPTH
-                                   if f"kf{k}_{n}" in arrays})
-    mp.settled_uid = mp.map.next_uid
-    return mp

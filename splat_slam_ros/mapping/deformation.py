@@ -15,15 +15,21 @@ point omega^-1 mu (its depth becomes z + dD, its pixel stays (u, v)) before omeg
 back to the world - "shift the mean by D'(u,v) - D(u,v) along the optical axis" in the text.
 Gaussians that project outside the image, behind the camera, or onto missing depth (in D
 or D') move rigidly only (dD = 0). Depth is looked up at the nearest pixel.
+
+:func:`deform_keyframe` applies it to a mapper's keyframe; :func:`merge_keyframe` hands a
+keyframe's Gaussians over to an older keyframe, whose deformations they follow from then on.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Tuple
 
+import numpy as np
 import torch
 
 from splat_slam_ros.geometry import matrix_to_quat, project, quat_multiply, se3_inverse, transform_points
+from splat_slam_ros.mapping.keyframe_inputs import MapError, check_keyframe_inputs, check_pose
+from splat_slam_ros.mapping.optimise import viewmat
 
 
 @dataclass
@@ -87,3 +93,71 @@ def deform_gaussians(means: torch.Tensor, quats: torch.Tensor, log_scales: torch
     new_log_scales = log_scales.detach().to(**f64) + factor.log()[:, None]
     return Deformed(new_means.to(dt), new_quats.to(dt), new_log_scales.to(dt), nonrigid,
                     factor.to(dt))
+
+
+@torch.no_grad()
+def deform_keyframe(mp, kf_id: int, pose, depth=None, valid=None) -> int:
+    """Keyframe ``kf_id`` of the mapper ``mp`` moved: deform its Gaussians (Eq. 12), then
+    store the new pose/depth. Returns the number of Gaussians moved (0 for a keyframe that
+    was never mapped). Without ``depth`` the keyframe's Gaussians move rigidly."""
+    kf = mp.keyframes.get(int(kf_id))
+    if kf is None:
+        return 0
+    pose = check_pose(pose)
+    new_depth = new_valid = new_weight = None
+    if depth is not None:
+        _, new_depth, new_valid, new_weight = check_keyframe_inputs(
+            np.zeros((mp.H, mp.W, 3), np.uint8), depth, valid, mp.W, mp.H, mp.device)
+    sel = (mp.map.kf_id == kf.kf_id).nonzero()[:, 0]
+    if len(sel):
+        g = mp.map
+        d = deform_gaussians(g.means[sel], g.quats[sel], g.log_scales[sel], kf.pose, pose,
+                             mp.intr, kf.depth if new_depth is not None else None,
+                             new_depth, kf.valid, new_valid)
+        g.set_rows(sel, means=d.means, quats=d.quats, log_scales=d.log_scales)
+    kf.pose = pose
+    if new_depth is not None:
+        kf.depth, kf.valid, kf.weight = new_depth, new_valid, new_weight
+    mp.n_deformations += 1
+    mp.n_deformed_gaussians += int(len(sel))
+    return int(len(sel))
+
+
+def in_view(mp, means: torch.Tensor, pose) -> torch.Tensor:
+    """Which points project inside the mapper's image at camera ``pose`` (in front of it)."""
+    X = transform_points(viewmat(pose, mp.device), means)
+    uv = project(X, torch.tensor(mp.intr, dtype=X.dtype, device=X.device))
+    return (X[:, 2] > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 0] < mp.W) & (uv[:, 1] >= 0) & \
+        (uv[:, 1] < mp.H)
+
+
+@torch.no_grad()
+def merge_keyframe(mp, kf_id: int, into: int) -> Tuple[int, int]:
+    """A mapped keyframe whose view an older one (``into``) already has leaves the map's
+    keyframes (a bounded map in a revisited room), as if it had been recognised as a
+    revisit when it arrived: its Gaussians inside the older keyframe's view duplicate
+    that view's and are removed; the rest (what only it saw) are anchored to ``into``
+    and follow its deformations (Eq. 12). Its view leaves the window and the optimiser.
+    Returns (Gaussians removed, Gaussians re-anchored). The first keyframe (exposure
+    gauge) stays."""
+    kf_id, into = int(kf_id), int(into)
+    kf, keep = mp.keyframes.get(kf_id), mp.keyframes.get(into)
+    if kf is None or keep is None or kf_id == into:
+        raise MapError(f"cannot merge keyframe {kf_id} into {into}: both must be mapped")
+    if kf.index == 0:
+        raise MapError(f"keyframe {kf_id} fixes the exposure gauge and cannot be merged")
+    own = mp.map.kf_id == kf_id
+    seen = own & in_view(mp, mp.map.means, keep.pose)
+    mp.map.kf_id[own & ~seen] = into
+    n_moved = int((own & ~seen).sum())
+    n_removed = mp.map.remove(seen)
+    # densification statistics gathered while its view sat at a wrong (uncorrected) pose
+    # say nothing about missing detail: reset for what that view covers
+    stale = in_view(mp, mp.map.means, kf.pose)
+    mp.map.grad_accum[stale] = 0
+    mp.map.grad_count[stale] = 0
+    mp.camera.drop_keyframe(kf)             # its exposure leaves the optimiser
+    mp.window.drop(kf_id, into)
+    del mp.keyframes[kf_id]
+    mp.counts["merged_keyframes"] += 1
+    return n_removed, n_moved

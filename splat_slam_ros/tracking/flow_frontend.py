@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 import torch
 
+from splat_slam_ros.imaging import to_gray
 from splat_slam_ros.tracking.droid_flow import make_droid_predictor
 from splat_slam_ros.types import Intrinsics
 
@@ -180,38 +181,6 @@ def mapping_preprocessor(cfg, intrinsics: Intrinsics) -> ImagePreprocessor:
     mw, mh = cam.processing_size(W0, H0)
     return ImagePreprocessor(intrinsics, cfg.tracking.ba_downsample, mw, mh, cam.crop,
                              cam.undistort)
-
-
-def flow_input(image: np.ndarray, disp_shape, ba_downsample: int) -> np.ndarray:
-    """A keyframe image as the flow front end's input: resized to the disparity grid x
-    ``ba_downsample`` when it was handed on at another size (``tracking.max_pixels``: the
-    mapping size), so that the flows land on the grid of the keyframe's disparity."""
-    h, w = int(disp_shape[0]) * ba_downsample, int(disp_shape[1]) * ba_downsample
-    img = np.asarray(image)
-    if img.shape[:2] == (h, w):
-        return img
-    interp = cv2.INTER_AREA if img.shape[0] > h else cv2.INTER_LINEAR
-    return cv2.resize(img, (w, h), interpolation=interp)
-
-
-def to_gray(img: np.ndarray) -> np.ndarray:
-    """(H, W, 3|4) RGB(A) or (H, W) grey -> contiguous (H, W) grey of the same dtype."""
-    img = np.asarray(img)
-    if img.ndim == 3:
-        img = cv2.cvtColor(np.ascontiguousarray(img[..., :3]), cv2.COLOR_RGB2GRAY)
-    return np.ascontiguousarray(img)
-
-
-def image_is_degenerate(img: np.ndarray, min_std: float = 2.0, min_grad: float = 0.5) -> bool:
-    """True for frames that cannot be tracked (black, saturated, uniform)."""
-    g = to_gray(img)
-    small = cv2.resize(g, (max(g.shape[1] // 4, 8), max(g.shape[0] // 4, 8)),
-                       interpolation=cv2.INTER_AREA).astype(np.float32)
-    if float(small.std()) < min_std:
-        return True
-    gx = np.abs(np.diff(small, axis=1)).mean()
-    gy = np.abs(np.diff(small, axis=0)).mean()
-    return float(gx + gy) < min_grad
 
 
 # ------------------------------------------------------------- DIS predictor

@@ -26,11 +26,11 @@ import torch
 from splat_slam_ros import __version__
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.geometry import se3_inverse, se3_log
+from splat_slam_ros.imaging import image_at, image_is_degenerate
 from splat_slam_ros.io.session import (Session, SessionError, SessionKeyframes, check_camera,
-                                       descriptor, descriptor_ranking, image_at,
+                                       descriptor, descriptor_ranking,
                                        keyframe_data, map_camera, pinhole_diffs, write_session)
 from splat_slam_ros.runtime import limit_threads
-from splat_slam_ros.tracking.flow_frontend import image_is_degenerate
 from splat_slam_ros.tracking.keyframe_set import KeyframeState
 from splat_slam_ros.tracking.motion_filter import predict_pose
 from splat_slam_ros.tracking.tracker import Tracker
@@ -99,16 +99,17 @@ def session_ids(trk: Tracker) -> List[int]:
 
 
 def save_session(trk: Tracker, images: Dict[int, np.ndarray], cfg: SlamConfig,
-                 camera: Intrinsics, out, mapper=None, loop=None) -> None:
+                 camera: Intrinsics, out, map_state=None, loop=None) -> None:
     """Write the tracker's part of ``out/session/`` (``images``: kf id -> tracking-size RGB
-    of :func:`session_ids`) and, with a ``mapper``, its state (after ``out/map.ply``), with
-    a ``loop`` closer its graph. An :class:`ExtendTracker`'s session holds the loaded
-    keyframes (as they are now) and the new ones: a map extended again and again."""
+    of :func:`session_ids`) and, with a ``map_state`` (the mapper's arrays, metadata and
+    camera), the map's state (after ``out/map.ply``), with a ``loop`` closer its graph. An
+    :class:`ExtendTracker`'s session holds the loaded keyframes (as they are now) and the
+    new ones: a map extended again and again."""
     kfs = session_keyframes(trk, images, session_ids(trk))
     if isinstance(trk, ExtendTracker):
         kfs = concat_keyframes(trk.loaded_keyframes(), kfs)
     if len(kfs):
-        write_session(out, kfs, camera, *_sizes(trk), cfg.to_dict(), __version__, mapper,
+        write_session(out, kfs, camera, *_sizes(trk), cfg.to_dict(), __version__, map_state,
                       loop.graph_summary() if loop is not None else None)
 
 

@@ -35,8 +35,8 @@ from typing import Callable, Dict, List, Optional, Sequence
 import numpy as np
 import torch
 
+from splat_slam_ros.imaging import flow_input
 from splat_slam_ros.io.keyframe_store import KeyframeStore
-from splat_slam_ros.tracking.flow_frontend import flow_input
 from splat_slam_ros.tracking.keyframe_set import KeyframeState
 from splat_slam_ros.tracking.trajectory_filler import FrameRecord
 from splat_slam_ros.types import Intrinsics, KeyframeData

@@ -8,9 +8,15 @@ closure and global BA) - or, for frames without a usable flow (lost frames),
 by interpolation between the neighbouring keyframes in time - and refined by
 a short pose-only Gauss-Newton against its flow with the keyframe's current
 disparity (the target-pose block of Eq. 1).
+
+The records are the tracker's (:class:`TrajectoryRecorder`): a non-keyframe tracked against
+the newest keyframe also gets the flow from the next keyframe once that exists, so that it
+is aligned against a keyframe on both sides; at the end of input the last frame becomes a
+keyframe when it moved enough since the last one.
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Tuple
 
@@ -18,7 +24,9 @@ import numpy as np
 import torch
 
 from splat_slam_ros.geometry import pixel_grid, se3_exp, se3_inverse, se3_log
+from splat_slam_ros.runtime import limit_threads
 from splat_slam_ros.tracking.dense_ba import pose_only_refine_batch
+from splat_slam_ros.types import Frame, UpdateEvent
 
 
 @dataclass
@@ -166,3 +174,113 @@ def _refine(fit, poses_out, pose, disp, intr, iters, huber, max_cells: int = 1 <
                                    torch.tensor(n_it), huber=huber)
         for (i, _r), Ti in zip(batch, T):
             poses_out[i] = Ti
+
+
+class TrajectoryRecorder:
+    """The tracker's frame records for :func:`fill_trajectory`: one per input frame, the
+    flows of each non-keyframe from its reference keyframe and, once it exists, from the
+    next keyframe; the full and keyframe trajectories. A part of
+    :class:`~splat_slam_ros.tracking.tracker.Tracker` working on that object's state."""
+
+    def _record(self, frame: Frame, replace: bool = False, **kw) -> FrameRecord:
+        r = FrameRecord(frame.index, float(frame.timestamp), **kw)
+        if replace:     # a frame recorded as a non-keyframe, promoted later (finalize)
+            old = [n for n, x in enumerate(self.records) if x.index == frame.index]
+            if old:
+                self.records[old[-1]] = r
+                return r
+        self.records.append(r)
+        # bound memory on long live runs: older frames keep only their relative pose
+        old = len(self.records) - 1 - self.tc.max_stored_flows
+        if old >= 0:
+            self.records[old].flow = self.records[old].weight = None
+            self.records[old].flow2 = self.records[old].weight2 = None
+        return r
+
+    def skip(self, index: int, timestamp: float) -> np.ndarray:
+        """A frame not tracked (live, busy): placed between its tracked neighbours later."""
+        self.n_skipped += 1
+        self.records.append(FrameRecord(int(index), float(timestamp), skipped=True))
+        return self.predict()
+
+    def _add_pending(self, rec: FrameRecord, frame, img, prep) -> None:
+        if rec.ref_kf == self.window[-1]:
+            self._pending.append((rec, prep))
+        self._last_input = (frame, img, prep)
+
+    def _next_keyframe_flows(self, kid: int) -> None:
+        """Flows from the new keyframe into the non-keyframes tracked since the previous
+        one (DIS started from the flow the current estimate induces), so that each is
+        aligned against both neighbouring keyframes (:func:`fill_trajectory`)."""
+        t0 = time.perf_counter()
+        ks = self.kfs[kid]
+        todo = []                   # (record, prepared image, induced flow or None)
+        for rec, prep in self._pending:
+            if rec.ref_kf not in self.kfs or rec.index == ks.frame_index:
+                continue
+            init = None                 # warm-up: no pose estimate yet
+            if rec.rel_pose is not None:
+                T = self.kfs[rec.ref_kf].pose @ torch.as_tensor(
+                    rec.rel_pose, dtype=torch.float64, device=self.device)
+                init = self._induced(ks.pose, ks.disp, T)
+            todo.append((rec, prep, init))
+        warm = [t for t in todo if t[2] is None]          # warm-up frames: two DIS calls each
+        if 0 < self.tc.next_kf_flows < len(warm):
+            drop = {id(t[0]) for t in warm[:-self.tc.next_kf_flows]}
+            todo = [t for t in todo if id(t[0]) not in drop]
+        fwd = [t for t in todo if t[2] is not None] \
+            if hasattr(self.flow, "predict_forward_many") else []      # one DIS call each
+        flows = dict(zip((id(t[0]) for t in fwd), self.flow.predict_forward_many(
+            ks.prep, [t[1] for t in fwd], [t[2] for t in fwd]))) if fwd else {}
+        for rec, prep, init in todo:
+            if id(rec) in flows:
+                f, w = (x.to(self.device) for x in flows[id(rec)])
+            else:
+                f, w, _, _ = self._flows(ks.prep, prep, init)
+            if self.motion.check(f, w).valid_frac < self.tc.lost_min_valid:
+                continue
+            rec.ref2_kf = kid
+            rec.flow2, rec.weight2 = self._store_flow(f, w)
+        self._pending = []
+        self.timings["next_kf_flows"] += time.perf_counter() - t0
+
+    def _last_frame_keyframe(self) -> List[UpdateEvent]:
+        """End of input: the last frame becomes a keyframe when it moved since the last
+        one (half the motion threshold), so the frames after the last keyframe are
+        aligned against a keyframe on both sides too."""
+        if not self._pending or self._last_input is None:
+            return []
+        frame, img, prep = self._last_input
+        rec = self.records[-1]
+        if rec.index != frame.index or rec.kf_id is not None or rec.ref_kf != self.window[-1]:
+            return []
+        ref = rec.ref_kf
+        T = self.kfs[ref].pose @ torch.as_tensor(rec.rel_pose, dtype=torch.float64,
+                                                 device=self.device)
+        init = self._induced(self.kfs[ref].pose, self.kfs[ref].disp, T)
+        f, w, fb, wb = self._flows(self.kfs[ref].prep, prep, init)
+        fc = self.motion.check(f, w)
+        if not fc.ok or fc.mean_flow < 0.5 * self.motion.thresh:
+            return []
+        self._pending = [(r, p) for r, p in self._pending if r.index != frame.index]
+        step = self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, {}, force=True)
+        self.final_keyframes.extend(step.keyframes)
+        return list(step.events)
+
+    def trajectory_keyframes(self) -> Tuple[np.ndarray, np.ndarray]:
+        return self.kfs.trajectory(self.keyframe_ids())
+
+    def trajectory_full(self) -> Tuple[np.ndarray, np.ndarray]:
+        """(timestamps, poses) of every input frame (non-keyframes filled)."""
+        t0 = time.perf_counter()
+        if self.initialized:
+            kp = {k: self.kfs[k].pose.cpu() for k in self.published}
+            kd = {k: self.kfs[k].disp.cpu() for k in self.published}
+        else:    # never initialised (static camera): everything at the first keyframe
+            kp = {k: self.kfs[k].pose.cpu() for k in self.window[:1]}
+            kd = {}
+        with limit_threads(self.tc.threads):
+            ts, poses = fill_trajectory(self.records, kp, kd, self.intr.cpu(),
+                                        iters=self.tc.filler_iters, huber=self.huber)
+        self.timings["filler"] += time.perf_counter() - t0
+        return ts, poses

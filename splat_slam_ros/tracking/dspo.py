@@ -11,7 +11,7 @@ optimised alternately "to avoid the scale ambiguity"):
       sum_E ||p~_ij - pi(d^h)||^2_Sigma + a1 sum ||d^h - (theta m + gamma)||^2
                                         + a2 sum ||d^l - (theta m + gamma)||^2,  a1 < a2
 
-  High/low error = the multi-view consistency of Eq. 4-6 (:func:`proxy_depth.multiview_filter`)
+  High/low error = the multi-view consistency of Eq. 4-6 (:func:`multiview.multiview_filter`)
   evaluated on the window: consistent pixels are ``d^l`` (kept fixed), the rest ``d^h``.
 
 Solution of Eq. 2 per Gauss-Newton step: with the poses fixed every disparity only meets
@@ -44,7 +44,7 @@ import torch
 
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.tracking.dense_ba import MIN_DISP, disparity_normal_equations
-from splat_slam_ros.depth.proxy_depth import multiview_filter, sample_at_grid
+from splat_slam_ros.tracking.multiview import multiview_filter, sample_at_grid
 from splat_slam_ros.types import Intrinsics
 
 FLOW_SCALE = 1000.0
@@ -161,7 +161,7 @@ class DspoPrior:
         self.dc = cfg.depth
         self.intrinsics = intrinsics
         if mono_model is None:
-            from splat_slam_ros.depth.mono_depth import load_mono_depth
+            from splat_slam_ros.tracking.mono_depth import load_mono_depth
             mono_model = load_mono_depth(self.dc.mono_model, self.dc.mono_provider)
         self.mono = mono_model
         self._mono_ba: Dict[int, torch.Tensor] = {}

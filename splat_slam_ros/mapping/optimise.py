@@ -1,0 +1,140 @@
+"""Rendering the Gaussian map and the mapping optimisation (§3.2, Eq. 11).
+
+Functional pieces: :func:`viewmat` / :func:`render_map` (rasterise the map at a
+camera-to-world pose), :func:`view_loss` and :func:`isotropy` (the Eq. 11 terms),
+:func:`pick_views` (the window keyframes of one step, plus random older ones) and
+:func:`optimise`: Adam steps on the Eq. 11 loss summed over the window keyframes, each step
+followed by the densify / prune schedule of the mapper's :class:`DensifyStrategy`.
+"""
+from __future__ import annotations
+
+import time
+from typing import Callable, Dict, List, Optional
+
+import numpy as np
+import torch
+
+from splat_slam_ros.geometry import se3_inverse
+from splat_slam_ros.mapping.keyframe_inputs import MappedKeyframe
+from splat_slam_ros.mapping.rasterizer import rasterize
+
+
+def viewmat(pose_c2w: np.ndarray, device) -> torch.Tensor:
+    """World-to-camera 4x4 (float32 on ``device``) of a camera-to-world pose."""
+    T = torch.as_tensor(np.asarray(pose_c2w, dtype=np.float64))
+    return se3_inverse(T).to(device=device, dtype=torch.float32)
+
+
+def render_map(g, pose, intr, width: int, height: int, backend: str, device, means=None):
+    """Rasterise the Gaussian map ``g`` at a camera-to-world pose (``means``: other centres,
+    e.g. a per-view copy whose gradient is that view's)."""
+    return rasterize(
+        g.means if means is None else means, g.normalized_quats(), g.scales(),
+        g.opacities(), g.colors, viewmat(pose, device), intr, int(width), int(height),
+        backend=backend)
+
+
+def view_loss(kf: MappedKeyframe, out, expose: Callable, lam: float) -> torch.Tensor:
+    """Eq. 11 data terms per keyframe: lambda/N |aC+b - C_gt|_1 + (1-lambda)/N |D^r - D|_1."""
+    gt = kf.image.to(torch.float32) / 255.0
+    l_rgb = (expose(out.rgb, kf) - gt).abs().mean()
+    n_pix = kf.depth.numel()
+    w = kf.valid if kf.weight is None else kf.weight
+    l_depth = ((out.depth - kf.depth).abs() * w).sum() / n_pix
+    return lam * l_rgb + (1 - lam) * l_depth
+
+
+def isotropy(g) -> torch.Tensor:
+    """Eq. 11 regulariser: 1/|G| sum_i |s_i - mean(s_i)|_1 (scales, not log-scales)."""
+    s = g.scales()
+    return (s - s.mean(1, keepdim=True)).abs().sum(1).mean()
+
+
+def pick_views(keyframes: Dict[int, MappedKeyframe], window: List[int], rng, mcfg,
+               single_random: bool) -> List[int]:
+    """The keyframes of one step: one random keyframe (``single_random``), else the window
+    (newest always, ``window_views_per_iter`` of it) + ``random_views_per_iter`` older ones."""
+    ids = list(keyframes)
+    if single_random:
+        return [ids[int(rng.integers(len(ids)))]]
+    win = list(window)
+    k = mcfg.window_views_per_iter
+    if 0 < k < len(win):           # newest always, the rest sampled
+        rest = list(rng.choice(win[1:], size=k - 1, replace=False)) if k > 1 else []
+        win = [win[0]] + [int(x) for x in rest]
+    others = [i for i in ids if i not in window]
+    r = min(mcfg.random_views_per_iter, len(others))
+    if r > 0:
+        win += [int(x) for x in rng.choice(others, size=r, replace=False)]
+    return win
+
+
+def _step(mp, views: List[int], densify: bool) -> None:
+    """One Adam step of the map and the camera model on the Eq. 11 loss of ``views``."""
+    m = mp.mcfg
+    mp.map.zero_grad()
+    mp.camera.zero_grad()
+    loss = 0.0
+    tracked = []
+    for kid in views:
+        kf = mp.keyframes[kid]
+        mv = None
+        if densify:            # per-view copy of the means: its grad is this view's
+            mv = mp.map.means * 1.0
+            mv.retain_grad()
+        out = mp._raster(kf.pose, means=mv)
+        m2 = out.means2d if densify else None
+        if m2 is not None and m2.requires_grad:
+            m2.retain_grad()
+        loss = loss + view_loss(kf, out, mp.expose, m.rgb_weight)
+        tracked.append((kf, mv, m2, out.radii, out.visible))
+    loss = loss + m.isotropy_weight * isotropy(mp.map)
+    loss.backward()
+    mp.last_loss = float(loss.detach())
+    with torch.no_grad():
+        for kf, mv, m2, radii, visible in tracked:
+            if kf.kf_id in mp.window.window:
+                mp.window.set_visibility(kf.kf_id, mp.map.uid[visible])
+            if m2 is not None and m2.grad is not None:
+                mp.strategy.accumulate(mp, kf, radii, grad2d=m2.grad)
+            elif mv is not None and mv.grad is not None:
+                mp.strategy.accumulate(mp, kf, radii, grad3d=mv.grad)
+    mp.map.step()
+    mp.camera.step()
+    mp.iteration += 1
+    if densify:
+        mp.strategy.step_post_optimiser(mp)
+
+
+def optimise(mp, iters: int, densify: bool = True, single_random: bool = False,
+             progress: bool = False, budget_s: float = 0.0, min_iters: int = 0,
+             yield_to: Optional[Callable[[], bool]] = None) -> int:
+    """Up to ``iters`` Adam steps of the mapper ``mp`` (returns the number run); after
+    ``min_iters`` they stop before one would end past ``budget_s`` (> 0) and, live, once
+    ``yield_to()`` is true."""
+    if iters <= 0 or len(mp.map) == 0:
+        return 0
+    m = mp.mcfg
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=iters, desc="refine" if single_random else "optimise", unit="it",
+                   dynamic_ncols=True, leave=False)
+    t0 = time.perf_counter()
+    done = 0
+    for done in range(iters + 1):
+        spent = time.perf_counter() - t0
+        if done == iters or (budget_s > 0 and done >= max(min_iters, 1)
+                             and spent * (done + 1) / done > budget_s):
+            break
+        if yield_to is not None and m.time_budget and done >= min_iters and yield_to():
+            break
+        _step(mp, pick_views(mp.keyframes, mp.window.window, mp.rng, m, single_random),
+              densify)
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(loss=f"{mp.last_loss:.4f}")
+    if bar is not None:
+        bar.close()
+    mp.skipped_iters += iters - done
+    return done

@@ -1,0 +1,195 @@
+"""The tracker's front end (paper §3.1): what happens to each input frame once the tracker
+is initialised.
+
+Dense flow from the newest keyframe (``FlowPredictor``; DIS started from the previous frame's
+flow), the pose-only Gauss-Newton fit against that keyframe's disparity (the pose block of
+Eq. 1), the fallbacks when the flow is not confident (DIS pre-warped by the
+constant-velocity pose, the other recent keyframes) and the keyframe decision: a
+motion-filter candidate is added, and kept as a keyframe only when after its local BA the
+flow its optimised estimate induces reaches ``tracking.keyframe_thresh``.
+
+:class:`TrackerFrontend` is a part of :class:`~splat_slam_ros.tracking.tracker.Tracker`
+and works on that object's state.
+"""
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import torch
+
+from splat_slam_ros.geometry import (disparity_through_flow, orthonormalize, se3_exp,
+                                     se3_inverse, se3_log)
+from splat_slam_ros.tracking.dense_ba import induced_flow_distance, pose_only_refine, reproject
+from splat_slam_ros.tracking.flow_frontend import predict_both
+from splat_slam_ros.tracking.motion_filter import MotionFilter, predict_pose
+from splat_slam_ros.types import TrackStep
+
+log = logging.getLogger(__name__)
+
+
+class TrackerFrontend:
+    """Frame-to-keyframe flow, pose fit and keyframe decision of the tracker."""
+
+    def _motion_filter(self) -> MotionFilter:
+        tc = self.tc
+        return MotionFilter(tc.motion_filter_thresh * self.px_scale,
+                            min_valid_frac=tc.lost_min_valid, max_rate=tc.max_keyframe_rate,
+                            urgent_flow=tc.keyframe_urgent_flow,
+                            urgent_valid=tc.keyframe_urgent_valid)
+
+    def _flows(self, a, b, init_ab=None, init_ba=None):
+        """Flows a -> b and b -> a with weights; ``init_*`` (BA-grid flows expected
+        from the current estimate) are passed to predictors that accept them."""
+        t0 = time.perf_counter()
+        if init_ab is not None and hasattr(self.flow, "predict_pair"):
+            out = self.flow.predict_pair(a, b, init_ij=init_ab.cpu(),
+                                         init_ji=None if init_ba is None else init_ba.cpu())
+        else:
+            out = predict_both(self.flow, a, b)
+        self.timings["flow"] += time.perf_counter() - t0
+        return tuple(x.to(self.device) for x in out)
+
+    def _induced(self, T_a, d_a, T_b) -> torch.Tensor:
+        """Flow (h, w, 2) that keyframe a's disparity and the poses induce a -> b."""
+        P = torch.stack([T_a, T_b])
+        uv, _ = reproject(P, d_a[None], self.intr, torch.tensor([0], device=self.device),
+                          torch.tensor([1], device=self.device))
+        return uv[0] - self.grid
+
+    def _store_flow(self, f, w):
+        return f.detach().to("cpu", torch.float16), w.detach().to("cpu", torch.float16)
+
+    def _try_reference(self, ref, prep, use_last: bool = True):
+        # DIS is initialised with the previous frame's measured flow to the same
+        # keyframe (temporal propagation; image-based, so a wrong disparity
+        # cannot corrupt it)
+        init = self._last_flow[1] if use_last and self._last_flow is not None and \
+            self._last_flow[0] == ref else None
+        f, w, fb, wb = self._flows(self.kfs[ref].prep, prep, init)
+        return (f, w, fb, wb), self.motion.check(f, w)
+
+    def _fit_pose(self, ref, f, w, inits):
+        """Pose-only fit of the frame against the flow ref -> frame; best of ``inits``."""
+        best = None
+        t0 = time.perf_counter()
+        for T0 in inits:
+            T, info = pose_only_refine(self.kfs[ref].pose, self.kfs[ref].disp, T0, self.intr,
+                                       self.grid + f, w, iters=self.tc.pose_iters,
+                                       huber=self.huber)
+            if info is not None and np.isfinite(info.rms) and (best is None or
+                                                                info.rms < best[1].rms):
+                best = (T, info)
+            if best is not None and best[1].rms < 0.5 * self.tc.lost_rms:
+                break
+        self.timings["pose"] += time.perf_counter() - t0
+        return best if best is not None else (inits[0], None)
+
+    def _track(self, frame, img, prep) -> TrackStep:
+        tc = self.tc
+        ref = self.window[-1]
+        was_lost = self.lost_count > 0
+        pred = self.last_pose @ self.velocity
+        flows, fc = self._try_reference(ref, prep, not was_lost)
+        if not fc.ok and not was_lost:
+            # a large motion since the last tracked frame (skipped frames on live input, fast
+            # motion): DIS again, pre-warped by the flow the constant-velocity pose induces
+            if self._spacing[0] is None and len(self.window) > 1:   # no step since init / loss
+                a, b = self.kfs[self.window[-2]], self.kfs[self.window[-1]]   # keyframes' motion
+                T_p = predict_pose(b.pose, se3_inverse(a.pose) @ b.pose,
+                                   (a.frame_index, b.frame_index), frame.index)
+            else:
+                T_p = predict_pose(self.last_pose, self.velocity, self._spacing, frame.index)
+            init = self._induced(self.kfs[ref].pose, self.kfs[ref].disp, T_p)
+            fl = self._flows(self.kfs[ref].prep, prep, init)
+            fc_p = self.motion.check(fl[0], fl[1])
+            if fc_p.ok:
+                flows, fc, pred = fl, fc_p, T_p
+        if not fc.ok:
+            self._last_flow = None
+            # relocalise against the other recent keyframes
+            for k in reversed(self.window[-1 - tc.reloc_keyframes:-1]):
+                flows_k, fc_k = self._try_reference(k, prep, False)
+                if fc_k.ok:
+                    ref, flows, fc = k, flows_k, fc_k
+                    break
+        if not fc.ok:
+            return self._lost(frame, f"low flow confidence ({fc.valid_frac:.2f} valid)")
+        f, w, fb, wb = flows
+        T_ref = self.kfs[ref].pose
+        inits = [T_ref.clone()] if was_lost else [pred, self.last_pose.clone(), T_ref.clone()]
+        T, pinfo = self._fit_pose(ref, f, w, inits)
+        if pinfo is None or not np.isfinite(pinfo.rms) or pinfo.rms > tc.lost_rms:
+            return self._lost(frame, f"pose did not fit the flow (rms "
+                                     f"{getattr(pinfo, 'rms', float('nan')):.2f} BA px)")
+        if was_lost:
+            log.info("frame %d: tracking recovered against keyframe %d after %d lost frames",
+                     frame.index, ref, self.lost_count)
+        self.lost_count = 0
+        self._last_flow = (ref, f)
+        info = {"mean_flow": fc.mean_flow, "valid": fc.valid_frac, "pose_rms": pinfo.rms}
+        since_kf = float(frame.timestamp) - self.kfs[ref].timestamp
+        if self.motion.is_candidate(fc, since_kf) and ref == self.window[-1]:
+            if self.on_pose_estimate is not None:      # a keyframe's pose before its local BA
+                self.on_pose_estimate(frame.index, float(frame.timestamp), T.cpu().numpy())
+            return self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, info)
+        self._set_pose(T, frame.index)
+        sf, sw = self._store_flow(f, w)
+        rec = self._record(frame, ref_kf=ref, rel_pose=(se3_inverse(T_ref) @ T).cpu().numpy(),
+                           ref_scale=float(self.kfs[ref].disp.mean()), flow=sf, weight=sw,
+                           online_pose=T.cpu().numpy())
+        self._add_pending(rec, frame, img, prep)
+        return TrackStep(frame.index, float(frame.timestamp), False, None,
+                         T.cpu().numpy().copy(), info=info)
+
+    def _set_pose(self, T, index: int):
+        self._spacing = (self._spacing[1], int(index))
+        T = orthonormalize(T)
+        # constant-velocity model in the tangent space (exp keeps it a rigid motion)
+        self.velocity = se3_exp(se3_log(se3_inverse(self.last_pose) @ T))
+        self.last_pose = T.clone()
+
+    def _new_keyframe(self, frame, img, prep, ref, T, f, w, fb, wb, info,
+                      force: bool = False) -> TrackStep:
+        tc = self.tc
+        before = self._snapshot(self.window)
+        kid = self._add_keyframe(frame, img, prep, T, disparity_through_flow(
+            self.kfs[ref].disp, self.grid, fb, wb, self.intr, self.kfs[ref].pose, T))
+        self.kfs[kid].conf = wb.mean(-1)
+        self.graph.add(ref, kid, f, w)
+        self.graph.add(kid, ref, fb, wb)
+        self._add_radius_edges(kid)
+        self._add_proximity_edges(kid)
+        self._trim_window()
+        binfo = self._local_ba(tc.ba_iters)
+        events = self._events("local_ba", before)
+        T_new = self.kfs[kid].pose
+        # keyframe threshold tau on the flow induced by the optimised estimate
+        ids = [ref, kid]
+        P, D = self.kfs.stack(ids)
+        i0 = torch.tensor([0, 1], device=self.device)
+        i1 = torch.tensor([1, 0], device=self.device)
+        dist = float(induced_flow_distance(P, D, self.intr, i0, i1).mean())
+        info = {**info, "kf_dist": dist, "ba_rms": binfo.rms if binfo else float("nan")}
+        if dist < tc.keyframe_thresh * self.px_scale and len(self.window) > 3 and not force:
+            self._drop_keyframe(kid)
+            self._set_pose(T_new, frame.index)
+            sf, sw = self._store_flow(f, w)
+            T_ref = self.kfs[ref].pose
+            rec = self._record(frame, ref_kf=ref,
+                               rel_pose=(se3_inverse(T_ref) @ T_new).cpu().numpy(),
+                               ref_scale=float(self.kfs[ref].disp.mean()), flow=sf, weight=sw,
+                               online_pose=T_new.cpu().numpy())
+            self._add_pending(rec, frame, img, prep)
+            return TrackStep(frame.index, float(frame.timestamp), False, None,
+                             T_new.cpu().numpy().copy(), events=events, info=info)
+        self._set_pose(T_new, frame.index)
+        self._record(frame, replace=force, kf_id=kid)
+        self._next_keyframe_flows(kid)
+        kd = self._keyframe_data(kid)
+        self.published.add(kid)
+        self.kfs.drop_image(kid)
+        return TrackStep(frame.index, float(frame.timestamp), True, kid,
+                         T_new.cpu().numpy().copy(), events=events, keyframe=kd,
+                         keyframes=[kd], info=info)
