@@ -31,7 +31,7 @@ class DepthNode(SplatNode):
         from splat_slam_ros.roles import DepthRole
         if self.cfg.depth.mono_model:      # a bad path / sidecar stops the node now (exit 2)
             from splat_slam_ros.config import ConfigError
-            from splat_slam_ros.depth.mono_depth import check_mono_model
+            from splat_slam_ros.tracking.mono_depth import check_mono_model
             try:
                 check_mono_model(self.cfg.depth.mono_model)
             except ConfigError as e:

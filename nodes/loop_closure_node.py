@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import sys
 
-from .launch_services import answer_save, load_request, loaded_by_tracker, reply
+from .map_requests import answer_save, load_request, loaded_by_tracker, reply
 from .node_common import SplatNode, run_node
 
 

@@ -22,7 +22,7 @@ Services    /splat/map/save (SaveMap: PLY + trajectory + metrics), /splat/map/re
             /splat/map/render (RenderPose). Inputs are checked by service_guard (save inside
             node.output_dir, reset only with node.allow_reset, renders <= node.max_render_pixels).
 The protocol (pending keyframes/depths, replayed revisions, snapshots to ``node.state_dir``,
-final refinement) is :class:`splat_slam_ros.roles.MapperRole`.
+final refinement) is :class:`splat_slam_ros.mapper_role.MapperRole`.
 """
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ import time
 import numpy as np
 import torch
 
-from .launch_services import answer_save, load_request, loaded_by_tracker, reply
+from .map_requests import answer_save, load_request, loaded_by_tracker, reply
 from .map_services import MapServices
 from .node_common import TOPICS, SplatNode, run_node
 
@@ -49,7 +49,7 @@ class MapperNode(SplatNode):
         from sensor_msgs.msg import CameraInfo, Image, PointCloud2
         from splat_slam_msgs.msg import MapperStatus
 
-        from splat_slam_ros.roles import MapperRole
+        from splat_slam_ros.mapper_role import MapperRole
 
         from . import qos as Q
         n = self.node
@@ -111,7 +111,8 @@ class MapperNode(SplatNode):
     def _restore(self, run_dir: str) -> None:
         from pathlib import Path
 
-        from splat_slam_ros.io.session import load_session, map_state, restore_map_state
+        from splat_slam_ros.io.session import load_session, map_state
+        from splat_slam_ros.mapping.persistence import restore_map_state
         arrays, meta, cam = map_state(load_session(Path(run_dir)))
         self.role.restore(restore_map_state(arrays, meta, self.cfg, cam), cam)
         self.log.info(f"loaded the map of {run_dir}: {len(self.role.mapper.map)} Gaussians, "
@@ -128,12 +129,13 @@ class MapperNode(SplatNode):
         """/splat/save_map: map.ply, renders/, mapper_metrics.json and DIR/session/'s map
         state now."""
         from splat_slam_ros.io.session import write_map_state
+        from splat_slam_ros.mapping.persistence import mapper_arrays
         if self.role.mapper is None:
             return reply(self, "map_saved", d, False, "the map is empty: nothing to save")
 
         def write(out):
             self.role.save(out, final=True)
-            write_map_state(out, self.role.mapper)
+            write_map_state(out, *mapper_arrays(self.role.mapper), self.role.mapper.K)
             return ["map.ply", "renders/", "mapper_metrics.json"]
         answer_save(self, d, write)
 
@@ -199,7 +201,8 @@ class MapperNode(SplatNode):
                 metrics["refine_s"] = (info.get("refine") or {}).get("refine_s")
                 # the map's part of the run's session (the tracker writes the keyframes')
                 from splat_slam_ros.io.session import write_map_state
-                write_map_state(self.output_dir, mp)
+                from splat_slam_ros.mapping.persistence import mapper_arrays
+                write_map_state(self.output_dir, *mapper_arrays(mp), mp.K)
             if mp.keyframes:
                 kf = mp.keyframes[max(mp.keyframes)]
                 self._publish_renders(kf.pose, kf.timestamp)

@@ -8,7 +8,7 @@ live here (TF: nodes/tf_frames.py).
 
 Graph events (``/splat/graph_events``, std_msgs/String with one JSON object, RELIABLE +
 TRANSIENT_LOCAL) carry the control protocol: ``ready``, ``end_of_stream``, ``finalized``,
-``saved`` (see nodes/launch.py for the end-of-stream / finalisation sequence).
+``saved`` (see nodes/tools/launch.py for the end-of-stream / finalisation sequence).
 """
 from __future__ import annotations
 

@@ -14,6 +14,16 @@ def is_shutdown_race(e: BaseException) -> bool:
     return isinstance(e, RuntimeError) and not rclpy.ok()
 
 
+def usage_error(*checks: Tuple[bool, str]) -> int:
+    """The first of ``(broken, message)`` that is broken printed as ``error: message``: 2;
+    0 when none is."""
+    for broken, message in checks:
+        if broken:
+            print(f"error: {message}", file=sys.stderr)
+            return 2
+    return 0
+
+
 def run_rclpy_tool(body: Callable[[], int], user_errors: Tuple[Type[BaseException], ...],
                    rclpy_args: Optional[List[str]] = None, interrupted: int = 130) -> int:
     """``rclpy.init(rclpy_args)``, ``body()``; returns its status, 2 for ``user_errors`` and

@@ -29,7 +29,7 @@ import numpy as np
 
 from splat_slam_ros.types import TRACKER_REASONS
 
-from .launch_services import answer_save, load_request, reply
+from .map_requests import answer_save, load_request, reply
 from .node_common import TOPICS, SplatNode, run_node, takes_update
 
 

@@ -42,27 +42,26 @@ the stage roles' in splat_slam_ros/roles.py, the same the in-process coordinator
 from __future__ import annotations
 
 import argparse
-import ctypes
 import json
 import os
 import signal
-import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Dict, List, Optional
 
-from splat_slam_ros.heap import proc_memory_mb
+from ..tool_runner import usage_error
+from .launch_proc import Child
+from .launch_results import finish
 
 NODE_MODULES = {
     "tracker": "splat_slam_nodes.tracker_node",
     "depth": "splat_slam_nodes.depth_node",
     "loop_closure": "splat_slam_nodes.loop_closure_node",
     "mapper": "splat_slam_nodes.mapper_node",
-    "player": "splat_slam_nodes.bag_player",
-    "camera": "splat_slam_nodes.camera_node",
-    "rerun": "splat_slam_nodes.rerun_logger",
+    "player": "splat_slam_nodes.tools.bag_player",
+    "camera": "splat_slam_nodes.tools.camera_node",
+    "rerun": "splat_slam_nodes.tools.rerun_logger",
 }
 RESUMABLE = ("tracker", "depth", "loop_closure", "mapper", "player")
 REALTIME_KEEP_UP = 0.8      # mapping.keep_up on realtime input unless the config sets one
@@ -77,111 +76,6 @@ FINISHED_MARK = "FINISHED"  # in OUT/state once a run finished: a new run may di
 
 class LaunchError(Exception):
     """User-facing error: ``error: ...``, exit 2."""
-
-
-# --------------------------------------------------------------------------- processes
-def _pdeathsig():
-    """Child side: die with the launcher (SIGTERM when the parent goes away)."""
-    try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
-    except Exception:
-        pass
-
-
-def _child_setup(nice: int):
-    """Child side: :func:`_pdeathsig`, then the OS priority ``nice`` (0: unchanged)."""
-    def setup():
-        _pdeathsig()
-        if nice:
-            os.nice(nice)
-    return setup
-
-
-class Child:
-    def __init__(self, name: str, args: List[str], env: Dict[str, str], out, prefix_width: int,
-                 nice: int = 0):
-        self.name = name
-        self.nice = int(nice)
-        self.args = args
-        self.env = env
-        self.out = out
-        self.prefix = f"[{name}]".ljust(prefix_width + 2)
-        self.proc: Optional[subprocess.Popen] = None
-        self.restarts = 0
-        self.expected_exit = False
-        self.cpu_s_prev = 0.0            # CPU of earlier incarnations
-        self.cpu_s_last = 0.0            # CPU of the current one, last sample
-        self.peak_rss = 0
-        self.thread: Optional[threading.Thread] = None
-        self.error: Optional[str] = None     # the first fatal / ``error:`` line it logged
-
-    def start(self) -> None:
-        self.error = None
-        self.proc = subprocess.Popen(self.args, env=self.env, stdout=subprocess.PIPE,
-                                     stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     start_new_session=True,
-                                     preexec_fn=_child_setup(self.nice))
-        self.thread = threading.Thread(target=self._forward, args=(self.proc,), daemon=True)
-        self.thread.start()
-
-    def _forward(self, proc) -> None:
-        for line in iter(proc.stdout.readline, b""):
-            text = line.decode(errors='replace').rstrip()
-            if self.error is None:
-                self.error = error_text(text)
-            try:
-                self.out.write(f"{self.prefix} {text}\n")
-                self.out.flush()
-            except ValueError:
-                break
-
-    def alive(self) -> bool:
-        return self.proc is not None and self.proc.poll() is None
-
-    def sample(self) -> None:
-        """Peak RSS (VmHWM) and CPU time (utime + stime) of the current process (/proc)."""
-        if not self.alive():
-            return
-        hwm_mb = proc_memory_mb(self.proc.pid).get("VmHWM", 0.0)
-        self.peak_rss = max(self.peak_rss, int(hwm_mb * 2**20))
-        self.cpu_s_last = max(self.cpu_s_last, _proc_cpu(self.proc.pid))
-
-    def cpu_s(self) -> float:
-        return self.cpu_s_prev + self.cpu_s_last
-
-    def restarted(self) -> None:
-        self.cpu_s_prev += self.cpu_s_last
-        self.cpu_s_last = 0.0
-        self.restarts += 1
-
-    def signal(self, sig) -> None:
-        if self.alive():
-            try:
-                os.kill(self.proc.pid, sig)
-            except ProcessLookupError:
-                pass
-
-
-def error_text(line: str) -> Optional[str]:
-    """The message of a node's log line that says why it stops (``error: ...`` or a FATAL
-    log line), else None."""
-    if line.startswith("error: "):
-        return line[len("error: "):].strip()
-    i = line.find("[FATAL]")
-    if i < 0:
-        return None
-    rest = line[i + len("[FATAL]"):]
-    j = rest.find("]: ")                      # [time] [node]: message
-    return (rest[j + 3:] if j >= 0 else rest).strip()
-
-
-def _proc_cpu(pid: int) -> float:
-    try:
-        f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        tck = os.sysconf("SC_CLK_TCK")
-        return (int(f[11]) + int(f[12])) / tck          # utime + stime (fields 14, 15)
-    except (OSError, ValueError, IndexError):
-        return 0.0
 
 
 # --------------------------------------------------------------------------- launcher
@@ -249,7 +143,7 @@ class Launcher:
         self.with_mapping = not (a.tracking_only or localize)
         ec = self.cfg.evaluation
         if self.with_mapping and (ec.lpips_backbone or ec.lpips_weights):
-            from splat_slam_ros.pipeline import check_lpips_config
+            from splat_slam_ros.evaluation.run import check_lpips_config
             try:
                 check_lpips_config(self.cfg)      # a missing / invalid file: before the run
             except ConfigError as e:
@@ -425,7 +319,7 @@ class Launcher:
         import rclpy
         from std_msgs.msg import String
 
-        from .node_common import TOPICS, events_qos
+        from ..node_common import TOPICS, events_qos
         rclpy.init(args=["splat_slam_launch"], signal_handler_options=_no_signal_handlers())
         self.rclpy = rclpy
         self.node = rclpy.create_node("launch", enable_rosout=False)
@@ -437,7 +331,7 @@ class Launcher:
             self.services = LaunchServices(self)
 
     def _on_event(self, m) -> None:
-        from .node_common import graph_event
+        from ..node_common import graph_event
         d = graph_event(m)
         if d is None:
             return
@@ -541,121 +435,6 @@ class Launcher:
             if c.thread is not None:
                 c.thread.join(timeout=2)
 
-    # ------------------------------------------------------------ results
-    def node_stats(self) -> Dict[str, dict]:
-        out = {}
-        for n, c in self.children.items():
-            out[n] = {"cpu_s": round(c.cpu_s(), 2), "peak_rss_mb": round(c.peak_rss / 2**20, 1),
-                      "restarts": c.restarts}
-            dropped = [d["dropped_inputs"] for d in self.events
-                       if d.get("node") == n and isinstance(d.get("dropped_inputs"), int)]
-            if dropped:                       # malformed messages it dropped (latest event)
-                out[n]["dropped_inputs"] = dropped[-1]
-        return out
-
-    def write_metrics(self, end_wall: float) -> dict:
-        from splat_slam_ros.pipeline import _write_json, frame_counts
-        eos = self.has_event("player", "end_of_stream") or {}
-        mapper = (self.has_event("mapper", "saved") or {}).get("metrics", {})
-        trk = self.has_event("tracker", "saved") or {}
-        frames = int(eos.get("frames", trk.get("frames", 0)) or 0)
-        wall = end_wall - (self.t_play or self.t0)
-        m = {"mode": "graph", "dataset": (self.bag.info.get("name") if self.bag else "live"),
-             "player_mode": self.args.mode}
-        m.update(mapper)
-        m["frames"] = frames
-        m.update(frame_counts(trk.get("frames"), trk.get("dropped"), trk.get("posed"),
-                              trk.get("skipped"), trk.get("lost")))
-        m["pose_latency_ms"] = trk.get("latency_ms") or {}
-        if self.t_eos is not None and self.t_mapped is not None:
-            m["map_done_after_stream_s"] = round(self.t_mapped - self.t_eos, 3)
-        m["keyframes"] = trk.get("keyframes", 0)
-        m["wall_s"] = round(wall, 3)
-        m["wall_total_s"] = round(end_wall - self.t0, 3)
-        m["fps"] = round(frames / max(wall, 1e-9), 3)
-        m["nodes"] = self.node_stats()
-        m["peak_rss_mb_sum"] = round(sum(v["peak_rss_mb"] for v in m["nodes"].values()), 1)
-        if self.bag is None:
-            m["evaluation_skipped"] = "live input: no ground truth"
-        else:
-            self.evaluate(m)
-        if self.with_mapping and m.get("gaussians"):
-            from splat_slam_ros.pipeline import evaluate_lpips
-            evaluate_lpips(self.out_dir, self.cfg, m)      # lpips (null without a backbone)
-        _write_json(self.out_dir / "metrics.json", m)
-        return m
-
-    def evaluate(self, m: dict) -> None:
-        """ATE and depth L1 against the bag's ground truth into ``m``. A bag without ground
-        truth poses: ``evaluation_skipped`` says so; any failure of the evaluation itself:
-        ``evaluation_error`` (the launcher then exits 1), what it computed before stays."""
-        try:
-            from splat_slam_ros.io.bagio import BagDataset
-            from splat_slam_ros.pipeline import evaluate_map_depth, evaluate_trajectories
-            ds = BagDataset(self.args.bag)
-            if ds.gt_trajectory() is None:
-                m["evaluation_skipped"] = "no ground truth in the bag"
-                return
-            evaluate_trajectories(ds, self.out_dir, m)
-            evaluate_map_depth(ds, self.out_dir, self.cfg, m)     # depth L1 vs the bag's
-        except Exception as e:
-            m["evaluation_error"] = f"{type(e).__name__}: {e}"
-
-    def finish(self, end_wall: float) -> int:
-        """After a complete run: metrics.json, summary, report. The exit status: 0; 3 when
-        there is no result (no keyframe or an empty map); 1 when the evaluation (or the LPIPS
-        a configured backbone asked for) failed."""
-        from splat_slam_ros.pipeline import _write_json, no_result_reason
-        from splat_slam_ros.report import write_report
-        self.mark_finished()
-        m = self.write_metrics(end_wall)
-        self.stop_children()
-        m["nodes"] = self.node_stats()
-        m["warnings"] = getattr(self.out, "lines", [])
-        rc = 0
-        from .launch_map import finish as session_finish
-        reason = session_finish(self.session, self.out_dir, m, self.has_event("tracker", "saved"),
-                                self.has_event("loop_closure", "finalized"))  # --load-map
-        if reason is None and not (self.session or {}).get("localize"):
-            reason = no_result_reason(self.cfg, m)  # never a success without keyframes or map
-        if reason:
-            m["error"] = reason
-            rc = 3
-        elif m.get("evaluation_error") or m.get("lpips_error"):
-            rc = 1                                 # an evaluation that was asked for failed
-        _write_json(self.out_dir / "metrics.json", m)
-        self.summary(m)
-        self.say(f"report: {write_report(self.out_dir, self.cfg)[0]}")
-        if reason:
-            print(f"error: {reason}", file=sys.stderr)
-        if m.get("evaluation_error"):
-            print(f"error: the evaluation failed: {m['evaluation_error']} (metrics.json has "
-                  "what it computed)", file=sys.stderr)
-        return rc
-
-    def summary(self, m: dict) -> None:
-        from splat_slam_ros.pipeline import SUMMARY_METRICS
-        self.say(f"frames {m['frames']}  keyframes {m['keyframes']}  wall {m['wall_s']:.1f} s  "
-                 f"{m['fps']:.2f} frames/s")
-        self.say(f"frames posed {m['frames_posed']} (tracked {m['frames_tracked']}, skipped "
-                 f"{m['frames_skipped']}, lost {m['frames_lost']}), dropped "
-                 f"{m['frames_dropped']}")
-        lat = m.get("pose_latency_ms") or {}
-        if lat:
-            self.say(f"pose latency p50 {lat['p50']:.0f} ms, p95 {lat['p95']:.0f} ms, "
-                     f"max {lat['max']:.0f} ms")
-        for k in SUMMARY_METRICS:
-            if isinstance(m.get(k), (int, float)):
-                self.say(f"{k} {m[k]:.4f}")
-        self.say("per node: " + ", ".join(f"{n} cpu {v['cpu_s']:.1f} s rss {v['peak_rss_mb']:.0f} MB"
-                                          + (f" restarts {v['restarts']}" if v["restarts"] else "")
-                                          + (f" dropped {v['dropped_inputs']} malformed input(s)"
-                                             if v.get("dropped_inputs") else "")
-                                          for n, v in m["nodes"].items()))
-        if m.get("evaluation_skipped"):
-            self.say(f"no evaluation: {m['evaluation_skipped']}")
-        self.say(f"outputs in {self.out_dir}")
-
 
 def _no_signal_handlers():
     try:
@@ -738,19 +517,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.bag and args.camera:
-        print("error: --camera and --bag exclude each other (one input at a time)", file=sys.stderr)
+    if usage_error((args.bag and args.camera,
+                    "--camera and --bag exclude each other (one input at a time)"),
+                   (args.bag and not args.out, "--bag needs --out (where the outputs go)"),
+                   (args.rate <= 0, "--rate must be positive"),
+                   (args.loop_bag < 1, "--loop-bag must be at least 1")):
         return 2
-    if args.bag and not args.out:
-        print("error: --bag needs --out (where the outputs go)", file=sys.stderr)
-        return 2
-    if args.rate <= 0:
-        print("error: --rate must be positive", file=sys.stderr)
-        return 2
-    if args.loop_bag < 1:
-        print("error: --loop-bag must be at least 1", file=sys.stderr)
-        return 2
-    from splat_slam_ros.report import WarningTee
+    from splat_slam_ros.report.recording import WarningTee
     L = Launcher(args, out=WarningTee(sys.stdout))        # keeps warnings for the report
     try:
         L.plan()
@@ -768,7 +541,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         rc = L.supervise()
         end = time.monotonic()
         if rc == 0 and L.out_dir is not None:
-            rc = L.finish(end)
+            rc = finish(L, end)
         elif rc == 2:                               # a node's configuration error
             print(f"error: {L.failed}", file=sys.stderr)
     finally:

@@ -33,8 +33,8 @@ import numpy as np
 
 from splat_slam_ros.types import Intrinsics, IntrinsicsError
 
-from .node_common import TOPICS, events_qos, graph_event, init_process
-from .tool_runner import is_shutdown_race
+from ..node_common import TOPICS, events_qos, graph_event, init_process
+from ..tool_runner import is_shutdown_race
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
@@ -228,7 +228,7 @@ class CameraNode:
     def run(self) -> int:
         from tqdm import tqdm
 
-        from .convert import image_to_msg, intrinsics_to_camera_info
+        from ..convert import image_to_msg, intrinsics_to_camera_info
         a = self.args
         self.wait_for_graph()
         rate = a.rate or self.source.fps or 30.0
@@ -277,7 +277,7 @@ def check_camera_args(source: str, camera_info: Optional[str]) -> None:
 
 def launch_args(a, cfg, wait_nodes: List[str], end_of_stream: bool) -> List[str]:
     """Command line of the camera child of splat-slam-launch (topics from ``cfg.ros``)."""
-    args = [sys.executable, "-m", "splat_slam_nodes.camera_node", str(a.camera),
+    args = [sys.executable, "-m", "splat_slam_nodes.tools.camera_node", str(a.camera),
             "--image-topic", cfg.ros.image_topic, "--camera-info-topic",
             cfg.ros.camera_info_topic, "--frame-id", cfg.ros.optical_frame,
             "--wait-nodes", ",".join(wait_nodes), "--min-subscribers", "1", "--no-progress"]

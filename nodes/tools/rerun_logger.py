@@ -24,7 +24,7 @@ import numpy as np
 
 from splat_slam_ros.extras import MissingExtra
 
-from .node_common import TOPICS, SplatNode, pointcloud2_to_arrays, run_node
+from ..node_common import TOPICS, SplatNode, pointcloud2_to_arrays, run_node
 
 MAX_ELLIPSOIDS = 50_000
 rr = None      # the rerun module: rerun-sdk is the optional [rerun] extra, see _import_rerun
@@ -71,7 +71,7 @@ class RerunLogger(SplatNode):
         from sensor_msgs.msg import CameraInfo, Image, PointCloud2
         from splat_slam_msgs.msg import Keyframe, PoseGraphUpdate
 
-        from . import qos as Q
+        from .. import qos as Q
         self.n_images = 0
         self.info = None
         self.subscribe(Keyframe, TOPICS["keyframes"], Q.keyframe_qos(), self._keyframe, "Keyframe")
@@ -112,7 +112,7 @@ class RerunLogger(SplatNode):
 
     # ------------------------------------------------------------ callbacks
     def _keyframe(self, m, raw) -> None:
-        from .convert import msg_to_keyframe
+        from ..convert import msg_to_keyframe
         kf = msg_to_keyframe(m)
         self._time(m.header.stamp)
         path = f"world/keyframes/{kf.kf_id}"
@@ -121,19 +121,19 @@ class RerunLogger(SplatNode):
         rr.log(f"{path}/image", self._rgb(kf.image))
 
     def _update(self, m, raw) -> None:
-        from .convert import msg_to_update
+        from ..convert import msg_to_update
         ev = msg_to_update(m)
         self._time(m.header.stamp)
         for kid, T in zip(ev.kf_ids, ev.poses):
             rr.log(f"world/keyframes/{int(kid)}", self._transform(T))
 
     def _pose(self, m, raw) -> None:
-        from .convert import msg_to_pose
+        from ..convert import msg_to_pose
         self._time(m.header.stamp)
         rr.log("world/camera", self._transform(msg_to_pose(m.pose)))
 
     def _info(self, m, raw) -> None:
-        from .convert import camera_info_to_intrinsics
+        from ..convert import camera_info_to_intrinsics
         k = camera_info_to_intrinsics(m)
         key = (k.fx, k.fy, k.cx, k.cy, k.width, k.height)
         if key != self.info:
@@ -142,7 +142,7 @@ class RerunLogger(SplatNode):
             rr.log("world/camera/image", self._pinhole(k))
 
     def _input(self, m, raw) -> None:
-        from .convert import msg_to_rgb
+        from ..convert import msg_to_rgb
         every = max(1, int(self.opts["image_every"]))
         self.n_images += 1
         if (self.n_images - 1) % every:
@@ -159,7 +159,7 @@ class RerunLogger(SplatNode):
         rr.log("world/trajectory", rr.LineStrips3D([pts]))
 
     def _image(self, m, path: str) -> None:
-        from .convert import msg_to_image
+        from ..convert import msg_to_image
         self._time(m.header.stamp)
         a = msg_to_image(m)
         if m.encoding == "32FC1":

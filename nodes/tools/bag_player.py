@@ -30,9 +30,9 @@ from typing import Dict, List, Optional, Tuple
 from splat_slam_ros.io.bag_reader import BagFile
 from splat_slam_ros.types import DatasetError
 
+from ..node_common import TOPICS, events_qos, graph_event, init_process
+from ..tool_runner import run_rclpy_tool, usage_error
 from .msg_types import UnknownMessageType, message_class
-from .node_common import TOPICS, events_qos, graph_event, init_process
-from .tool_runner import run_rclpy_tool
 
 ROLE_TOPICS = ("image", "camera_info", "depth", "gt_pose")
 
@@ -102,7 +102,7 @@ class Player:
         from splat_slam_msgs.msg import FrameAck
         from std_msgs.msg import String
 
-        from . import qos as Q
+        from .. import qos as Q
         self.args = args
         self.reader = reader
         self.node = rclpy.create_node(args.name)
@@ -393,11 +393,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     from rclpy.utilities import remove_ros_args
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(remove_ros_args(["x"] + argv)[1:])
-    if args.rate <= 0:
-        print("error: --rate must be positive", file=sys.stderr)
-        return 2
-    if args.loop < 1:
-        print("error: --loop must be at least 1", file=sys.stderr)
+    if usage_error((args.rate <= 0, "--rate must be positive"),
+                   (args.loop < 1, "--loop must be at least 1")):
         return 2
     try:
         reader = BagReader(args.bag)

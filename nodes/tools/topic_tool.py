@@ -20,8 +20,8 @@ import numpy as np
 
 from splat_slam_ros.ros_env import RosEnvError, apply_ros_environment
 
+from ..tool_runner import run_rclpy_tool
 from .msg_types import UnknownMessageType, message_class
-from .tool_runner import run_rclpy_tool
 
 
 class TopicToolError(Exception):
