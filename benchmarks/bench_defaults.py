@@ -152,7 +152,7 @@ def clean_twin_psnr(run_out: Path, seq: Path, clean: Path) -> float:
     ``run_out``, in the run's keyframe camera (crop, processing size), with a per-keyframe
     gain/offset per channel."""
     from splat_slam_ros.config import load_config
-    from splat_slam_ros.evaluation import psnr
+    from splat_slam_ros.evaluation.image import psnr
     from splat_slam_ros.io.datasets import open_dataset
     from splat_slam_ros.io.trajectory_io import read_trajectory
     from splat_slam_ros.tracking.flow_frontend import mapping_preprocessor

@@ -1,6 +1,6 @@
 """Proxy depth benchmark (paper §3.2, Eq. 4-6, 10): accuracy, coverage and cost per keyframe.
 
-Data: synthetic RGB-D sequences from ``splat_slam_ros.io.synth.generate_sequence`` (textured
+Data: synthetic RGB-D sequences from ``splat_slam_synth.generate_sequence`` (textured
 room, exact depth) along real recorded trajectories from ../shared/data/trajectories
 (TUM fr1/xyz, fr2/desk) and the built-in hand-held path.
 
@@ -40,9 +40,10 @@ sys.path.insert(0, str(REPO))
 
 from splat_slam_ros.config import SlamConfig  # noqa: E402
 from splat_slam_ros.io.datasets import open_dataset  # noqa: E402
-from splat_slam_ros.depth.mono_depth import MonoDepthModel  # noqa: E402
+from splat_slam_ros.tracking.mono_depth import MonoDepthModel  # noqa: E402
 from splat_slam_ros.depth.proxy_depth import (ProxyDepthEstimator, compose_proxy_depth,  # noqa: E402
-                                        multiview_filter, upsample_disparity)
+                                        upsample_disparity)
+from splat_slam_ros.tracking.multiview import multiview_filter  # noqa: E402
 from splat_slam_ros.types import KeyframeData  # noqa: E402
 
 SHARED = REPO.parent / "shared" / "data" / "trajectories"
@@ -113,7 +114,7 @@ def metrics(res, gt):
 
 def run_sequence(name, traj, args, workdir, variants):
     seq = workdir / name
-    from splat_slam_ros.io.synth import generate_sequence
+    from splat_slam_synth import generate_sequence
     generate_sequence(traj, args.frames, args.size, seq, overwrite=True, progress=False,
                       fps=args.fps, seed=args.seed)
     ds = open_dataset(seq)
@@ -220,7 +221,7 @@ def bench_dspo_window(n=25, w=80, h=60, reps=3):
     Scene: a slanted plane seen by a camera moving sideways; mono = exact affine."""
     from types import SimpleNamespace
     from splat_slam_ros.tracking.dense_ba import reproject
-    from splat_slam_ros.depth.dspo import DspoPrior
+    from splat_slam_ros.tracking.dspo import DspoPrior
     fx = 0.8 * w
     intr = torch.tensor([fx, fx, w / 2 - 0.5, h / 2 - 0.5])
     poses = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)

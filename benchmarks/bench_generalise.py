@@ -170,7 +170,8 @@ def read_dso_result(path: Path):
 
 
 def run_dso(binary: Path, seq_dir: Path) -> dict:
-    from splat_slam_ros.evaluation import MetricError, ate
+    from splat_slam_ros.evaluation.inputs import MetricError
+    from splat_slam_ros.evaluation.trajectory import ate
     from splat_slam_ros.heap import proc_memory_mb
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)

@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/bench_graph.py [--frames 300] [--size 640x480] [--config FILE]
 
 A synthetic sequence along ../shared/data/trajectories/freiburg1_xyz-groundtruth.txt
-(splat_slam_ros.io.synth.generate_sequence) is converted to a rosbag2/MCAP bag
+(splat_slam_synth.generate_sequence) is converted to a rosbag2/MCAP bag
 (splat_slam_ros.io.bagio.write_bag) and run twice, each in its own process:
   1. in-process: splat_slam_ros.pipeline.run on the bag;
   2. graph: splat-slam-launch --bag ... in lockstep mode (4 node processes + player).
@@ -81,7 +81,7 @@ def depth_l1_cm(out: Path, seq_dir: Path, cfg_path) -> dict:
     scale). Pixels where both depths are > 0."""
     from splat_slam_ros.config import load_config
     from splat_slam_ros.io.datasets import open_dataset
-    from splat_slam_ros.evaluation import ate
+    from splat_slam_ros.evaluation.trajectory import ate
     from splat_slam_ros.mapping.mapper import Mapper
     from splat_slam_ros.io.trajectory_io import read_trajectory
     ds = open_dataset(seq_dir)
@@ -124,7 +124,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     from splat_slam_ros.io.bagio import write_bag
     from splat_slam_ros.io.datasets import open_dataset
-    from splat_slam_ros.io.synth import generate_sequence
+    from splat_slam_synth import generate_sequence
     work = Path(a.work)
     seq, bag = work / "seq", work / "bag"
     cfg = a.config or (str(REPO / "config" / "synthetic.yaml")
@@ -179,8 +179,8 @@ def main(argv=None) -> int:
             out = work / "graph"
             c0, _ = _rusage_children()
             t0 = time.perf_counter()
-            args = [sys.executable, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out",
-                    str(out), "--fresh", "--mode", "lockstep"] + (["--config", cfg] if cfg else [])
+            args = [sys.executable, "-m", "splat_slam_nodes.tools.launch", "--bag", str(bag),
+                    "--out", str(out), "--fresh", "--mode", "lockstep"] + (["--config", cfg] if cfg else [])
             r = subprocess.run(args, env=env, capture_output=True, text=True)
             wall_proc = time.perf_counter() - t0
             c1, _ = _rusage_children()

@@ -3,7 +3,7 @@
 Datasets:
 - ``icl``: ../shared/data/icl_nuim_living_room_5 (5 real frames 640x480, wide baselines,
   fy = -480 converted by the dataset reader); every frame is mapped;
-- ``synth``: a synthetic TUM-layout sequence rendered by ``splat_slam_ros.io.synth`` along a
+- ``synth``: a synthetic TUM-layout sequence rendered by ``splat_slam_synth`` along a
   real hand-held trajectory (TUM fr1/xyz ground truth); keyframes by the covisibility rules
   (or every k-th frame with --keyframe-every).
 
@@ -33,9 +33,10 @@ DATA = REPO.parent / "shared" / "data"
 RESULTS = REPO / "benchmarks" / "results" / "mapping.json"
 
 from splat_slam_ros.config import load_config  # noqa: E402
+from splat_slam_ros.evaluation.map_sequence import map_sequence  # noqa: E402
+from splat_slam_ros.evaluation.rendering import evaluate_map  # noqa: E402
 from splat_slam_ros.heap import peak_rss_mb  # noqa: E402
 from splat_slam_ros.io.datasets import open_dataset  # noqa: E402
-from splat_slam_ros.mapping.map_sequence import map_sequence  # noqa: E402
 from splat_slam_ros.types import Frame, Intrinsics  # noqa: E402
 
 ICL_K = Intrinsics(481.2, -480.0, 319.5, 239.5, 640, 480)
@@ -65,7 +66,7 @@ def run_one(name: str, ds, cfg, scale: float, keyframe_every: int, refine):
     if len(frames) > m["keyframes"]:        # frames that were not mapped: novel views
         kfs = set(mapper.keyframes)
         others = [f for f in frames if f.index not in kfs]
-        novel = mapper.evaluate(others)
+        novel = evaluate_map(mapper, others)
     res = {
         "dataset": name, "frames": len(frames), "size": f"{K.width}x{K.height}",
         "keyframes": m["keyframes"], "psnr": round(m["psnr"], 3), "ssim": round(m["ssim"], 4),
@@ -121,7 +122,7 @@ def main(argv=None) -> int:
             ds = open_dataset(path, fmt="posefolder", intrinsics=ICL_K, depth_scale=5000.0)
             results.append(run_one("icl_nuim_living_room_5", ds, cfg, args.scale, 1, args.refine))
     if args.only in (None, "synth"):
-        from splat_slam_ros.io.synth import generate_sequence
+        from splat_slam_synth import generate_sequence
         traj = DATA / "trajectories" / "freiburg1_xyz-groundtruth.txt"
         with tempfile.TemporaryDirectory() as tmp:
             out = generate_sequence(str(traj) if traj.is_file() else "builtin",

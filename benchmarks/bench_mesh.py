@@ -28,10 +28,10 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 from bench_mapping import ICL_K, resized  # noqa: E402
 
 from splat_slam_ros.config import MappingConfig, SlamConfig  # noqa: E402
+from splat_slam_ros.evaluation.map_sequence import map_sequence  # noqa: E402
 from splat_slam_ros.io.datasets import open_dataset  # noqa: E402
-from splat_slam_ros.mapping.map_sequence import map_sequence  # noqa: E402
 from splat_slam_ros.mapping.mesh import fuse_frames, map_mesh  # noqa: E402
-from splat_slam_ros.mesh_eval import evaluate_meshes  # noqa: E402
+from splat_slam_ros.evaluation.mesh import evaluate_meshes  # noqa: E402
 
 
 def main() -> int:

@@ -57,7 +57,7 @@ def main(argv=None) -> int:
     a.json = a.json or str(REPO / "benchmarks" / "results" /
                            f"multisession{'_graph' if a.graph else ''}.json")
     import numpy as np
-    from splat_slam_ros.evaluation import ate
+    from splat_slam_ros.evaluation.trajectory import ate
     from splat_slam_ros.io.datasets import open_dataset
     seq = ensure_sequence(Path(a.data_dir), a.sequence, 300)
     n = len(open_dataset(seq))

@@ -83,7 +83,7 @@ def source_sequence(data_dir: Path) -> Path:
     if not TRAJ.is_file():
         raise SoakError(f"{d} is missing and so is {TRAJ} to render it from")
     print(f"rendering {d} with splat-slam-synth (about 1.3 s/frame) ...", flush=True)
-    subprocess.run([sys.executable, "-m", "splat_slam_ros.cli.synth", "--trajectory", str(TRAJ),
+    subprocess.run([sys.executable, "-m", "splat_slam_synth.cli", "--trajectory", str(TRAJ),
                     "--frames", "300", "--realism", "realistic", "--out", str(d), "--overwrite"],
                    check=True)
     return d
@@ -209,8 +209,8 @@ def run_soak(bag: Path, cfg_path: Path, out: Path, passes: int, rate: float,
     env["PYTHONUNBUFFERED"] = "1"
     os.environ["ROS_DOMAIN_ID"] = env["ROS_DOMAIN_ID"]
     status = MapStatus(env)
-    args = [sys.executable, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out", str(out),
-            "--fresh", "--config", str(cfg_path), "--mode", "realtime", "--rate", str(rate),
+    args = [sys.executable, "-m", "splat_slam_nodes.tools.launch", "--bag", str(bag), "--out",
+            str(out), "--fresh", "--config", str(cfg_path), "--mode", "realtime", "--rate", str(rate),
             "--loop-bag", str(passes), "--final-timeout", str(timeout)]
     log = open(out.parent / f"{out.name}.log", "wb")
     t0 = time.monotonic()

@@ -153,7 +153,8 @@ def run_child(args) -> None:
     bound_heap()
     from splat_slam_ros.config import load_config
     from splat_slam_ros.io.datasets import open_dataset
-    from splat_slam_ros.evaluation import MetricError, ate, segment_scales
+    from splat_slam_ros.evaluation.inputs import MetricError
+    from splat_slam_ros.evaluation.trajectory import ate, segment_scales
     from splat_slam_ros.coordinator import track_sequence
     t_import = time.perf_counter() - t0
     overrides = {}

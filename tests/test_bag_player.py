@@ -18,7 +18,7 @@ SUBS = [["/camera/image_raw", "sensor_msgs/msg/Image", "image"],
 
 
 def _player(bag, env, log, *extra):
-    return start([PY, "-m", "splat_slam_nodes.bag_player", str(bag), "--wait-nodes", "probe",
+    return start([PY, "-m", "splat_slam_nodes.tools.bag_player", str(bag), "--wait-nodes", "probe",
                   "--start-timeout", "60", *extra], env, log)
 
 
@@ -118,7 +118,7 @@ def test_loop_passes_and_state_resume(tmp_path):
                     str(state))
     assert [r["stamp"] for r in recs if r.get("topic") == "/camera/image_raw"] == stamps[7:]
     assert _eos(recs)[0]["frames"] == 10
-    r = subprocess.run([PY, "-m", "splat_slam_nodes.bag_player", str(bag), "--loop", "0"],
+    r = subprocess.run([PY, "-m", "splat_slam_nodes.tools.bag_player", str(bag), "--loop", "0"],
                        env=env, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "error: --loop must be at least 1" in r.stderr
 
@@ -127,15 +127,15 @@ def test_all_topics_and_user_errors(tmp_path):
     need_ros()
     bag = write_tiny_bag(tmp_path / "bag", n=3)
     env = isolated_env()
-    r = subprocess.run([PY, "-m", "splat_slam_nodes.bag_player", str(tmp_path / "nope")],
+    r = subprocess.run([PY, "-m", "splat_slam_nodes.tools.bag_player", str(tmp_path / "nope")],
                        env=env, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "error: bag not found" in r.stderr
     (tmp_path / "x.db3").write_bytes(b"")
-    r = subprocess.run([PY, "-m", "splat_slam_nodes.bag_player", str(tmp_path / "x.db3")],
+    r = subprocess.run([PY, "-m", "splat_slam_nodes.tools.bag_player", str(tmp_path / "x.db3")],
                        env=env, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "rosbag2 folder or a .mcap" in r.stderr
     # nobody listens: a clear error after --start-timeout, exit 2
-    r = subprocess.run([PY, "-m", "splat_slam_nodes.bag_player", str(bag), "--start-timeout",
+    r = subprocess.run([PY, "-m", "splat_slam_nodes.tools.bag_player", str(bag), "--start-timeout",
                         "1"], env=env, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "graph not ready" in r.stderr
     subs = SUBS + [["/camera/depth", "sensor_msgs/msg/Image", "image"],

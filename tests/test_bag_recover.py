@@ -40,7 +40,7 @@ def test_truncated_bag_yields_the_frames_before_the_damage(tiny_bag, capsys):
     err = capsys.readouterr().err
     assert f"read as a stream: {h.messages} complete messages recovered" in err
     # the bag player's reader recovers the same frames
-    from splat_slam_nodes.bag_player import BagReader, frames as player_frames
+    from splat_slam_nodes.tools.bag_player import BagReader, frames as player_frames
     r = BagReader(tiny_bag)
     assert sum(1 for _ in player_frames(r, list(r.types), "/camera/image_raw")) == len(frames)
 
@@ -88,7 +88,7 @@ RUN_CFG = TINY_FAST_RUN_CFG
 
 def test_splat_slam_run_on_a_bag_truncated_at_half(tmp_path):
     from splat_slam_ros.io.bagio import write_bag
-    from splat_slam_ros.io.synth import generate_sequence
+    from splat_slam_synth import generate_sequence
     seq = tmp_path / "seq"
     generate_sequence("builtin", 36, (160, 120), seq, overwrite=True, progress=False,
                       realism="clean", fps=5)          # 5 fps: enough motion in 18 frames
@@ -111,7 +111,7 @@ def test_splat_slam_launch_on_a_bag_truncated_at_half(tmp_path):
     from test_graph_support import PY, isolated_env, need_ros, start, stop
     need_ros()
     from splat_slam_ros.io.bagio import write_bag
-    from splat_slam_ros.io.synth import generate_sequence
+    from splat_slam_synth import generate_sequence
     seq = tmp_path / "seq"
     generate_sequence("builtin", 36, (160, 120), seq, overwrite=True, progress=False,
                       realism="clean", fps=5)
@@ -121,7 +121,7 @@ def test_splat_slam_launch_on_a_bag_truncated_at_half(tmp_path):
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text(RUN_CFG)
     out, log = tmp_path / "out", tmp_path / "launch.log"
-    p = start([PY, "-m", "splat_slam_nodes.launch", "--bag", str(tmp_path / "bag"), "--out",
+    p = start([PY, "-m", "splat_slam_nodes.tools.launch", "--bag", str(tmp_path / "bag"), "--out",
                str(out), "--config", str(cfg)], isolated_env(), log)
     try:
         rc = p.wait(timeout=900)

@@ -19,7 +19,7 @@ from splat_slam_ros.io.trajectory_io import read_trajectory   # noqa: E402
 @pytest.fixture(scope="module")
 def small_seq(tmp_path_factory):
     out = tmp_path_factory.mktemp("gen") / "seq"
-    subprocess.run([sys.executable, "-m", "splat_slam_ros.cli.synth", "--frames", "12",
+    subprocess.run([sys.executable, "-m", "splat_slam_synth.cli", "--frames", "12",
                     "--size", "96x72", "--out", str(out), "--quiet"], check=True,
                    capture_output=True, timeout=120)
     return out

@@ -15,7 +15,7 @@ from test_graph_support import TINY_TRACKING_CFG, launch_ok, PY, REPO, isolated_
 
 pytestmark = pytest.mark.ros
 
-from splat_slam_nodes import camera_node as C  # noqa: E402
+from splat_slam_nodes.tools import camera_node as C  # noqa: E402
 
 N = 24
 
@@ -25,7 +25,7 @@ def video(tmp_path_factory):
     """A 192x144 MJPG video of a synthetic sequence + its ROS camera_info YAML."""
     need_ros()
     from splat_slam_ros.io.datasets import open_dataset
-    from splat_slam_ros.io.synth import generate_sequence
+    from splat_slam_synth import generate_sequence
     d = tmp_path_factory.mktemp("camera")
     traj = REPO.parent / "shared" / "data" / "trajectories" / "freiburg1_xyz-groundtruth.txt"
     generate_sequence(str(traj) if traj.is_file() else "builtin", N, (192, 144), d / "seq",
@@ -87,8 +87,8 @@ def test_user_mistakes_are_one_line_errors(video, tmp_path, args, msg):
     (tmp_path / "bad.yaml").write_text("fx: 1\n")
     sub = {"EMPTY": str(tmp_path / "empty"), "NOTVIDEO": str(tmp_path / "not.mp4"),
            "VIDEO": str(video[0]), "BADYAML": str(tmp_path / "bad.yaml")}
-    r = subprocess.run([PY, "-m", "splat_slam_nodes.camera_node"] + [sub.get(x, x) for x in args],
-                       capture_output=True, text=True, timeout=120, env=isolated_env())
+    r = subprocess.run([PY, "-m", "splat_slam_nodes.tools.camera_node"]
+                       + [sub.get(x, x) for x in args], capture_output=True, text=True, timeout=120, env=isolated_env())
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip().startswith("error:") and msg in r.stderr, r.stderr
     assert "Traceback" not in r.stderr
@@ -101,7 +101,7 @@ def test_camera_publishes_images_and_infos_at_the_rate(video, tmp_path):
             ["/camera/camera_info", "sensor_msgs/msg/CameraInfo", "sensor"]]
     probe = start_probe({"name": "probe", "subs": subs, "duration": 300}, env,
                         tmp_path / "probe.log")
-    cam = start([PY, "-m", "splat_slam_nodes.camera_node", str(avi), "--camera-info",
+    cam = start([PY, "-m", "splat_slam_nodes.tools.camera_node", str(avi), "--camera-info",
                  str(cam_yaml), "--rate", "8", "--min-subscribers", "1", "--no-progress"], env,
                 tmp_path / "camera.log")
     try:
@@ -131,8 +131,8 @@ def test_launch_with_camera_tracks_the_video(video, tmp_path):
     (tmp_path / "cfg.yaml").write_text(CFG)
     env = isolated_env()
     out = tmp_path / "out"
-    log = launch_ok([PY, "-m", "splat_slam_nodes.launch", "--camera", str(avi), "--camera-info",
-                     str(cam_yaml), "--camera-rate", "4", "--out", str(out), "--config",
+    log = launch_ok([PY, "-m", "splat_slam_nodes.tools.launch", "--camera", str(avi),
+                     "--camera-info", str(cam_yaml), "--camera-rate", "4", "--out", str(out), "--config",
                      str(tmp_path / "cfg.yaml"), "--tracking-only", "--rerun",
                      str(tmp_path / "run.rrd")], env, tmp_path / "launch.log", timeout=600)
     assert "[camera]" in log and "published 24 frames" in log
@@ -160,7 +160,7 @@ def test_launch_rejects_bad_camera_arguments(video, tmp_path):
     for extra, msg in ((["--camera", "/nonexistent.avi"], "not found"),
                        (["--camera", str(avi), "--bag", str(tmp_path)], "exclude each other"),
                        (["--camera", str(avi), "--camera-info", str(avi)], "not a YAML text")):
-        r = subprocess.run([PY, "-m", "splat_slam_nodes.launch", "--out", str(tmp_path / "o")]
+        r = subprocess.run([PY, "-m", "splat_slam_nodes.tools.launch", "--out", str(tmp_path / "o")]
                            + extra, capture_output=True, text=True, timeout=120,
                            env=isolated_env())
         assert r.returncode == 2 and r.stderr.startswith("error:") and msg in r.stderr, r.stderr

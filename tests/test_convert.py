@@ -10,7 +10,7 @@ from splat_slam_ros.io.bagio import (DEFAULT_TOPICS, INFO_FILE, BagDataset, make
 from splat_slam_ros.cli.convert import main as convert_main
 from splat_slam_ros.io.datasets import DatasetError, open_dataset, stamp_to_ns
 from splat_slam_ros.geometry import pose_from_tq
-from splat_slam_ros.io import synth
+import splat_slam_synth as synth
 from splat_slam_ros.io.trajectory_io import read_trajectory
 from splat_slam_ros.types import Intrinsics
 

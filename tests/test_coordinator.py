@@ -16,7 +16,8 @@ import pytest
 
 from splat_slam_ros.config import MappingConfig
 from splat_slam_ros.coordinator import Coordinator
-from splat_slam_ros.roles import DepthRole, KeyframeBatcher, LoopRole, MapperRole, Outbox
+from splat_slam_ros.mapper_role import MapperRole
+from splat_slam_ros.roles import DepthRole, KeyframeBatcher, LoopRole, Outbox
 from splat_slam_ros.types import (LOOP_SEQ_START, TRACKER_SEQ_START, KeyframeData, ProxyDepth,
                                   UpdateEvent)
 
@@ -285,7 +286,7 @@ def test_tracking_only_needs_no_depth_or_mapper():
 # ------------------------------------------------------------------ splat-slam-run
 @pytest.fixture(scope="module")
 def synth_seq(tmp_path_factory):
-    from splat_slam_ros.io.synth import generate_sequence
+    from splat_slam_synth import generate_sequence
     d = tmp_path_factory.mktemp("coord") / "seq"
     generate_sequence("builtin", 36, (160, 120), d, overwrite=True, progress=False,
                       realism="clean", fps=10)

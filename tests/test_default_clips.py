@@ -18,7 +18,7 @@ TRAJ = Path(__file__).resolve().parents[2] / "shared" / "data" / "trajectories" 
 def clip(tmp_path_factory, frames, size):
     from splat_slam_ros.io.bagio import write_bag
     from splat_slam_ros.io.datasets import open_dataset
-    from splat_slam_ros.io.synth import generate_sequence
+    from splat_slam_synth import generate_sequence
     if not TRAJ.is_file():
         pytest.skip(f"{TRAJ} not found (../shared/data)")
     d = tmp_path_factory.mktemp(f"clip{frames}")
@@ -60,7 +60,7 @@ def run_cli(seq: Path, out: Path) -> subprocess.CompletedProcess:
 
 def run_launch(bag: Path, out: Path) -> subprocess.CompletedProcess:
     need_ros()
-    return subprocess.run([PY, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out",
+    return subprocess.run([PY, "-m", "splat_slam_nodes.tools.launch", "--bag", str(bag), "--out",
                            str(out)], capture_output=True, text=True, timeout=1800,
                           env=isolated_env())
 
@@ -91,7 +91,7 @@ def test_in_process_metrics_hold_depth_l1_against_the_dataset(tmp_path):
     """A tiny sequence that initialises: metrics.json has the map's depth L1 vs its depth."""
     from splat_slam_ros.config import load_config
     from splat_slam_ros.io.datasets import open_dataset
-    from splat_slam_ros.io.synth import generate_sequence
+    from splat_slam_synth import generate_sequence
     from splat_slam_ros.pipeline import run
     generate_sequence("builtin", 36, (160, 120), tmp_path / "seq", overwrite=True,
                       progress=False, realism="clean", fps=10)

@@ -219,7 +219,7 @@ def test_cli_preset(tmp_path):
 
 
 def test_launcher_preset_gives_the_nodes_one_merged_file(tmp_path, monkeypatch):
-    from splat_slam_nodes import launch
+    from splat_slam_nodes.tools import launch
     monkeypatch.setenv("SPLAT_SLAM_DDS_RANGE", "localhost")
     args = ["--out", str(tmp_path), "--preset", "paper", "--config",
             str(REPO / "config" / "tum.yaml"), "--set", "mapping.iters_first=5"]
@@ -241,7 +241,7 @@ def test_launcher_keeps_the_mapper_at_pace_on_realtime_input(tmp_path, monkeypat
     """Live topics (and --mode realtime): wall-clock budgets (mapping.time_budget) and
     mapping.keep_up default on (steps skipped, never keyframes); an explicit --set wins;
     lockstep replay keeps the step budgets."""
-    from splat_slam_nodes import launch
+    from splat_slam_nodes.tools import launch
     monkeypatch.setenv("SPLAT_SLAM_DDS_RANGE", "localhost")
 
     def planned(*extra):
@@ -260,7 +260,7 @@ def test_launcher_keeps_the_mapper_at_pace_on_realtime_input(tmp_path, monkeypat
     steps = planned("--set", "mapping.time_budget=false")     # step budgets on live input
     assert not steps.cfg.mapping.time_budget and steps.cfg.mapping.keep_up == 0
     assert not steps.keep_up_note
-    from splat_slam_nodes import bag_player                  # a bag (its reader stubbed)
+    from splat_slam_nodes.tools import bag_player            # a bag (its reader stubbed)
     monkeypatch.setattr(bag_player, "BagReader", lambda path: object())
     lock = planned("--bag", str(tmp_path / "b.mcap"))         # lockstep replay: steps
     assert not lock.cfg.mapping.time_budget and lock.cfg.mapping.keep_up == 0
@@ -311,7 +311,7 @@ def test_bench_defaults_clean_twin_psnr(tmp_path):
         import bench_defaults
     finally:
         sys.path.remove(str(REPO / "benchmarks"))
-    from splat_slam_ros.io import synth
+    import splat_slam_synth as synth
     from splat_slam_ros.io.trajectory_io import read_trajectory, write_tum
     real = synth.generate_sequence("builtin", 6, "96x72", tmp_path / "real", progress=False,
                                    seed=3, realism="realistic")
@@ -337,7 +337,7 @@ def test_bench_defaults_clean_twin_psnr(tmp_path):
 def test_launcher_never_discards_the_state_of_an_unfinished_run(tmp_path, monkeypatch):
     """OUT/state of a run that did not finish is what --resume needs after a crash: a new
     launch refuses it (--resume continues, --fresh discards); a finished run's state goes."""
-    from splat_slam_nodes import launch
+    from splat_slam_nodes.tools import launch
     monkeypatch.setenv("SPLAT_SLAM_DDS_RANGE", "localhost")
 
     def planned(*extra):

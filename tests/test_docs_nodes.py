@@ -29,13 +29,13 @@ PAGES: Dict[str, Tuple[str, ...]] = {
     "depth.md": ("depth_node.py",),
     "loop_closure.md": ("loop_closure_node.py",),
     "mapper.md": ("mapper_node.py", "map_services.py"),
-    "rerun_logger.md": ("rerun_logger.py",),
-    "player.md": ("bag_player.py",),
-    "camera.md": ("camera_node.py",),
-    "launcher.md": ("launch.py",),
+    "rerun_logger.md": ("tools/rerun_logger.py",),
+    "player.md": ("tools/bag_player.py",),
+    "camera.md": ("tools/camera_node.py",),
+    "launcher.md": ("tools/launch.py",),
 }
 # calls whose topic is computed at run time (the bag's own topic names): documented by hand
-DYNAMIC_TOPICS = {("bag_player.py", "create_publisher")}
+DYNAMIC_TOPICS = {("tools/bag_player.py", "create_publisher")}
 # the least a page's code must yield (pubs, subs, services, node options, CLI options): an
 # extractor that silently finds nothing fails here instead of passing every page
 MINIMUM = {
@@ -512,7 +512,7 @@ def page_code(page: str, overrides: Optional[Dict[str, str]] = None) -> NodeCode
     srcs = {m: (overrides or {}).get(m, (NODES / m).read_text()) for m in PAGES[page]}
     code = extractor().node_code(srcs)
     if page == "launcher.md":           # the statuses its docstring promises (3: no result)
-        doc = ast.get_docstring(_parse("launch.py")) or ""
+        doc = ast.get_docstring(_parse("tools/launch.py")) or ""
         para = doc.split("Exit status:", 1)[1].split("\n\n", 1)[0]
         code.exit_codes |= {int(x) for x in re.findall(r"(?<![\w.-])(\d+)(?= )", para)}
     return code

@@ -7,8 +7,8 @@ import torch
 
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.tracking.dense_ba import bundle_adjust, reproject
-from splat_slam_ros.depth.dspo import DspoPrior, dspo_step, make_depth_prior
-from splat_slam_ros.depth.mono_depth import MonoDepthModel
+from splat_slam_ros.tracking.dspo import DspoPrior, dspo_step, make_depth_prior
+from splat_slam_ros.tracking.mono_depth import MonoDepthModel
 from test_proxy_depth import BA, TRACK, pose  # the same cameras and trajectory
 
 ROOM = [((0, 0, 1), 5.0, None), ((1, 0, 0), -2.5, None), ((1, 0, 0), 2.5, None),
@@ -177,7 +177,7 @@ def test_dspo_off_without_mono_model():
 
 
 def test_dspo_missing_model_is_a_clear_error(tmp_path):
-    from splat_slam_ros.depth.mono_depth import MonoDepthError
+    from splat_slam_ros.tracking.mono_depth import MonoDepthError
     c = SlamConfig()
     c.depth.mono_model = str(tmp_path / "missing.onnx")
     with pytest.raises(MonoDepthError, match="not found"):

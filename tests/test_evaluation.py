@@ -16,7 +16,11 @@ import numpy as np
 import pytest
 import torch
 
-from splat_slam_ros import evaluation as ev
+from splat_slam_ros.evaluation import depth as evd
+from splat_slam_ros.evaluation import image as evm
+from splat_slam_ros.evaluation import inputs as evi
+from splat_slam_ros.evaluation import perceptual as evp
+from splat_slam_ros.evaluation import trajectory as evt
 from splat_slam_ros.cli.eval import main as eval_main
 from splat_slam_ros.geometry import apply_sim3_to_poses, so3_exp
 from splat_slam_ros.io.trajectory_io import read_trajectory, write_tum
@@ -76,7 +80,7 @@ def test_umeyama_matches_evo(with_scale):
     src = rng.normal(0, 1, (50, 3))
     s0, R0, t0 = _random_sim3(rng, 0.37)
     dst = s0 * src @ R0.numpy().T + t0.numpy() + rng.normal(0, 0.05, (50, 3))
-    s, R, t = ev.umeyama_alignment(src, dst, with_scale=with_scale)
+    s, R, t = evt.umeyama_alignment(src, dst, with_scale=with_scale)
     r_e, t_e, c_e = evo_umeyama(src.T, dst.T, with_scale)
     assert abs(s - c_e) < 1e-10
     np.testing.assert_allclose(R, r_e, atol=1e-10)
@@ -92,18 +96,18 @@ def test_umeyama_returns_rotation_not_reflection():
     rng = np.random.default_rng(4)
     src = rng.normal(0, 1, (30, 3))
     dst = src * np.array([1.0, 1.0, -1.0])          # mirror image: best proper rotation
-    _, R, _ = ev.umeyama_alignment(src, dst)
+    _, R, _ = evt.umeyama_alignment(src, dst)
     assert abs(np.linalg.det(R) - 1) < 1e-10
 
 
 def test_umeyama_degenerate_inputs():
     line = np.outer(np.linspace(0, 1, 10), [1.0, 2.0, 3.0])
-    with pytest.raises(ev.MetricError, match="collinear"):
-        ev.umeyama_alignment(line, line + 1)
-    with pytest.raises(ev.MetricError, match="at least 3"):
-        ev.umeyama_alignment(np.zeros((2, 3)), np.zeros((2, 3)))
-    with pytest.raises(ev.MetricError, match="equal shape"):
-        ev.umeyama_alignment(np.zeros((5, 3)), np.zeros((4, 3)))
+    with pytest.raises(evi.MetricError, match="collinear"):
+        evt.umeyama_alignment(line, line + 1)
+    with pytest.raises(evi.MetricError, match="at least 3"):
+        evt.umeyama_alignment(np.zeros((2, 3)), np.zeros((2, 3)))
+    with pytest.raises(evi.MetricError, match="equal shape"):
+        evt.umeyama_alignment(np.zeros((5, 3)), np.zeros((4, 3)))
 
 
 # --------------------------------------------------------------------- ATE
@@ -112,7 +116,7 @@ def test_ate_of_sim3_transformed_copy_is_zero_and_scale_recovered(scale):
     ts, P = _fr1()
     s, R, t = _random_sim3(np.random.default_rng(int(scale * 10)), scale)
     E = _transform(P, s, R, t)
-    r = ev.ate(ts, P, ts, E, align="sim3")
+    r = evt.ate(ts, P, ts, E, align="sim3")
     assert r["rmse_cm"] < 1e-8 and r["max_cm"] < 1e-8
     assert r["n_matched"] == len(ts)
     assert abs(r["scale"] - 1.0 / scale) < 1e-9
@@ -120,7 +124,7 @@ def test_ate_of_sim3_transformed_copy_is_zero_and_scale_recovered(scale):
     np.testing.assert_allclose(r["aligned_est_poses"], P, atol=1e-9)
     # SE(3) alignment cannot undo a scale change, Sim(3) can
     if scale != 1.0:
-        assert ev.ate(ts, P, ts, E, align="se3")["rmse_cm"] > 1.0
+        assert evt.ate(ts, P, ts, E, align="se3")["rmse_cm"] > 1.0
 
 
 def test_ate_known_offset_without_alignment():
@@ -130,7 +134,7 @@ def test_ate_known_offset_without_alignment():
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     E = P.copy()
     E[:, :3, 3] += 0.037 * d                         # 3.7 cm in random directions
-    r = ev.ate(ts, P, ts, E, align="none")
+    r = evt.ate(ts, P, ts, E, align="none")
     for k in ("rmse_cm", "mean_cm", "median_cm", "min_cm", "max_cm"):
         assert abs(r[k] - 3.7) < 1e-9, k
     assert r["std_cm"] < 1e-9 and r["scale"] == 1.0
@@ -154,10 +158,10 @@ def test_ate_sim3_and_se3_closed_form():
     yc = y - y.mean(0)
     A = float((yc ** 2).sum(1).mean())
     B = float((e ** 2).sum(1).mean())
-    r3 = ev.ate(ts, P, ts, E, align="se3")
+    r3 = evt.ate(ts, P, ts, E, align="se3")
     assert abs(r3["rmse_cm"] - 100 * np.sqrt(B)) < 1e-8
     np.testing.assert_allclose(r3["rotation"], np.eye(3), atol=1e-9)
-    rs = ev.ate(ts, P, ts, E, align="sim3")
+    rs = evt.ate(ts, P, ts, E, align="sim3")
     assert abs(rs["scale"] - A / (A + B)) < 1e-10
     assert abs(rs["rmse_cm"] - 100 * np.sqrt(A * B / (A + B))) < 1e-8
     assert rs["rmse_cm"] < r3["rmse_cm"]
@@ -174,7 +178,7 @@ def test_ate_matches_evo_on_real_trajectory():
     est_ts = ts[keep] + rng.uniform(-0.004, 0.004, len(keep))   # jitter < half the 100 Hz period
     E = E[keep]
     for align in ("sim3", "se3"):
-        r = ev.ate(ts, P, est_ts, E, align=align, max_diff=0.02)
+        r = evt.ate(ts, P, est_ts, E, align=align, max_diff=0.02)
         ref, est = sync.associate_trajectories(_evo_traj(ts, P), _evo_traj(est_ts, E),
                                                max_diff=0.02)
         est = copy.deepcopy(est)
@@ -192,32 +196,32 @@ def test_ate_matches_evo_on_real_trajectory():
 
 def test_ate_requires_three_associated_poses_and_names_ranges():
     ts, P = _synthetic_traj(50)
-    with pytest.raises(ev.MetricError) as ei:
-        ev.ate(ts, P, ts + 1000.0, P)
+    with pytest.raises(evi.MetricError) as ei:
+        evt.ate(ts, P, ts + 1000.0, P)
     msg = str(ei.value)
     assert "only 0 poses associate" in msg
     assert "100.000000" in msg and "1100.000000" in msg      # both timestamp ranges
-    with pytest.raises(ev.MetricError, match="only 2 poses"):
-        ev.ate(ts, P, ts[:2], P[:2])
+    with pytest.raises(evi.MetricError, match="only 2 poses"):
+        evt.ate(ts, P, ts[:2], P[:2])
 
 
 def test_ate_input_errors():
     ts, P = _synthetic_traj(20)
-    with pytest.raises(ev.MetricError, match="unknown alignment"):
-        ev.ate(ts, P, ts, P, align="sim4")
-    with pytest.raises(ev.MetricError, match=r"\(N, 4, 4\)"):
-        ev.ate(ts, P[:, :3, 3], ts, P)
-    with pytest.raises(ev.MetricError, match="timestamps but"):
-        ev.ate(ts[:-1], P, ts, P)
+    with pytest.raises(evi.MetricError, match="unknown alignment"):
+        evt.ate(ts, P, ts, P, align="sim4")
+    with pytest.raises(evi.MetricError, match=r"\(N, 4, 4\)"):
+        evt.ate(ts, P[:, :3, 3], ts, P)
+    with pytest.raises(evi.MetricError, match="timestamps but"):
+        evt.ate(ts[:-1], P, ts, P)
     bad = P.copy()
     bad[3, 0, 3] = np.nan
-    with pytest.raises(ev.MetricError, match="non-finite"):
-        ev.ate(ts, P, ts, bad)
+    with pytest.raises(evi.MetricError, match="non-finite"):
+        evt.ate(ts, P, ts, bad)
 
 
 def test_ate_accepts_torch_inputs():
     ts, P = _synthetic_traj(30)
-    r = ev.ate(torch.from_numpy(ts), torch.from_numpy(P), ts, P)
+    r = evt.ate(torch.from_numpy(ts), torch.from_numpy(P), ts, P)
     assert r["rmse_cm"] < 1e-8
 
 
@@ -228,26 +232,26 @@ def test_associate_with_offset_missing_and_unsorted_stamps():
     sub = np.sort(rng.choice(300, 120, replace=False))
     b = a[sub] + 100.0 + rng.uniform(-0.01, 0.01, len(sub))       # clock offset + jitter
     perm = rng.permutation(len(b))                               # unsorted input
-    ia, ib = ev.associate(a, b[perm], max_diff=0.012, offset=-100.0)
+    ia, ib = evt.associate(a, b[perm], max_diff=0.012, offset=-100.0)
     np.testing.assert_array_equal(ia, sub)
     np.testing.assert_array_equal(perm[ib], np.arange(len(sub)))
     # without the offset nothing matches
-    assert len(ev.associate(a, b, max_diff=0.012)[0]) == 0
+    assert len(evt.associate(a, b, max_diff=0.012)[0]) == 0
 
 
 def test_associate_is_one_to_one_and_nearest():
     a = np.array([0.0, 1.0, 2.0])
     b = np.array([0.99, 1.005, 1.02, 5.0])
-    ia, ib = ev.associate(a, b, max_diff=0.02)
+    ia, ib = evt.associate(a, b, max_diff=0.02)
     np.testing.assert_array_equal(ia, [1])
     np.testing.assert_array_equal(ib, [1])                       # the nearest, only once
     # two a stamps competing for one b: the closer wins, the other stays unmatched
-    ia, ib = ev.associate(np.array([1.0, 1.015]), np.array([1.012]), max_diff=0.02)
+    ia, ib = evt.associate(np.array([1.0, 1.015]), np.array([1.012]), max_diff=0.02)
     np.testing.assert_array_equal(ia, [1])
     np.testing.assert_array_equal(ib, [0])
-    assert len(ev.associate([], b)[0]) == 0
-    with pytest.raises(ev.MetricError, match="max_diff"):
-        ev.associate(a, b, max_diff=-1)
+    assert len(evt.associate([], b)[0]) == 0
+    with pytest.raises(evi.MetricError, match="max_diff"):
+        evt.associate(a, b, max_diff=-1)
 
 
 def test_associate_agrees_with_evo_on_real_stamps():
@@ -256,13 +260,13 @@ def test_associate_agrees_with_evo_on_real_stamps():
     rng = np.random.default_rng(9)
     # jitter below half the smallest GT spacing (7.7 ms): nearest matching is unambiguous
     est = np.sort(rng.choice(ts, 700, replace=False)) + rng.uniform(-0.003, 0.003, 700)
-    ia, ib = ev.associate(ts, est, max_diff=0.02)
+    ia, ib = evt.associate(ts, est, max_diff=0.02)
     ie, ig = matching_time_indices(est, ts, max_diff=0.02)
     assert len(ia) == 700
     assert sorted(zip(ig, ie)) == list(zip(ia.tolist(), ib.tolist()))
     # larger jitter: evo may map two estimates onto one GT stamp, ours stays one-to-one
     est = np.sort(rng.choice(ts, 700, replace=False)) + rng.uniform(-0.008, 0.008, 700)
-    ia, ib = ev.associate(ts, est, max_diff=0.02)
+    ia, ib = evt.associate(ts, est, max_diff=0.02)
     assert len(set(ia.tolist())) == len(ia) == len(set(ib.tolist()))
     assert np.all(np.abs(ts[ia] - est[ib]) <= 0.02)
     assert len(ia) >= 690
@@ -278,7 +282,7 @@ def test_rpe_matches_evo(delta, unit, all_pairs):
     s, R, t = _random_sim3(rng, 1.8)
     E = _transform(_perturb_rotations(P, rng, 0.005), s, R, t)
     E[:, :3, 3] += rng.normal(0, 0.004, (len(E), 3))
-    r = ev.rpe(ts, P, ts, E, delta=delta, unit=unit, align="sim3", all_pairs=all_pairs)
+    r = evt.rpe(ts, P, ts, E, delta=delta, unit=unit, align="sim3", all_pairs=all_pairs)
     ref, est = _evo_traj(ts, P), _evo_traj(ts, E)
     est.align(ref, correct_scale=True)
     evo_unit = metrics.Unit.frames if unit == "frames" else metrics.Unit.meters
@@ -297,18 +301,18 @@ def test_rpe_matches_evo(delta, unit, all_pairs):
 def test_rpe_scale_alignment_and_errors():
     ts, P = _synthetic_traj(100)
     E = _transform(P, 2.0, torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
-    assert ev.rpe(ts, P, ts, E, align="sim3")["trans_rmse_cm"] < 1e-8
+    assert evt.rpe(ts, P, ts, E, align="sim3")["trans_rmse_cm"] < 1e-8
     # without alignment each relative translation is twice as long: error = |gt step|
-    r = ev.rpe(ts, P, ts, E, align="none")
+    r = evt.rpe(ts, P, ts, E, align="none")
     steps = np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1)
     assert abs(r["trans_mean_cm"] - 100 * steps.mean()) < 1e-8
     assert r["rot_max_deg"] < 1e-6
-    with pytest.raises(ev.MetricError, match="no pose pairs"):
-        ev.rpe(ts, P, ts, P, delta=500)
-    with pytest.raises(ev.MetricError, match="positive integer"):
-        ev.rpe(ts, P, ts, P, delta=1.5)
-    with pytest.raises(ev.MetricError, match="unknown RPE unit"):
-        ev.rpe(ts, P, ts, P, unit="seconds")
+    with pytest.raises(evi.MetricError, match="no pose pairs"):
+        evt.rpe(ts, P, ts, P, delta=500)
+    with pytest.raises(evi.MetricError, match="positive integer"):
+        evt.rpe(ts, P, ts, P, delta=1.5)
+    with pytest.raises(evi.MetricError, match="unknown RPE unit"):
+        evt.rpe(ts, P, ts, P, unit="seconds")
 
 
 # --------------------------------------------------------------------- CLI
@@ -335,7 +339,7 @@ def test_cli_prints_table_ate_line_json_and_plot(tmp_path, capsys):
     assert len(lines) == 1 and re.fullmatch(r"ATE_RMSE_cm \d+\.\d{4}", lines[0])
     # the CLI reads the 9-decimal TUM file, so compare with the file's numbers
     r_ets, r_E = read_trajectory(run / "trajectory_full.txt")
-    expected = ev.ate(ts, P, r_ets, r_E)
+    expected = evt.ate(ts, P, r_ets, r_E)
     assert lines[0] == f"ATE_RMSE_cm {expected['rmse_cm']:.4f}"
     assert 0.1 < expected["rmse_cm"] < 2.0
     for word in ("matched poses", "scale", "ATE rmse", "ATE median", "ATE std", "ATE max",
@@ -406,25 +410,25 @@ def _img(h=32, w=40, seed=0):
 def test_psnr_known_value_mask_and_layouts():
     ref = _img()
     img = ref + 0.1
-    assert abs(ev.psnr(img, ref) - 20.0) < 1e-9               # mse 0.01
-    assert ev.psnr(ref, ref) == float("inf")
+    assert abs(evm.psnr(img, ref) - 20.0) < 1e-9               # mse 0.01
+    assert evm.psnr(ref, ref) == float("inf")
     noisy = ref.copy()
     noisy[:8] = 0.0
     mask = np.ones(ref.shape[:2], bool)
     mask[:8] = False
-    assert ev.psnr(noisy, ref, mask=mask) == float("inf")
-    assert ev.psnr(noisy, ref) < 20
+    assert evm.psnr(noisy, ref, mask=mask) == float("inf")
+    assert evm.psnr(noisy, ref) < 20
     # CHW torch and uint8 inputs give the same numbers
     t = torch.from_numpy(img).permute(2, 0, 1)
-    assert abs(ev.psnr(t, torch.from_numpy(ref)) - 20.0) < 1e-9
+    assert abs(evm.psnr(t, torch.from_numpy(ref)) - 20.0) < 1e-9
     u8 = (ref * 255).round().astype(np.uint8)
-    assert ev.psnr(u8, u8.astype(np.float64) / 255) == float("inf")
-    with pytest.raises(ev.MetricError, match="shapes differ"):
-        ev.psnr(ref, ref[:-1])
-    with pytest.raises(ev.MetricError, match=r"\[0, 1\]"):
-        ev.psnr(ref * 255, ref)
-    with pytest.raises(ev.MetricError, match="no pixels"):
-        ev.psnr(ref, ref, mask=np.zeros(ref.shape[:2], bool))
+    assert evm.psnr(u8, u8.astype(np.float64) / 255) == float("inf")
+    with pytest.raises(evi.MetricError, match="shapes differ"):
+        evm.psnr(ref, ref[:-1])
+    with pytest.raises(evi.MetricError, match=r"\[0, 1\]"):
+        evm.psnr(ref * 255, ref)
+    with pytest.raises(evi.MetricError, match="no pixels"):
+        evm.psnr(ref, ref, mask=np.zeros(ref.shape[:2], bool))
 
 
 def test_exposure_compensation_recovers_affine():
@@ -432,40 +436,40 @@ def test_exposure_compensation_recovers_affine():
     a = np.array([1.3, 0.8, 1.1])
     b = np.array([-0.05, 0.1, 0.02])
     img = (ref - b) / a                                          # a * img + b == ref
-    assert ev.psnr(img, ref) < 30
-    comp, a_hat, b_hat = ev.exposure_compensate(img, ref, return_params=True)
+    assert evm.psnr(img, ref) < 30
+    comp, a_hat, b_hat = evm.exposure_compensate(img, ref, return_params=True)
     np.testing.assert_allclose(a_hat, a, atol=1e-9)
     np.testing.assert_allclose(b_hat, b, atol=1e-9)
-    assert ev.psnr(img, ref, exposure_compensation=True) > 150
+    assert evm.psnr(img, ref, exposure_compensation=True) > 150
 
 
 def test_ssim_sanity():
     ref = _img(48, 48)
     rng = np.random.default_rng(1)
-    assert abs(ev.ssim(ref, ref) - 1.0) < 1e-6
-    s_small = ev.ssim(np.clip(ref + rng.normal(0, 0.02, ref.shape), 0, 1), ref)
-    s_large = ev.ssim(np.clip(ref + rng.normal(0, 0.2, ref.shape), 0, 1), ref)
+    assert abs(evm.ssim(ref, ref) - 1.0) < 1e-6
+    s_small = evm.ssim(np.clip(ref + rng.normal(0, 0.02, ref.shape), 0, 1), ref)
+    s_large = evm.ssim(np.clip(ref + rng.normal(0, 0.2, ref.shape), 0, 1), ref)
     assert 1.0 > s_small > s_large > 0.0
-    with pytest.raises(ev.MetricError, match="at least 11x11"):
-        ev.ssim(ref[:8, :8], ref[:8, :8])
+    with pytest.raises(evi.MetricError, match="at least 11x11"):
+        evm.ssim(ref[:8, :8], ref[:8, :8])
 
 
 def test_depth_l1_cm():
     ref = np.full((10, 12), 2.0, np.float32)
     d = ref + 0.05
-    assert abs(ev.depth_l1_cm(d, ref) - 5.0) < 1e-4
+    assert abs(evd.depth_l1_cm(d, ref) - 5.0) < 1e-4
     ref[0, :] = 0.0                                   # missing sensor depth
     ref[1, :] = np.nan
     d[2, :] = 0.0                                     # no rendered depth
     d[3, :] = 99.0
     m = np.ones_like(ref, bool)
     m[3] = False
-    assert abs(ev.depth_l1_cm(d, ref, mask=m) - 5.0) < 1e-4
-    assert ev.depth_l1_cm(d, ref) > 5.0
-    with pytest.raises(ev.MetricError, match="no pixel"):
-        ev.depth_l1_cm(np.zeros((4, 4)), np.ones((4, 4)))
-    with pytest.raises(ev.MetricError, match="H x W"):
-        ev.depth_l1_cm(np.ones((4, 4)), np.ones((4, 5)))
+    assert abs(evd.depth_l1_cm(d, ref, mask=m) - 5.0) < 1e-4
+    assert evd.depth_l1_cm(d, ref) > 5.0
+    with pytest.raises(evi.MetricError, match="no pixel"):
+        evd.depth_l1_cm(np.zeros((4, 4)), np.ones((4, 4)))
+    with pytest.raises(evi.MetricError, match="H x W"):
+        evd.depth_l1_cm(np.ones((4, 4)), np.ones((4, 5)))
 
 
 def test_depth_edge_band_marks_pixels_near_depth_discontinuities_only():
@@ -473,12 +477,12 @@ def test_depth_edge_band_marks_pixels_near_depth_discontinuities_only():
     ref[:, 15:] = 4.0                                 # a step between columns 14 and 15
     ref[:, :5] = np.linspace(2.0, 2.08, 5)            # a gentle slope (<5 % per pixel): no edge
     ref[0, 20] = 0.0                                  # a missing pixel is no edge either
-    band = ev.depth_edge_band(ref, 3).numpy()
+    band = evd.depth_edge_band(ref, 3).numpy()
     cols = np.flatnonzero(band.any(0))
     assert cols.tolist() == list(range(11, 19)), cols  # 14, 15 and 3 px on either side
     assert band[:, 11:19].all()
-    assert not ev.depth_edge_band(np.full((8, 8), 1.0), 2).any()
-    assert ev.depth_edge_band(ref, 0).numpy().sum() == 2 * 20
+    assert not evd.depth_edge_band(np.full((8, 8), 1.0), 2).any()
+    assert evd.depth_edge_band(ref, 0).numpy().sum() == 2 * 20
 
 
 # ------------------------------------------------------------------- LPIPS
@@ -527,13 +531,13 @@ def test_lpips_identical_zero_and_monotone(lpips_files):
     ref = _img(32, 32)
     rng = np.random.default_rng(2)
     noise = rng.normal(0, 1, ref.shape)
-    assert ev.lpips(ref, ref, path) == 0.0
-    d = [ev.lpips(np.clip(ref + s * noise, 0, 1), ref, path) for s in (0.02, 0.1, 0.3)]
+    assert evp.lpips(ref, ref, path) == 0.0
+    d = [evp.lpips(np.clip(ref + s * noise, 0, 1), ref, path) for s in (0.02, 0.1, 0.3)]
     assert 0 < d[0] < d[1] < d[2]
     with torch.no_grad():
         expect = _manual_lpips(net, np.clip(ref + 0.1 * noise, 0, 1), ref)
     assert abs(d[1] - expect) < 1e-5 * max(1.0, expect)
-    mean = ev.lpips(np.clip(ref + 0.1 * noise, 0, 1), ref, path, layer_reduce="mean")
+    mean = evp.lpips(np.clip(ref + 0.1 * noise, 0, 1), ref, path, layer_reduce="mean")
     assert abs(mean - d[1] / 2) < 1e-9
 
 
@@ -546,17 +550,17 @@ def test_lpips_channel_weights_file_and_embedded(lpips_files, tmp_path):
     torch.save({f"lin{i}.model.1.weight": wi.view(1, -1, 1, 1) for i, wi in enumerate(w)}, wfile)
     with torch.no_grad():
         expect = _manual_lpips(net, img, ref, w)
-    assert abs(ev.lpips(img, ref, path, weights_path=wfile) - expect) < 1e-5
+    assert abs(evp.lpips(img, ref, path, weights_path=wfile) - expect) < 1e-5
     zeros = tmp_path / "zeros.pt"
     torch.save([torch.zeros(6), torch.zeros(8)], zeros)
-    assert ev.lpips(img, ref, path, weights_path=zeros) == 0.0
+    assert evp.lpips(img, ref, path, weights_path=zeros) == 0.0
     # weights carried inside the TorchScript module as buffers lpips_w<i>
     net2 = _TinyNet().eval()
     for i, wi in enumerate(w):
         net2.register_buffer(f"lpips_w{i}", wi.clone())
     p2 = tmp_path / "tiny_w.pt"
     torch.jit.save(torch.jit.script(net2), str(p2))
-    assert abs(ev.lpips(img, ref, p2) - expect) < 1e-5
+    assert abs(evp.lpips(img, ref, p2) - expect) < 1e-5
 
 
 def test_lpips_accepts_torch_export_program(lpips_files, tmp_path):
@@ -567,59 +571,59 @@ def test_lpips_accepts_torch_export_program(lpips_files, tmp_path):
     torch.export.save(ep, str(p2))
     ref = _img(32, 40)
     img = np.clip(ref + 0.1 * np.random.default_rng(4).normal(0, 1, ref.shape), 0, 1)
-    d_export = ev.lpips(img, ref, p2)
-    assert d_export > 0 and abs(d_export - ev.lpips(img, ref, path)) < 1e-6
+    d_export = evp.lpips(img, ref, p2)
+    assert d_export > 0 and abs(d_export - evp.lpips(img, ref, path)) < 1e-6
 
 
 def test_lpips_load_errors(lpips_files, tmp_path):
     _, path = lpips_files
     ref = _img(32, 32)
-    with pytest.raises(ev.MetricError, match="not found"):
-        ev.lpips(ref, ref, tmp_path / "missing.pt")
+    with pytest.raises(evi.MetricError, match="not found"):
+        evp.lpips(ref, ref, tmp_path / "missing.pt")
     corrupt = tmp_path / "corrupt.pt"
     corrupt.write_bytes(b"this is not a torchscript archive" * 10)
-    with pytest.raises(ev.MetricError, match="TorchScript file .* nor a torch.export"):
-        ev.lpips(ref, ref, corrupt)
+    with pytest.raises(evi.MetricError, match="TorchScript file .* nor a torch.export"):
+        evp.lpips(ref, ref, corrupt)
     bad = tmp_path / "bad.pt"
     torch.jit.save(torch.jit.script(_BadNet()), str(bad))
-    with pytest.raises(ev.MetricError, match="feature maps"):
-        ev.lpips(ref, ref, bad)
+    with pytest.raises(evi.MetricError, match="feature maps"):
+        evp.lpips(ref, ref, bad)
     wrong = tmp_path / "wrong.pt"
     torch.save([torch.ones(6)], wrong)
-    with pytest.raises(ev.MetricError, match="1 layers"):
-        ev.lpips(ref, ref, path, weights_path=wrong)
+    with pytest.raises(evi.MetricError, match="1 layers"):
+        evp.lpips(ref, ref, path, weights_path=wrong)
     chans = tmp_path / "chans.pt"
     torch.save([torch.ones(5), torch.ones(8)], chans)
-    with pytest.raises(ev.MetricError, match="5 weights for 6 channels"):
-        ev.lpips(ref, ref, path, weights_path=chans)
+    with pytest.raises(evi.MetricError, match="5 weights for 6 channels"):
+        evp.lpips(ref, ref, path, weights_path=chans)
     garbage = tmp_path / "garbage.pt"
     garbage.write_bytes(b"\x00garbage")
-    with pytest.raises(ev.MetricError, match="weights file"):
-        ev.lpips(ref, ref, path, weights_path=garbage)
+    with pytest.raises(evi.MetricError, match="weights file"):
+        evp.lpips(ref, ref, path, weights_path=garbage)
 
 
 def test_image_metrics_and_summarize(lpips_files):
     _, path = lpips_files
     ref = _img(32, 32)
     img = np.clip(ref * 0.9 + 0.05, 0, 1)                   # pure exposure change
-    m = ev.image_metrics(img, ref, depth=np.full((32, 32), 1.0), ref_depth=np.full((32, 32), 1.02),
+    m = evm.image_metrics(img, ref, depth=np.full((32, 32), 1.0), ref_depth=np.full((32, 32), 1.02),
                          lpips_model=path)
     assert m["psnr"] > 100                                   # compensated away
     assert set(m) == {"psnr", "ssim", "lpips", "depth_l1_cm"}
     assert abs(m["depth_l1_cm"] - 2.0) < 1e-9
-    s = ev.summarize([{"psnr": 20.0, "ssim": 0.5}, {"psnr": 30.0, "ssim": 0.7}])
+    s = evm.summarize([{"psnr": 20.0, "ssim": 0.5}, {"psnr": 30.0, "ssim": 0.7}])
     assert abs(s["psnr"] - 25.0) < 1e-12 and abs(s["ssim"] - 0.6) < 1e-12
 
 
 # ------------------------------------------------------------------ map depth L1 (pipeline)
 def test_map_depth_l1_compares_in_the_keyframes_camera(tmp_path, monkeypatch):
-    """``pipeline.evaluate_map_depth`` brings the dataset's depth to the keyframes' camera
+    """``evaluation.run.evaluate_map_depth`` brings the dataset's depth to the keyframes' camera
     (undistorted, cropped, resized) before comparing it with the map's render in that
     camera: a perfect map of a tilted plane seen by a strongly distorted camera scores
     ~0 cm, with and without ``camera.crop``."""
     import cv2
     from types import SimpleNamespace
-    from splat_slam_ros import pipeline
+    from splat_slam_ros.evaluation import run as run_eval
     from splat_slam_ros.config import SlamConfig
     from splat_slam_ros.mapping.mapper import Mapper
     from splat_slam_ros.types import Intrinsics
@@ -660,7 +664,7 @@ def test_map_depth_l1_compares_in_the_keyframes_camera(tmp_path, monkeypatch):
         cfg = SlamConfig()
         cfg.camera.crop = crop
         m = {}
-        pipeline.evaluate_map_depth(ds, tmp_path, cfg, m)
+        run_eval.evaluate_map_depth(ds, tmp_path, cfg, m)
         assert m.get("depth_l1_views") == 4 and m["depth_l1_cm"] < 0.5, (crop, m)
 
 
@@ -669,7 +673,7 @@ def test_map_depth_l1_is_split_into_depth_edges_and_surfaces(tmp_path, monkeypat
     near surface bleeds 3 px onto the far one behind a depth step has all its error within
     one BA cell of the true edge (``depth_l1_edges_cm``) and none on the surfaces."""
     from types import SimpleNamespace
-    from splat_slam_ros import pipeline
+    from splat_slam_ros.evaluation import run as run_eval
     from splat_slam_ros.config import SlamConfig
     from splat_slam_ros.mapping.mapper import Mapper
     from splat_slam_ros.types import Intrinsics
@@ -704,7 +708,7 @@ def test_map_depth_l1_is_split_into_depth_edges_and_surfaces(tmp_path, monkeypat
     write_tum(tmp_path / "trajectory_keyframes.txt", ts, poses)
     (tmp_path / "map.ply").write_bytes(b"")
     m = {}
-    pipeline.evaluate_map_depth(Data(ds_frames), tmp_path, SlamConfig(), m)
+    run_eval.evaluate_map_depth(Data(ds_frames), tmp_path, SlamConfig(), m)
     assert m["depth_l1_views"] == 4 and m["depth_l1_cm"] > 1.0, m
     assert m["depth_l1_surfaces_cm"] == 0.0, m
     # 3 of the band's 2 x 8 + 2 columns are 200 cm off

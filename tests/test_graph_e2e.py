@@ -48,7 +48,7 @@ def tiny_bag(tmp_path_factory):
     need_ros()
     from splat_slam_ros.io.bagio import write_bag
     from splat_slam_ros.io.datasets import open_dataset
-    from splat_slam_ros.io.synth import generate_sequence
+    from splat_slam_synth import generate_sequence
     d = tmp_path_factory.mktemp("graph_bag")
     traj = REPO.parent / "shared" / "data" / "trajectories" / "freiburg1_xyz-groundtruth.txt"
     generate_sequence(str(traj) if traj.is_file() else "builtin", 40, (192, 144), d / "seq",
@@ -60,7 +60,7 @@ def tiny_bag(tmp_path_factory):
 
 
 def _launch_args(bag, cfg, out):
-    return [PY, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out", str(out),
+    return [PY, "-m", "splat_slam_nodes.tools.launch", "--bag", str(bag), "--out", str(out),
             "--config", str(cfg)]
 
 
@@ -219,7 +219,7 @@ def revisit_bag(tmp_path_factory):
     need_ros()
     from splat_slam_ros.io.bagio import write_bag
     from splat_slam_ros.io.datasets import open_dataset
-    from splat_slam_ros.io.synth import generate_sequence
+    from splat_slam_synth import generate_sequence
     from splat_slam_ros.io.trajectory_io import read_trajectory
     d = tmp_path_factory.mktemp("revisit_bag")
     traj = REPO.parent / "shared" / "data" / "trajectories" / "freiburg1_xyz-groundtruth.txt"
@@ -290,11 +290,11 @@ def test_live_topics_ctrl_c_finalises(tiny_bag, tmp_path):
     bag, cfg = tiny_bag
     env = isolated_env()
     out = tmp_path / "out"
-    launch = start([PY, "-m", "splat_slam_nodes.launch", "--out", str(out), "--config", str(cfg),
-                    "--set", "ros.image_topic=/camera/image_raw",
+    launch = start([PY, "-m", "splat_slam_nodes.tools.launch", "--out", str(out), "--config",
+                    str(cfg), "--set", "ros.image_topic=/camera/image_raw",
                     "--set", "ros.camera_info_topic=/camera/camera_info"], env,
                    tmp_path / "launch.log")
-    cam = start([PY, "-m", "splat_slam_nodes.bag_player", str(bag), "--mode", "realtime",
+    cam = start([PY, "-m", "splat_slam_nodes.tools.bag_player", str(bag), "--mode", "realtime",
                  "--rate", "6.0", "--wait-nodes", "tracker,depth,mapper", "--wait-acks", "",
                  "--no-end-of-stream", "--no-clock", "--start-timeout", "300"], env,
                 tmp_path / "camera.log")
@@ -350,7 +350,7 @@ def test_sigterm_stops_everything(tiny_bag, tmp_path):
     bag, cfg = tiny_bag
     env = isolated_env()
     # SIGTERM: every child is stopped, exit status 130
-    launch = start([PY, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out",
+    launch = start([PY, "-m", "splat_slam_nodes.tools.launch", "--bag", str(bag), "--out",
                     str(tmp_path / "a"), "--config", str(cfg)], env, tmp_path / "a.log")
     try:
         assert wait_for(lambda: len(_children(launch.pid)) >= 4, 120)
@@ -369,8 +369,8 @@ def test_graph_without_a_keyframe_fails_clearly(tiny_bag, tmp_path):
     a 'successful' run with an identity trajectory."""
     bag, cfg = tiny_bag
     out = tmp_path / "out"
-    r = subprocess.run([PY, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out", str(out),
-                        "--config", str(cfg), "--max-frames", "3", "--tracking-only"],
+    r = subprocess.run([PY, "-m", "splat_slam_nodes.tools.launch", "--bag", str(bag), "--out",
+                        str(out), "--config", str(cfg), "--max-frames", "3", "--tracking-only"],
                        env=isolated_env(),
                        capture_output=True, text=True, timeout=600)
     assert r.returncode == 3, (r.returncode, r.stdout[-3000:], r.stderr[-3000:])

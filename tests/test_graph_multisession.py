@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from splat_slam_ros.evaluation import umeyama_alignment
+from splat_slam_ros.evaluation.trajectory import umeyama_alignment
 from splat_slam_ros.io import session as ss
 from splat_slam_ros.io.trajectory_io import read_trajectory
 from test_graph_support import PY, SERVICE_CALLER, isolated_env, need_ros, run_launch
@@ -26,7 +26,7 @@ def _bag(seq: Path, out: Path, start: int = 0) -> Path:
 
 def _launch(bag: Path, out: Path, cfg: Path, *extra) -> tuple:
     log = out.parent / f"{out.name}.log"
-    args = [PY, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out", str(out),
+    args = [PY, "-m", "splat_slam_nodes.tools.launch", "--bag", str(bag), "--out", str(out),
             "--config", str(cfg), *map(str, extra)]
     rc = run_launch(args, isolated_env(), log)
     return rc, log.read_text(errors="replace")
@@ -128,7 +128,7 @@ def test_graph_extend_grows_the_loaded_map_and_saves_a_session(graph):
 def test_graph_load_map_usage_errors(graph, tmp_path):
     """Checked before any node starts: exit 2, one line."""
     def launch(*extra):
-        r = subprocess.run([PY, "-m", "splat_slam_nodes.launch", "--bag", str(graph["bag"]),
+        r = subprocess.run([PY, "-m", "splat_slam_nodes.tools.launch", "--bag", str(graph["bag"]),
                             "--out", str(tmp_path / "o"), *map(str, extra)],
                            capture_output=True, text=True, timeout=120, env=isolated_env())
         return r.returncode, r.stderr.strip()
@@ -194,7 +194,7 @@ def test_graph_services_load_then_save_a_map_live(graph, tmp_path):
     env = isolated_env()
     out = tmp_path / "out"
     shutil.copytree(graph["s1"], out / "maps" / "s1")
-    launch = start([PY, "-m", "splat_slam_nodes.launch", "--out", str(out), "--config",
+    launch = start([PY, "-m", "splat_slam_nodes.tools.launch", "--out", str(out), "--config",
                     str(graph["cfg"]), "--set", "ros.image_topic=/camera/image_raw",
                     "--set", "ros.camera_info_topic=/camera/camera_info"], env,
                    tmp_path / "launch.log")
@@ -209,7 +209,7 @@ def test_graph_services_load_then_save_a_map_live(graph, tmp_path):
         assert not res[1][0] and "no saved session" in res[1][1], res
         assert res[2][0], res
         assert not res[3][0] and "loaded already" in res[3][1], res
-        cam = start([PY, "-m", "splat_slam_nodes.bag_player", str(graph["bag"]), "--mode",
+        cam = start([PY, "-m", "splat_slam_nodes.tools.bag_player", str(graph["bag"]), "--mode",
                      "realtime", "--rate", "2.0", "--wait-nodes",
                      "tracker,loop_closure,depth,mapper", "--wait-acks", "",
                      "--no-end-of-stream", "--no-clock", "--start-timeout", "300"], env,

@@ -93,7 +93,7 @@ def test_rerun_logger_writes_a_readable_rrd(tmp_path):
     viewer = start([str(cli), "--port", str(port), "--save", str(tmp_path / "viewer.rrd")], env,
                    tmp_path / "viewer.log")
     time.sleep(2.0)
-    node = start([PY, "-m", "splat_slam_nodes.rerun_logger", "--ros-args", "-p",
+    node = start([PY, "-m", "splat_slam_nodes.tools.rerun_logger", "--ros-args", "-p",
                   f"node.rrd:={rrd}", "-p", f"node.connect:=rerun+http://127.0.0.1:{port}/proxy",
                   "-p", "node.image_every:=2", "-p", "ros.image_topic:=/cam/image",
                   "-p", "ros.camera_info_topic:=/cam/info"], env, tmp_path / "rerun.log")

@@ -209,7 +209,7 @@ from splat_slam_msgs.msg import FrameAck
 from std_msgs.msg import String
 ack_pub = node.create_publisher(FrameAck, TOPICS["ack"], Q.ack_qos())
 ev_pub = node.create_publisher(String, TOPICS["events"], events_qos())
-from splat_slam_nodes.msg_types import message_class as imp
+from splat_slam_nodes.tools.msg_types import message_class as imp
 pending = []
 def make_cb(topic, cls):
     def cb(raw):

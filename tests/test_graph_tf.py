@@ -49,7 +49,7 @@ def loop_bag(tmp_path_factory):
     need_ros()
     from splat_slam_ros.io.bagio import write_bag
     from splat_slam_ros.io.datasets import open_dataset
-    from splat_slam_ros.io.synth import generate_sequence
+    from splat_slam_synth import generate_sequence
     d = tmp_path_factory.mktemp("tf_loop")
     generate_sequence(loop_trajectory(), 60, (192, 144), d / "seq", overwrite=True,
                       progress=False, realism="clean", fps=6.0)
@@ -67,7 +67,7 @@ def test_tf_tree_from_the_running_graph(loop_bag, tmp_path):
     bag, cfg = loop_bag
     env = isolated_env()
     probe = start([PY, str(HELPERS / "tf_probe.py"), "900"], env, tmp_path / "probe.log")
-    rc = run_launch([PY, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out",
+    rc = run_launch([PY, "-m", "splat_slam_nodes.tools.launch", "--bag", str(bag), "--out",
                      str(tmp_path / "out"), "--config", str(cfg), "--tracking-only",
                      "--set", "ros.odom_frame=odom_test"], env, tmp_path / "launch.log", probe)
     log = (tmp_path / "launch.log").read_text(errors="replace")

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from splat_slam_ros.config import SlamConfig
-from splat_slam_ros.evaluation import segment_scales
+from splat_slam_ros.evaluation.trajectory import segment_scales
 from splat_slam_ros.io.datasets import open_dataset
 from splat_slam_ros.tracking.motion_filter import FlowCheck, MotionFilter
 from splat_slam_ros.tracking.tracker import Tracker
@@ -45,7 +45,7 @@ def fast_sweep(shared_data, tmp_path_factory):
     if not traj.is_file():
         pytest.skip(f"{traj} not found")
     out = tmp_path_factory.mktemp("kf") / "v102"
-    subprocess.run([sys.executable, "-m", "splat_slam_ros.cli.synth", "--trajectory", str(traj),
+    subprocess.run([sys.executable, "-m", "splat_slam_synth.cli", "--trajectory", str(traj),
                     "--frames", "80", "--size", "320x240", "--fps", "20", "--start", "8",
                     "--out", str(out), "--realism", "realistic", "--quiet"],
                    check=True, capture_output=True, timeout=300)
@@ -153,7 +153,7 @@ def test_a_long_loss_starts_a_new_segment_near_the_old_one():
     initialises again from the next good frame; the new segment continues in the first
     one's frame (placed where the motion before the loss leads, its depth scale carried
     over), where without it every later frame stays lost."""
-    from splat_slam_ros.evaluation import ate
+    from splat_slam_ros.evaluation.trajectory import ate
     blocked, frames, gt = _blocked_sequence()
     gts = np.array([f.timestamp for f in frames])
     runs = {}

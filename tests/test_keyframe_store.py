@@ -8,9 +8,9 @@ import textwrap
 import numpy as np
 import pytest
 
-from splat_slam_ros.io.keyframe_store import (KeyframeStore, RecordStore, StoreError,
-                                           keyframe_depth, mapper_state, restore_mapper)
+from splat_slam_ros.io.keyframe_store import KeyframeStore, RecordStore, StoreError
 from splat_slam_ros.mapping.mapper import Mapper
+from splat_slam_ros.mapping.persistence import keyframe_depth, map_state, restore_mapper
 from splat_slam_ros.types import Intrinsics, KeyframeData
 
 
@@ -138,7 +138,7 @@ def test_mapper_snapshot_round_trip(tmp_path):
         w = None if k == 0 else np.where(np.arange(W) < W // 2, 1.0, 0.3) * np.ones((H, 1))
         mp.add_keyframe(k, img, pose, np.full((H, W), 2.0, np.float32), w, force=True)
     assert mp.keyframes[0].weight is None and mp.keyframes[1].weight is not None
-    arrays, meta = mapper_state(mp)
+    arrays, meta = map_state(mp)
     st = KeyframeStore(tmp_path / "m")
     st.put("map", meta={"map": meta}, **arrays)
     for k in mp.keyframes:

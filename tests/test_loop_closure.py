@@ -72,14 +72,14 @@ def loop_cfg(**kw) -> SlamConfig:
 
 
 def ate(est: np.ndarray, gt: np.ndarray) -> float:
-    from splat_slam_ros.evaluation import ate as ate_fn
+    from splat_slam_ros.evaluation.trajectory import ate as ate_fn
     ts = np.arange(len(gt), dtype=np.float64)
     return ate_fn(ts, gt, ts, est)["rmse_cm"]
 
 
 def end_gap_cm(P: np.ndarray, gt: np.ndarray) -> float:
     """Error of the last keyframe's position relative to the first (after scale alignment)."""
-    from splat_slam_ros.evaluation import umeyama_alignment
+    from splat_slam_ros.evaluation.trajectory import umeyama_alignment
     s, _, _ = umeyama_alignment(P[:, :3, 3], gt[:, :3, 3])
     rel = np.linalg.inv(P[0]) @ P[-1]
     relg = np.linalg.inv(gt[0]) @ gt[-1]

@@ -5,13 +5,16 @@ import pytest
 import torch
 
 from splat_slam_ros.config import MappingConfig, SlamConfig
+from splat_slam_ros.evaluation.map_sequence import map_sequence
+from splat_slam_ros.evaluation.rendering import evaluate_keyframes, evaluate_map, save_renders
 from splat_slam_ros.mapping.gaussian_map import GaussianMap
 from splat_slam_ros.geometry import se3_exp, se3_inverse
 from splat_slam_ros.mapping.keyframe_window import (KeyframeWindow, covisibility_iou,
                                             overlap_coefficient)
 from splat_slam_ros.mapping.map_init import init_gaussians, nn_scale
 from splat_slam_ros.mapping.mapper import MapError, Mapper
-from splat_slam_ros.mapping.map_sequence import map_sequence
+from splat_slam_ros.mapping.optimise import optimise, view_loss
+from splat_slam_ros.mapping.persistence import map_state
 from splat_slam_ros.types import Frame, Intrinsics
 
 W, H, F = 48, 36, 42.0
@@ -195,7 +198,7 @@ def test_densify_clone_and_split():
     g.add(torch.zeros(3, 3), torch.full((3, 3), 0.5), ls, kf_id=3, created=0)
     g.grad_accum[:] = torch.tensor([1.0, 1.0, 0.0])      # third: no gradient
     g.grad_count[:] = 1
-    n_clone, n_split = mp._densify()
+    n_clone, n_split = mp.strategy.densify(mp)
     assert (n_clone, n_split) == (1, 1)
     # small one cloned (2 copies), big one replaced by 2 smaller ones, third untouched
     assert len(g) == 1 + 1 + 1 + 2
@@ -214,14 +217,14 @@ def test_prune_opacity_and_size():
           opacity_logits=torch.tensor([logit(0.9), logit(0.3), logit(0.9), logit(0.3)]),
           born=torch.tensor([0, 0, 0, 15]))
     mp.iteration = 20
-    assert mp._prune() == 2          # low opacity (old enough) + oversized; young one spared
+    assert mp.strategy.prune(mp) == 2     # low opacity (old enough) + oversized; young one spared
     assert len(g) == 2 and torch.isclose(g.opacities(), torch.tensor([0.9, 0.3])).all()
     # a loaded map's Gaussians (uid < settled_uid) are spared too, new ones are not
     mp.settled_uid = g.next_uid
     g.add(torch.zeros(1, 3), torch.zeros(1, 3), torch.log(torch.full((1, 3), 0.01)),
           opacity_logits=torch.tensor([logit(0.3)]), born=0)
     mp.iteration = 40
-    assert mp._prune() == 1 and len(g) == 2 and (g.uid < mp.settled_uid).all()
+    assert mp.strategy.prune(mp) == 1 and len(g) == 2 and (g.uid < mp.settled_uid).all()
 
 
 # ---------------------------------------------------------------- mapping
@@ -234,10 +237,10 @@ def test_optimisation_lowers_loss_and_improves_render(scene):
 
     def loss():
         with torch.no_grad():
-            return float(mp._view_loss(kf, mp._raster(kf.pose)))
+            return float(view_loss(kf, mp._raster(kf.pose), mp.expose, mp.mcfg.rgb_weight))
     l0 = loss()
     p0 = psnr(mp.render(pose)[0], img)
-    mp._optimize(80)
+    optimise(mp, 80)
     assert loss() < 0.5 * l0
     p1 = psnr(mp.render(pose)[0], img)
     assert p1 > p0 + 3 and p1 > 24, (p0, p1)
@@ -286,11 +289,11 @@ def test_depth_weights_scale_the_depth_loss_and_follow_updates(scene):
     assert len(m) > 10 and (u > W // 2 - 1).all()
     with torch.no_grad():
         out = mp._raster(p0)
-        lw = mp._view_loss(kf, out)
+        lw = view_loss(kf, out, mp.expose, mp.mcfg.rgb_weight)
         kf.weight = None
-        l1 = mp._view_loss(kf, out)
+        l1 = view_loss(kf, out, mp.expose, mp.mcfg.rgb_weight)
         kf.weight = torch.from_numpy(w.astype(np.float32) * 0)
-        l0 = mp._view_loss(kf, out)
+        l0 = view_loss(kf, out, mp.expose, mp.mcfg.rgb_weight)
     assert l0 < lw < l1
     e = (out.depth - kf.depth).abs().numpy() * (src > 0)
     frac = (w * e).sum() / e.sum()                              # the weighted share of |dD|
@@ -329,7 +332,7 @@ def test_map_sequence_gt_poses_and_depth(scene, tmp_path):
                                refine_iters=0)
     assert 1 <= m2["keyframes"] <= 4 and m2["frames_offered"] == 4
     # novel views (all frames, at their ground-truth poses)
-    ev = mapper.evaluate(frames)
+    ev = evaluate_map(mapper, frames)
     assert ev["views"] == 4 and ev["psnr"] > 18
     # PLY round trip renders the same image
     mapper.save_ply(tmp_path / "m.ply")
@@ -337,7 +340,7 @@ def test_map_sequence_gt_poses_and_depth(scene, tmp_path):
     a = mapper.render(frames[1].gt_pose)[0].astype(int)
     b = loaded.render(frames[1].gt_pose)[0].astype(int)
     assert np.abs(a - b).max() <= 1
-    assert mapper.save_renders(tmp_path / "r") == 2 and (tmp_path / "r" / "kf_00002.png").is_file()
+    assert save_renders(mapper, tmp_path / "r") == 2 and (tmp_path / "r" / "kf_00002.png").is_file()
     with pytest.raises(MapError, match="ground-truth pose"):
         map_sequence([Frame(0, 0.0, frames[0].image, K, gt_depth=frames[0].gt_depth)], cfg, K,
                       progress=False)
@@ -352,7 +355,7 @@ def _vignetted(img, v1):
 def test_learned_vignetting_explains_a_radial_falloff(scene):
     """mapping.vignetting: a camera whose corners are 30 % darker; the map learns the falloff
     (v1 < 0) from views that see the same wall at different radii, renders the keyframes
-    better than a map without it, and keeps it through state_dict."""
+    better than a map without it, and keeps it through its saved state (map_state)."""
     poses = [pose_at(), pose_at(0.6, 0, 0), pose_at(-0.6, 0, 0), pose_at(0, -0.4, 0.4),
              pose_at(0.3, 0.3, -0.3)]
     views = [render_view(scene, p) for p in poses]
@@ -365,18 +368,18 @@ def test_learned_vignetting_explains_a_radial_falloff(scene):
             mp.add_keyframe(i, _vignetted(img, -0.3), p, d)
         mp.final_refine()
         assert len(mp.keyframes) == len(poses)
-        res[on] = (mp.evaluate_keyframes()["psnr"], mp.vignette.detach().clone(), mp)
+        res[on] = (evaluate_keyframes(mp)["psnr"], mp.vignette.detach().clone(), mp)
     assert float(res[True][1][0]) < -0.1 and res[False][1].abs().max() == 0, res
     assert res[True][0] > res[False][0] + 1.0, (res[True][0], res[False][0])
     mp = res[True][2]
     with torch.no_grad():
-        v = mp._vignetting(H, W, mp.intr)[..., 0]
+        v = mp.camera.vignetting(H, W, mp.intr)[..., 0]
     corner = 1 + float(mp.vignette.detach().sum())          # r = 1 at a corner (centred camera)
     assert float(v[int(K.cy), int(K.cx)]) == pytest.approx(1.0, abs=1e-3)
     assert float(v[0, 0]) == pytest.approx(corner, abs=0.03)
     K2 = K.scaled(2.0, 2.0)                                   # the same falloff at any size
     with torch.no_grad():
-        v2 = mp._vignetting(2 * H, 2 * W, (K2.fx, K2.fy, K2.cx, K2.cy))[..., 0]
+        v2 = mp.camera.vignetting(2 * H, 2 * W, (K2.fx, K2.fy, K2.cx, K2.cy))[..., 0]
     assert float(v2[0, 0]) == pytest.approx(corner, abs=0.03)
-    arrays, meta = mp.state_dict()
+    arrays, meta = map_state(mp)
     assert meta["vignette"] == pytest.approx(mp.vignette.tolist())

@@ -11,13 +11,13 @@ import torch
 
 from splat_slam_ros.cli.eval import main as eval_main
 from splat_slam_ros.config import MappingConfig, SlamConfig
-from splat_slam_ros.evaluation import ate
+from splat_slam_ros.evaluation.trajectory import ate
 from splat_slam_ros.geometry import se3_exp
 from splat_slam_ros.io.datasets import open_dataset
 from splat_slam_ros.mapping.mapper import Mapper
 from splat_slam_ros.mapping.mesh import (MeshError, auto_voxel, fuse_frames, fuse_views,
                                          load_mesh, map_mesh_output, save_mesh)
-from splat_slam_ros.mesh_eval import (_ray_depth, cull_mesh, evaluate_meshes, mesh_metrics,
+from splat_slam_ros.evaluation.mesh import (_ray_depth, cull_mesh, evaluate_meshes, mesh_metrics,
                                       seen_vertices, transform_mesh)
 from splat_slam_ros.pipeline import run
 from splat_slam_ros.types import Intrinsics

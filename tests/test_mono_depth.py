@@ -6,7 +6,7 @@ import pytest
 import torch
 import yaml
 
-from splat_slam_ros.depth.mono_depth import (MonoDepthError, MonoDepthModel, load_mono_depth,
+from splat_slam_ros.tracking.mono_depth import (MonoDepthError, MonoDepthModel, load_mono_depth,
                                        read_sidecar)
 
 MEAN = [0.5, 0.25, 0.0]

@@ -190,8 +190,8 @@ def test_two_process_transport_delivers_everything_intact():
 
 # ------------------------------------------------------------------ splat-slam-topic
 def _tool(args, env, timeout=40):
-    return subprocess.run([sys.executable, "-m", "splat_slam_nodes.topic_tool", *args], env=env,
-                          capture_output=True, text=True, timeout=timeout)
+    return subprocess.run([sys.executable, "-m", "splat_slam_nodes.tools.topic_tool", *args],
+                          env=env, capture_output=True, text=True, timeout=timeout)
 
 
 def test_topic_tool_help_and_usage_errors():

@@ -10,9 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from splat_slam_ros.evaluation import umeyama_alignment
+from splat_slam_ros.evaluation.trajectory import umeyama_alignment
 from splat_slam_ros.io import session as ss
 from splat_slam_ros.io.trajectory_io import read_trajectory
+from splat_slam_ros.mapping.persistence import mapper_arrays, restore_map_state
 
 PY = sys.executable
 CFG = """
@@ -23,7 +24,7 @@ mapping: {iters_first: 30, iters_per_keyframe: 5, final_refine_iters: 10,
 
 
 def _render(d: Path, frames: int, size=(160, 120), **kw) -> Path:
-    from splat_slam_ros.io.synth import generate_sequence
+    from splat_slam_synth import generate_sequence
     generate_sequence("builtin", frames, size, d, overwrite=True, progress=False,
                       realism="clean", fps=10, **kw)
     return d
@@ -72,7 +73,7 @@ def test_session_round_trip_and_checksums(tmp_path):
     # the graph writes the two parts from two processes, in either order: the map state first
     mp = Mapper(load_config(None), _camera())
     mp.save_ply(tmp_path / "map.ply")
-    ss.write_map_state(tmp_path, mp)
+    ss.write_map_state(tmp_path, *mapper_arrays(mp), mp.K)
     with pytest.raises(ss.SessionError, match="corrupt"):     # half a session: not loadable
         ss.load_session(tmp_path)
     ss.write_session_keyframes(tmp_path, kfs, _camera(), (32, 24), (8, 6), {"a": 1}, "0.1.0")
@@ -381,8 +382,8 @@ def test_map_state_round_trip(ext):
     from splat_slam_ros.config import load_config
     s = ss.load_session(ext["a"])
     arrays, meta, cam = ss.map_state(s)
-    mp = ss.restore_map_state(arrays, meta, load_config(None), cam)
-    again, meta2 = ss.mapper_arrays(mp)
+    mp = restore_map_state(arrays, meta, load_config(None), cam)
+    again, meta2 = mapper_arrays(mp)
     # restored settled: its Gaussians are a finished map's (opacity pruning spares them)
     assert meta2.pop("settled_uid") == meta["next_uid"] and meta.pop("settled_uid") == 0
     assert sorted(again) == sorted(arrays) and meta2 == meta

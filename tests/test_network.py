@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from splat_slam_nodes import launch, launch_net
+from splat_slam_nodes.tools import launch, launch_net
 from splat_slam_ros import ros_env
 
 from test_graph_support import TINY_FAST_RUN_CFG, isolated_env, need_ros
@@ -137,7 +137,7 @@ def test_graph_split_over_two_launchers(tmp_path):
     need_ros()
     from splat_slam_ros.io.bagio import write_bag
     from splat_slam_ros.io.datasets import open_dataset
-    from splat_slam_ros.io.synth import generate_sequence
+    from splat_slam_synth import generate_sequence
     from test_graph_support import PY, start, stop
     generate_sequence("builtin", 24, (160, 120), tmp_path / "seq", overwrite=True,
                       progress=False, realism="clean", fps=5)
@@ -146,7 +146,7 @@ def test_graph_split_over_two_launchers(tmp_path):
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text(SPLIT_CFG)
     env = isolated_env()
-    base = [PY, "-m", "splat_slam_nodes.launch", "--config", str(cfg), "--no-loop-closure"]
+    base = [PY, "-m", "splat_slam_nodes.tools.launch", "--config", str(cfg), "--no-loop-closure"]
     b = start(base + ["--nodes", "depth,mapper", "--out", str(tmp_path / "B")], env,
               tmp_path / "B.log")
     a = start(base + ["--nodes", "tracker", "--bag", str(tmp_path / "bag"), "--out",

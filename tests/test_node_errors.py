@@ -175,7 +175,7 @@ def test_node_start_checks_its_configuration(tmp_path):
         out = r.stdout + r.stderr
         assert r.returncode == 2 and msg in out and "Traceback" not in out, (args, out[-3000:])
     # the launcher checks --set before it starts any node
-    r = subprocess.run([PY, "-m", "splat_slam_nodes.launch", "--out", str(tmp_path / "o"),
+    r = subprocess.run([PY, "-m", "splat_slam_nodes.tools.launch", "--out", str(tmp_path / "o"),
                         "--set", "depth.mono_modl=x.onnx"], env=isolated_env(),
                        capture_output=True, text=True, timeout=180, stdin=subprocess.DEVNULL)
     assert r.returncode == 2 and r.stderr.startswith("error: unknown config key 'depth.mono_modl'")
@@ -193,7 +193,7 @@ def test_launcher_stops_the_graph_on_a_node_configuration_error(tmp_path):
     bad = not_a_model(tmp_path, sidecar=False)
     log = tmp_path / "launch.log"
     t0 = time.monotonic()
-    rc = run_launch([PY, "-m", "splat_slam_nodes.launch", "--bag", str(bag), "--out",
+    rc = run_launch([PY, "-m", "splat_slam_nodes.tools.launch", "--bag", str(bag), "--out",
                      str(tmp_path / "out"), "--config", str(cfg), "--no-loop-closure",
                      "--start-timeout", "60", "--set", f"depth.mono_model={bad}"],
                     isolated_env(), log, timeout=300)
@@ -213,8 +213,8 @@ def _finished_launcher(tmp_path, monkeypatch, with_gt: bool):
     """A Launcher planned on a tiny bag whose graph 'finished' (the nodes' final events),
     without starting any process; the report is stubbed."""
     pytest.importorskip("rosbags", reason="the tiny bag needs rosbags")
-    from splat_slam_nodes import launch
-    from splat_slam_ros import report
+    from splat_slam_nodes.tools import launch
+    from splat_slam_ros.report import build as report
     bag = write_tiny_bag(tmp_path / "bag", n=6, with_gt=with_gt)
     out = tmp_path / "out"
     L = launch.Launcher(launch.build_parser().parse_args(["--bag", str(bag), "--out", str(out)]),
@@ -234,13 +234,14 @@ def _finished_launcher(tmp_path, monkeypatch, with_gt: bool):
 
 
 def test_a_failing_evaluation_is_exit_1_with_evaluation_error(tmp_path, monkeypatch, capsys):
-    from splat_slam_ros import pipeline
+    from splat_slam_nodes.tools.launch_results import finish
+    from splat_slam_ros.evaluation import run as run_eval
     L, out = _finished_launcher(tmp_path, monkeypatch, with_gt=True)
 
     def corrupt(*a, **k):
         raise ValueError("ground truth pose 3 is not a rotation")
-    monkeypatch.setattr(pipeline, "evaluate_map_depth", corrupt)
-    rc = L.finish(time.monotonic())
+    monkeypatch.setattr(run_eval, "evaluate_map_depth", corrupt)
+    rc = finish(L, time.monotonic())
     m = json.loads((out / "metrics.json").read_text())
     assert rc == 1, m
     assert m["evaluation_error"] == "ValueError: ground truth pose 3 is not a rotation"
@@ -255,13 +256,14 @@ def test_a_failing_evaluation_is_exit_1_with_evaluation_error(tmp_path, monkeypa
 
 
 def test_a_failing_lpips_that_was_asked_for_is_exit_1(tmp_path, monkeypatch):
-    from splat_slam_ros import pipeline
+    from splat_slam_nodes.tools.launch_results import finish
+    from splat_slam_ros.evaluation import run as run_eval
     L, out = _finished_launcher(tmp_path, monkeypatch, with_gt=True)
 
     def gone(out_dir, cfg, m):
         m["lpips"], m["lpips_error"] = None, "LPIPS backbone file not found: b.pt"
-    monkeypatch.setattr(pipeline, "evaluate_lpips", gone)
-    rc = L.finish(time.monotonic())
+    monkeypatch.setattr(run_eval, "evaluate_lpips", gone)
+    rc = finish(L, time.monotonic())
     m = json.loads((out / "metrics.json").read_text())
     assert rc == 1 and m["lpips_error"].startswith("LPIPS backbone file not found"), m
     assert "evaluation_error" not in m
@@ -269,8 +271,9 @@ def test_a_failing_lpips_that_was_asked_for_is_exit_1(tmp_path, monkeypatch):
 
 def test_a_bag_without_ground_truth_skips_the_evaluation_and_exits_0(tmp_path, monkeypatch,
                                                                      capsys):
+    from splat_slam_nodes.tools.launch_results import finish
     L, out = _finished_launcher(tmp_path, monkeypatch, with_gt=False)
-    rc = L.finish(time.monotonic())
+    rc = finish(L, time.monotonic())
     m = json.loads((out / "metrics.json").read_text())
     assert rc == 0, m
     assert m["evaluation_skipped"] == "no ground truth in the bag"

@@ -6,12 +6,13 @@ import torch
 
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.geometry import so3_exp
-from splat_slam_ros.depth.mono_depth import MonoDepthModel
+from splat_slam_ros.tracking.mono_depth import MonoDepthModel
 from splat_slam_ros.depth.proxy_depth import (SOURCE_BA, SOURCE_EMPTY, SOURCE_MONO,
                                         SOURCE_MULTIVIEW,
                                         ProxyDepthEstimator, compose_proxy_depth,
-                                        consistency_count, fill_small_holes, fit_scale_shift,
-                                        all_pairs, multiview_filter, parallax_pairs)
+                                        fill_small_holes, fit_scale_shift)
+from splat_slam_ros.tracking.multiview import (all_pairs, consistency_count, multiview_filter,
+                                               parallax_pairs)
 from splat_slam_ros.depth.upsample import corner_preference, upsample_disparity
 from splat_slam_ros.types import TRACKER_SEQ_START, Intrinsics, KeyframeData, UpdateEvent
 

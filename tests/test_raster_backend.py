@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-import splat_slam_ros.mapping.mapper as mapper_mod
+import splat_slam_ros.mapping.optimise as optimise_mod
 import splat_slam_ros.mapping.rasterizer as raster
 from splat_slam_ros.config import (RASTER_BACKENDS, ConfigError, MappingConfig, SlamConfig,
                                    load_config)
+from splat_slam_ros.evaluation.rendering import evaluate_keyframes
 from splat_slam_ros.mapping.keyframe_views import KEYFRAMES_JSON
 from splat_slam_ros.mapping.mapper import Mapper
 from splat_slam_ros.mapping.rasterizer import (BackendChoice, RasterBackendError,
@@ -50,12 +51,12 @@ def no_extension(monkeypatch):
 def backends_used(monkeypatch):
     """The ``backend=`` of every rasterize call the mapper makes."""
     used = []
-    real = mapper_mod.rasterize
+    real = optimise_mod.rasterize
 
     def spy(*args, **kw):
         used.append(kw.get("backend"))
         return real(*args, **kw)
-    monkeypatch.setattr(mapper_mod, "rasterize", spy)
+    monkeypatch.setattr(optimise_mod, "rasterize", spy)
     return used
 
 
@@ -160,7 +161,7 @@ def test_map_metrics_carry_the_backend(no_extension, tmp_path):
     st = json.loads(json.dumps(mp.stats()))          # what metrics.json "map" holds
     assert st["raster_backend"] == "torch"
     assert st["raster_backend_reason"].startswith("auto: C++ extension unavailable")
-    mp.evaluate_keyframes(tmp_path / "renders")
+    evaluate_keyframes(mp, tmp_path / "renders")
     doc = json.loads((tmp_path / "renders" / KEYFRAMES_JSON).read_text())
     assert doc["map"]["raster_backend"] == "torch"
     assert FAKE_BUILD_ERROR in doc["map"]["raster_backend_reason"]

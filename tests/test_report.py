@@ -14,9 +14,10 @@ import pytest
 from splat_slam_ros.cli.report import main as report_main
 from splat_slam_ros.config import load_config
 from splat_slam_ros.io.datasets import open_dataset
-from splat_slam_ros.io.synth import generate_sequence
+from splat_slam_synth import generate_sequence
 from splat_slam_ros.pipeline import NotInitializedError, run
-from splat_slam_ros.report import WarningRecorder, WarningTee, write_report
+from splat_slam_ros.report.build import write_report
+from splat_slam_ros.report.recording import WarningRecorder, WarningTee
 
 SECTIONS = ["summary", "warnings", "missing", "trajectory", "keyframes", "map", "timing",
             "config"]
@@ -236,7 +237,7 @@ def test_cli_user_errors(tmp_path, capsys):
 def test_keyframe_views_against_ground_truth_depth(seq, tmp_path):
     """The files the report reads: 16-bit depths decode to the rendered/proxy depth, the
     depth L1 against ground truth equals the one against a proxy depth that is the truth."""
-    from splat_slam_ros.mapping.keyframe_views import write_keyframe_views
+    from splat_slam_ros.evaluation.rendering import write_keyframe_views
     from splat_slam_ros.mapping.mapper import Mapper
     ds = open_dataset(seq)
     fr = next(iter(ds))

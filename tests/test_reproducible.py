@@ -23,7 +23,7 @@ SETTINGS = ["mapping.iters_first=60", "mapping.iters_per_keyframe=20",
 
 @pytest.fixture(scope="module")
 def clip(tmp_path_factory):
-    from splat_slam_ros.io.synth import generate_sequence
+    from splat_slam_synth import generate_sequence
     if not TRAJ.is_file():
         pytest.skip(f"{TRAJ} not found (../shared/data)")
     d = tmp_path_factory.mktemp("repro")

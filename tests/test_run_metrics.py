@@ -9,8 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
-from splat_slam_ros import evaluation as ev
+from splat_slam_ros.evaluation import depth as evd
+from splat_slam_ros.evaluation import perceptual as evp
 from splat_slam_ros import pipeline
+from splat_slam_ros.evaluation import run as run_eval
 from splat_slam_ros.config import ConfigError, SlamConfig, load_config
 from splat_slam_ros.io.trajectory_io import write_tum
 from splat_slam_ros.mapping.mapper import Mapper
@@ -55,22 +57,22 @@ def test_evaluation_lpips_key_defaults_off_and_loads_from_yaml(tmp_path):
 def test_lpips_in_metrics_is_null_without_a_backbone(tmp_path):
     _write_views(tmp_path / "renders")
     m = {}
-    pipeline.evaluate_lpips(tmp_path, SlamConfig(), m)
+    run_eval.evaluate_lpips(tmp_path, SlamConfig(), m)
     assert m == {"lpips": None}
-    pipeline.check_lpips_config(SlamConfig())                  # nothing to check
+    run_eval.check_lpips_config(SlamConfig())                  # nothing to check
 
 
 def test_lpips_in_metrics_is_the_keyframe_mean_with_a_backbone(tmp_path, lpips_files):
     net, path = lpips_files
     pairs = _write_views(tmp_path / "renders")
     cfg = load_config(overrides={"evaluation.lpips_backbone": str(path)})
-    pipeline.check_lpips_config(cfg)
+    run_eval.check_lpips_config(cfg)
     m = {}
-    pipeline.evaluate_lpips(tmp_path, cfg, m)
+    run_eval.evaluate_lpips(tmp_path, cfg, m)
     expect = np.mean([_manual_lpips(net, img, ref) for img, ref in pairs])
     assert m["lpips"] == pytest.approx(expect, abs=2e-6) and m["lpips"] > 0, m
     assert "lpips_error" not in m
-    assert not ev._LPIPS_CACHE                                 # the backbone is let go
+    assert not evp._LPIPS_CACHE                                 # the backbone is let go
 
 
 def test_lpips_backbone_missing_or_invalid_is_a_clear_error(tmp_path, lpips_files, capsys):
@@ -81,20 +83,20 @@ def test_lpips_backbone_missing_or_invalid_is_a_clear_error(tmp_path, lpips_file
     for bad, msg in ((missing, "not found"), (junk, "not a loadable TorchScript")):
         cfg = load_config(overrides={"evaluation.lpips_backbone": str(bad)})
         with pytest.raises(ConfigError, match=msg) as e:
-            pipeline.check_lpips_config(cfg)
+            run_eval.check_lpips_config(cfg)
         assert "evaluation.lpips_backbone" in str(e.value) and str(bad) in str(e.value)
     cfg = load_config(overrides={"evaluation.lpips_backbone": str(path),
                                  "evaluation.lpips_weights": str(missing)})
     with pytest.raises(ConfigError, match="weights file not found"):
-        pipeline.check_lpips_config(cfg)
+        run_eval.check_lpips_config(cfg)
     with pytest.raises(ConfigError, match="lpips_backbone is not"):
-        pipeline.check_lpips_config(load_config(
+        run_eval.check_lpips_config(load_config(
             overrides={"evaluation.lpips_weights": str(path)}))
     # a file gone by the end of the run: no silent skip, metrics.json says why
     _write_views(tmp_path / "renders")
     cfg = load_config(overrides={"evaluation.lpips_backbone": str(missing)})
     m = {}
-    pipeline.evaluate_lpips(tmp_path, cfg, m)
+    run_eval.evaluate_lpips(tmp_path, cfg, m)
     assert m["lpips"] is None and "not found" in m["lpips_error"], m
     assert "error: no LPIPS" in capsys.readouterr().err
 
@@ -149,7 +151,7 @@ def test_splat_slam_run_rejects_a_missing_backbone_before_running(tmp_path, caps
 
 def test_launcher_writes_lpips_with_the_shared_evaluation(tmp_path, lpips_files, monkeypatch):
     """splat-slam-launch: the same check before the run and the same ``lpips`` entry."""
-    from splat_slam_nodes import launch
+    from splat_slam_nodes.tools import launch, launch_results
     net, path = lpips_files
     monkeypatch.setenv("SPLAT_SLAM_DDS_RANGE", "localhost")
     bad = launch.Launcher(launch.build_parser().parse_args(
@@ -165,7 +167,7 @@ def test_launcher_writes_lpips_with_the_shared_evaluation(tmp_path, lpips_files,
     saved = {"mapper": {"metrics": {"psnr": 20.0, "gaussians": 100}},
              "tracker": {"frames": 3, "posed": 3, "keyframes": 3}}
     monkeypatch.setattr(L, "has_event", lambda node, kind: saved.get(node))
-    m = L.write_metrics(L.t0 + 1.0)
+    m = launch_results.write_metrics(L, L.t0 + 1.0)
     expect = np.mean([_manual_lpips(net, img, ref) for img, ref in pairs])
     assert m["lpips"] == pytest.approx(expect, abs=2e-6), m
     assert json.loads((out / "metrics.json").read_text())["lpips"] == m["lpips"]
@@ -246,20 +248,20 @@ def test_depth_edge_band_of_a_room_with_boxes(W, H):
     depth, ids = _room(_tum_like(W, H))
     assert 0.5 <= depth.min() and depth.max() <= 5.0
     for r in (0, 2, 8):
-        band = ev.depth_edge_band(depth, r).numpy()
+        band = evd.depth_edge_band(depth, r).numpy()
         expect = _dilate(_silhouettes(ids), r)
         assert np.array_equal(band, expect), (r, band.mean(), expect.mean())
-    clean = ev.depth_edge_band(depth, 8).numpy()
+    clean = evd.depth_edge_band(depth, 8).numpy()
     assert 0.02 < clean.mean() < 0.4, clean.mean()
     seam = 2 if W == 640 else 1
     holed = _no_depth_on_silhouettes(depth, ids, seam)
     assert (holed == 0).mean() > 0.005
-    band = ev.depth_edge_band(holed, 8).numpy()
+    band = evd.depth_edge_band(holed, 8).numpy()
     # the edge pixels are the valid ones either side of the gap: the band is the gap wider
     assert clean.mean() <= band.mean() < 1.25 * clean.mean(), (band.mean(), clean.mean())
     assert (band & clean).sum() > 0.98 * clean.sum()
     # the walls, floor and ceiling are no edges (grazing floor included)
-    assert not ev.depth_edge_band(np.where(ids == 0, depth, 0), 0).numpy()[ids == 0].any()
+    assert not evd.depth_edge_band(np.where(ids == 0, depth, 0), 0).numpy()[ids == 0].any()
 
 
 class _Data(list):
@@ -302,7 +304,7 @@ def test_map_depth_split_on_a_room_with_boxes(tmp_path, monkeypatch, W, H, holes
     write_tum(tmp_path / "trajectory_keyframes.txt", data.ts, data.poses)
     (tmp_path / "map.ply").write_bytes(b"")
     m = {}
-    pipeline.evaluate_map_depth(data, tmp_path, cfg, m)
+    run_eval.evaluate_map_depth(data, tmp_path, cfg, m)
     assert m["depth_l1_views"] == 4, m
     assert 0.02 < m["depth_edge_band_fraction"] < 0.4, m
     assert m["depth_l1_edges_cm"] is not None and m["depth_l1_edges_cm"] > 5.0, m

@@ -7,7 +7,7 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Image as RclpyImage
 
 from splat_slam_nodes import convert as C
-from splat_slam_nodes.bag_player import BagReader, PlayerError
+from splat_slam_nodes.tools.bag_player import BagReader, PlayerError
 from splat_slam_ros.io import bagio
 from splat_slam_ros.io.bag_reader import BagFile
 from splat_slam_ros.io.dataset_base import DatasetError
@@ -75,7 +75,7 @@ def test_camera_info_both_message_kinds():
 
 
 def test_bag_file_raw_and_decoded(tmp_path):
-    from splat_slam_ros.io.synth import generate_sequence
+    from splat_slam_synth import generate_sequence
     from splat_slam_ros.io.datasets import open_dataset
     seq = generate_sequence("builtin", 3, "32x24", tmp_path / "seq", progress=False)
     bagio.write_bag(open_dataset(seq), tmp_path / "bag", progress=False)

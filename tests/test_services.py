@@ -97,7 +97,7 @@ def test_mapper_services_refuse_bad_requests(tmp_path):
 
 
 def test_launcher_passes_allow_reset_to_the_mapper_only():
-    from splat_slam_nodes import launch
+    from splat_slam_nodes.tools import launch
     for flag, want in (([], False), (["--allow-reset"], True)):
         L = launch.Launcher(launch.build_parser().parse_args(["--no-loop-closure"] + flag))
         L.plan()

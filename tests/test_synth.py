@@ -1,4 +1,4 @@
-"""Tests for the synthetic RGB-D sequence generator (splat_slam_ros.io.synth, splat-slam-synth)."""
+"""Tests for the synthetic RGB-D sequence generator (splat_slam_synth, splat-slam-synth)."""
 from __future__ import annotations
 
 import math
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from splat_slam_ros.io import synth
-from splat_slam_ros.cli.synth import main as synth_main
+import splat_slam_synth as synth
+from splat_slam_synth.cli import main as synth_main
 from splat_slam_ros.io.trajectory_io import read_trajectory
 from splat_slam_ros.types import Intrinsics
 

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import yaml
 
-from splat_slam_ros.cli.synth import main as synth_main
-from splat_slam_ros.io import synth
-from splat_slam_ros.io.synth.options import TEX_SIZE
-from splat_slam_ros.io.synth.textures import PERIODIC, procedural_texture
+from splat_slam_synth.cli import main as synth_main
+import splat_slam_synth as synth
+from splat_slam_synth.options import TEX_SIZE
+from splat_slam_synth.textures import PERIODIC, procedural_texture
 from splat_slam_ros.types import Intrinsics
 
 SIZE = "96x72"
@@ -83,7 +83,7 @@ def test_every_scene_builds_and_renders(plans):
 def test_room_is_the_default_and_never_a_variant(plans, monkeypatch):
     """The default scene is the original room: no variant code runs for it, and the same
     arguments give the same geometry and textures with or without ``scene='room'``."""
-    from splat_slam_ros.io.synth import variants
+    from splat_slam_synth import variants
 
     def boom(*a, **k):
         raise AssertionError("variant path taken for the room")

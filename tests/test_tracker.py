@@ -144,7 +144,7 @@ def sequence(n: int = 50):
 
 
 def ate_cm(frames_or_ts, gt, ts, poses) -> float:
-    from splat_slam_ros.evaluation import ate
+    from splat_slam_ros.evaluation.trajectory import ate
     gts = np.array([f.timestamp for f in frames_or_ts]) if not isinstance(
         frames_or_ts, np.ndarray) else frames_or_ts
     return ate(gts, gt, ts, poses)["rmse_cm"]
@@ -426,7 +426,8 @@ def test_euroc_static_camera_real_images(shared_data):
 
 def test_depth_prior_hook_runs_after_each_local_ba_and_its_disparities_are_used():
     """The DSPO hook (paper Eq. 2) alternates with DBA: it sees the window and the edges."""
-    from splat_slam_ros.tracking.tracker import BAState, Tracker
+    from splat_slam_ros.tracking.backend import BAState
+    from splat_slam_ros.tracking.tracker import Tracker
     frames, _ = sequence()
     calls = []
 
@@ -465,7 +466,7 @@ def test_max_stored_flows_keeps_only_the_newest_flows():
 def test_a_broken_mono_model_is_an_error_not_plain_dba(tmp_path):
     """DSPO is configured by depth.mono_model: a model that cannot load stops the tracker
     (it used to fall back to plain DBA with a warning)."""
-    from splat_slam_ros.depth.mono_depth import MonoDepthError
+    from splat_slam_ros.tracking.mono_depth import MonoDepthError
     from splat_slam_ros.tracking.tracker import Tracker
     cfg = small_cfg()
     cfg.depth.mono_model = str(tmp_path / "missing.onnx")
@@ -517,10 +518,10 @@ def test_a_gap_of_skipped_frames_is_bridged_by_the_predicted_flow(shared_data, t
         pytest.skip(f"{traj} not found")
     import subprocess
     import sys
-    from splat_slam_ros.tracking import tracker as tm
+    from splat_slam_ros.tracking import frontend, initialisation
     from splat_slam_ros.tracking.tracker import Tracker
     out = tmp_path / "v102"
-    subprocess.run([sys.executable, "-m", "splat_slam_ros.cli.synth", "--trajectory", str(traj),
+    subprocess.run([sys.executable, "-m", "splat_slam_synth.cli", "--trajectory", str(traj),
                     "--frames", "80", "--size", "320x240", "--fps", "20", "--start", "6",
                     "--out", str(out), "--realism", "realistic", "--quiet"],
                    check=True, capture_output=True, timeout=300)
@@ -539,12 +540,13 @@ def test_a_gap_of_skipped_frames_is_bridged_by_the_predicted_flow(shared_data, t
                 tr.track(f)
         return tr.n_lost, ate_cm(frames, gt, *tr.trajectory_full())
     lost, err = run()
-    tm_predict = tm.predict_pose
+    tm_predict = frontend.predict_pose
     try:
-        tm.predict_pose = lambda last, vel, spacing, index: last
+        frontend.predict_pose = initialisation.predict_pose = \
+            lambda last, vel, spacing, index: last
         lost_without, err_without = run()
     finally:
-        tm.predict_pose = tm_predict
+        frontend.predict_pose = initialisation.predict_pose = tm_predict
     assert lost < lost_without and err < 0.5 * err_without, (lost, err, lost_without,
                                                               err_without)
 

@@ -144,7 +144,7 @@ def test_loop_role_keeps_its_merged_keyframes_across_a_restart(tmp_path):
 
 def _revisit_run(cull_deg: float):
     from splat_slam_ros.config import MappingConfig, SlamConfig
-    from splat_slam_ros.roles import MapperRole
+    from splat_slam_ros.mapper_role import MapperRole
     from splat_slam_ros.types import KeyframeData, ProxyDepth
     from test_tracker import render_room
     cfg = SlamConfig()
@@ -174,7 +174,8 @@ def test_revisit_mode_does_not_map_a_view_the_map_already_covers():
     """A keyframe whose pose is too far from every mapped one for the pose test (drift, or
     a step forward) but whose view the map already covers is consumed, not mapped."""
     from splat_slam_ros.config import MappingConfig, SlamConfig
-    from splat_slam_ros.roles import MapperRole
+    from splat_slam_ros.mapper_role import MapperRole
+    from splat_slam_ros.mapping.revisit import revisit_of
     from splat_slam_ros.types import KeyframeData, ProxyDepth
     from test_tracker import render_room
 
@@ -200,7 +201,8 @@ def test_revisit_mode_does_not_map_a_view_the_map_already_covers():
     T = np.eye(4)
     T[2, 3] = 0.6
     depth = render_room(T, INTR)[1]
-    assert on._revisit(ProxyDepth(1, depth, np.ones_like(depth, np.uint8), T)) is None  # pose
+    assert revisit_of(on.cfg.mapping, on.mapper.keyframes,
+                      ProxyDepth(1, depth, np.ones_like(depth, np.uint8), T)) is None  # pose
     assert on.mapper.coverage(T) >= on.cfg.mapping.revisit_coverage
 
 
@@ -221,7 +223,7 @@ def test_densification_stops_at_the_view_budget():
         n0 = len(m.map)
         grad = (m.map.grad_accum / m.map.grad_count.clamp_min(1)).clone()
         uid = m.map.uid.clone()
-        m._densify()
+        m.strategy.densify(m)
         return m, n0, grad, uid
 
     free, n0, _, _ = densified(0.0)
@@ -241,7 +243,8 @@ def test_mapper_role_merges_a_keyframe_that_an_update_shows_to_be_a_revisit(tmp_
     corrects it puts it on an older mapped keyframe: it is merged, its Gaussians stay and follow
     the older keyframe, and a restart restores the merged map."""
     from splat_slam_ros.config import MappingConfig, SlamConfig
-    from splat_slam_ros.roles import MapperRole
+    from splat_slam_ros.mapper_role import MapperRole
+    from splat_slam_ros.mapping.deformation import in_view
     from splat_slam_ros.types import KeyframeData, ProxyDepth
     from test_tracker import render_room
     cfg = SlamConfig()
@@ -280,7 +283,7 @@ def test_mapper_role_merges_a_keyframe_that_an_update_shows_to_be_a_revisit(tmp_
     assert 0 < int(left.sum()) < len(uid3) // 4
     assert len(m.map) == n_gauss - (len(uid3) - int(left.sum()))
     assert bool((m.map.kf_id[left] == 1).all())
-    assert not bool(m._in_view(m.map.means[left], pose(0.5)).any())
+    assert not bool(in_view(m, m.map.means[left], pose(0.5)).any())
     before = m.map.means[left].clone()
     # the older keyframe moves: the re-anchored Gaussians move with it
     depth1 = render_room(pose(0.5), INTR)[1]
@@ -299,15 +302,15 @@ def test_mapper_role_merges_a_keyframe_that_an_update_shows_to_be_a_revisit(tmp_
     assert sorted(again.mapper.keyframes) == [0, 1, 2] and len(again.mapper.map) == n_gauss
     assert again.offered[3] is False
     # the next new keyframe gets a fresh index (no clash with the merged one's)
-    assert again.mapper._next_index == 4
+    assert again.mapper.next_index == 4
     assert again.mapper.counts["merged_keyframes"] == 1
     # merges keep the window from filling: visibility pruning runs once the window holds every
     # mapped keyframe and more than prune_covis_min of them
     role = again
-    assert not role.mapper.window.full and not role.mapper._enough_views()
+    assert not role.mapper.window.full and not role.mapper.strategy.enough_views(role.mapper)
     offer(4, 1.5, 1.5)
     assert len(role.mapper.keyframes) == 4 == len(role.mapper.window)
-    assert not role.mapper.window.full and role.mapper._enough_views()
+    assert not role.mapper.window.full and role.mapper.strategy.enough_views(role.mapper)
 
 
 def test_mapper_role_in_revisit_mode_waits_for_a_loop_corrected_pose():
@@ -315,7 +318,7 @@ def test_mapper_role_in_revisit_mode_waits_for_a_loop_corrected_pose():
     loop-closure update arrives (its drifted pose corrected), so a revisit is recognised on
     arrival instead of being mapped as a new place; without loop updates nothing waits."""
     from splat_slam_ros.config import MappingConfig, SlamConfig
-    from splat_slam_ros.roles import MapperRole
+    from splat_slam_ros.mapper_role import MapperRole
     from splat_slam_ros.types import LOOP_SEQ_START, KeyframeData, ProxyDepth, UpdateEvent
     from test_tracker import render_room
     cfg = SlamConfig()

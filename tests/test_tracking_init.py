@@ -1,7 +1,7 @@
 """Initialisation from the first frames, size-independent thresholds and the full trajectory
 (non-keyframes aligned against both neighbouring keyframes) on a realistic render of real
 hand-held motion: the first 30 frames of TUM fr2/desk from t0 + 47 s (22 cm, 30 Hz),
-rendered by ``splat_slam_ros.io.synth`` with camera realism (motion blur over a 20 ms
+rendered by ``splat_slam_synth`` with camera realism (motion blur over a 20 ms
 exposure, auto-exposure, vignetting, noise, JPEG), tracked with the default config.
 """
 from __future__ import annotations
@@ -14,14 +14,14 @@ import pytest
 import torch
 
 from splat_slam_ros.config import SlamConfig
-from splat_slam_ros.evaluation import ate
+from splat_slam_ros.evaluation.trajectory import ate
 from splat_slam_ros.types import UpdateEvent
 
 
 @lru_cache(maxsize=3)
 def fr2desk_clip(size: str = "320x240", frames: int = 30, blur: int = 5):
     """(frames, gt timestamps, gt poses) of the realistic fr2/desk clip at ``size``."""
-    from splat_slam_ros.io import synth
+    import splat_slam_synth as synth
     from splat_slam_ros.runtime import limit_threads
     traj = Path(__file__).resolve().parents[2] / "shared" / "data" / "trajectories" / \
         "fr2_desk_groundtruth.txt"
@@ -60,7 +60,7 @@ def _track(frames, cfg=None):
 def test_thresholds_scale_with_the_ba_focal_length():
     from splat_slam_ros.tracking.motion_filter import REF_BA_FOCAL, flow_scale
     from splat_slam_ros.tracking.tracker import Tracker
-    from splat_slam_ros.io.synth import default_intrinsics
+    from splat_slam_synth import default_intrinsics
     scales = {}
     cfg = SlamConfig()
     cfg.camera.max_pixels = 0                 # track at the input size (no automatic shrink)
@@ -104,7 +104,8 @@ def test_keyframes_handed_on_at_the_mapping_size():
     mapping image's (the same pixels the camera stage would give at that size), the
     disparity is on the tracker's 48x36 BA grid, and a loop closer / proxy depth stage
     fed with it gets the geometry of that grid back."""
-    from splat_slam_ros.tracking.flow_frontend import ImagePreprocessor, flow_input
+    from splat_slam_ros.imaging import flow_input
+    from splat_slam_ros.tracking.flow_frontend import ImagePreprocessor
     from splat_slam_ros.tracking.loop_closure import LoopCloser
     frames, gt_ts, gt = fr2desk_clip("640x480", 30, 5)
     cfg = SlamConfig()

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from splat_slam_ros.config import SlamConfig
-from splat_slam_ros.evaluation import ate
+from splat_slam_ros.evaluation.trajectory import ate
 from splat_slam_ros.geometry import pixel_grid, se3_exp
 from splat_slam_ros.tracking.dense_ba import reproject
 from splat_slam_ros.tracking.two_view import relative_motion, two_view_start
@@ -69,7 +69,7 @@ def test_two_view_start_scales_by_parallax_and_skips_undetermined_views():
 def builtin_clip(frames: int = 60):
     """The first frames of the demo's sequence: built-in path (planned for the demo's 240
     frames: the path depends on the duration), 320x240, realistic, seed 0."""
-    from splat_slam_ros.io import synth
+    import splat_slam_synth as synth
     from splat_slam_ros.runtime import limit_threads
     plan = synth.plan_sequence("builtin", 240, "320x240", realism="realistic", warn=False)
     with limit_threads(1):
@@ -81,7 +81,7 @@ def builtin_clip(frames: int = 60):
 def test_builtin_path_initialises_in_the_right_basin(caplog):
     from splat_slam_ros.coordinator import track_sequence
     frames, gt_ts, gt = builtin_clip()
-    with caplog.at_level("INFO", logger="splat_slam_ros.tracking.tracker"):
+    with caplog.at_level("INFO", logger="splat_slam_ros.tracking.initialisation"):
         res = track_sequence(frames, SlamConfig(), frames[0].intrinsics, progress=False)
     assert res.n_keyframes >= 3 and len(res.timestamps) == len(frames)
     kf = ate(gt_ts, gt, res.kf_timestamps, res.kf_poses)
