@@ -4,7 +4,9 @@
 Prints a table and writes benchmarks/results/rasterizer.json. Scenes: Gaussians initialised
 like the mapper does from a keyframe (pixels unprojected onto the surfaces of a box room with
 a table-sized box, flattened along the surface normal, sized to the pixel spacing), plus 23 %
-extra Gaussians from nearby "other keyframes" so several layers overlap along each ray.
+extra Gaussians from nearby "other keyframes" so several layers overlap along each ray; the
+"map" scene adds 9x as many Gaussians out of view (the rest of a larger map, behind the
+camera), where the per-view cost should follow the Gaussians in view, not the map's size.
 
     python benchmarks/bench_rasterizer.py [--threads 2] [--repeats 5] [--quick] [--also-jemalloc]
 
@@ -88,6 +90,18 @@ def room_scene(n: int, width: int, height: int, seed: int = 0):
             opac.contiguous(), colors.contiguous(), viewmat, (fx, fy, cx, cy))
 
 
+def with_out_of_view(scene, n_out: int, seed: int = 1):
+    """The scene plus ``n_out`` Gaussians of the rest of a map: behind the camera (culled by
+    the projection, as most of a large map is from any one keyframe)."""
+    means, quats, scales, opac, colors, viewmat, intr = scene
+    g = torch.Generator().manual_seed(seed)
+    far = torch.rand(n_out, 3, generator=g) * torch.tensor([8.0, 3.0, 6.0]) - torch.tensor([4.0, 1.5, 7.0])
+    pick = torch.randint(0, len(means), (n_out,), generator=g)
+    return (torch.cat([means, far]).contiguous(), torch.cat([quats, quats[pick]]).contiguous(),
+            torch.cat([scales, scales[pick]]).contiguous(), torch.cat([opac, opac[pick]]).contiguous(),
+            torch.cat([colors, colors[pick]]).contiguous(), viewmat, intr)
+
+
 def time_backend(scene, width, height, backend, repeats):
     means, quats, scales, opac, colors, viewmat, intr = scene
     params = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors)]
@@ -135,7 +149,9 @@ def main(argv=None):
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     load_extension()
-    configs = [(20000, 320, 240)] + ([] if args.quick else [(100000, 640, 480)])
+    # (Gaussians in view, width, height, Gaussians out of view)
+    configs = [(20000, 320, 240, 0)] + ([] if args.quick else
+                                        [(20000, 320, 240, 180000), (100000, 640, 480, 0)])
     preload = os.environ.get("LD_PRELOAD", "")
     allocator = "jemalloc" if "jemalloc" in preload else "glibc"
     try:
@@ -150,14 +166,17 @@ def main(argv=None):
                "loadavg_before": load, "configs": []}
     print(f"threads={args.threads} allocator={allocator} OMP_WAIT_POLICY={policy} loadavg={load}")
     print(f"{'scene':>18} {'backend':>7} {'fwd ms':>9} {'fwd+bwd ms':>11} {'(cpu ms)':>9} {'visible':>8}")
-    for n, w, h in configs:
+    for n, w, h, n_out in configs:
         scene = room_scene(n, w, h)
-        entry = {"gaussians": n, "width": w, "height": h}
-        backends = ["cpp"] + ([] if args.no_reference else ["torch"])
+        if n_out:
+            scene = with_out_of_view(scene, n_out)
+        entry = {"gaussians": n + n_out, "in_view": n, "width": w, "height": h}
+        label = f"{n // 1000}k" + (f" of {(n + n_out) // 1000}k" if n_out else "")
+        backends = ["cpp"] + ([] if args.no_reference or n_out else ["torch"])
         for be in backends:
             r = time_backend(scene, w, h, be, args.repeats if be == "cpp" else max(1, args.repeats // 2))
             entry[be] = r
-            print(f"{f'{n // 1000}k @ {w}x{h}':>18} {be:>7} {r['forward_ms']:9.1f} "
+            print(f"{f'{label} @ {w}x{h}':>18} {be:>7} {r['forward_ms']:9.1f} "
                   f"{r['forward_backward_ms']:11.1f} {r['forward_backward_ms_cpu']:9.1f} "
                   f"{r['visible']:8d}")
         if "torch" in entry:

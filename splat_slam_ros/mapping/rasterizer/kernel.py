@@ -194,12 +194,11 @@ class RasterizeCpp(torch.autograd.Function):
     def forward(ctx, means2d, conics, colors, opacities, depths, ranges, background, width,
                 height, tile_size):
         ext = load_extension()
-        rgb, depth, alpha, t_final, visible, tile_off, keys = ext.forward(
+        rgb, depth, alpha, t_final, visible, tile_off, keys, packed, ids = ext.forward(
             means2d, conics, colors, opacities, depths, ranges, background, width, height,
             tile_size)
-        ctx.save_for_backward(means2d, conics, colors, opacities, depths, ranges, tile_off,
-                              keys, rgb, depth, t_final)
-        ctx.size = (width, height, tile_size)
+        ctx.save_for_backward(packed, ids, tile_off, keys, rgb, depth, t_final)
+        ctx.size = (means2d.shape[0], width, height, tile_size)
         ctx.bg_needs_grad = background.requires_grad
         visible = visible.bool()
         ctx.mark_non_differentiable(visible)
@@ -207,9 +206,8 @@ class RasterizeCpp(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_rgb, g_depth, g_alpha, _g_vis):
-        means2d, conics, colors, opacities, depths, ranges, tile_off, keys, rgb, depth, t_final = (
-            ctx.saved_tensors)
-        width, height, tile_size = ctx.size
+        packed, ids, tile_off, keys, rgb, depth, t_final = ctx.saved_tensors
+        n, width, height, tile_size = ctx.size
 
         def img_grad(g, like):
             return torch.zeros_like(like) if g is None else g.contiguous().float()
@@ -217,8 +215,8 @@ class RasterizeCpp(torch.autograd.Function):
         g_rgb, g_depth = img_grad(g_rgb, rgb), img_grad(g_depth, depth)
         g_alpha = img_grad(g_alpha, t_final)
         d_m2d, d_conic, d_col, d_op, d_depth = load_extension().backward(
-            means2d, conics, colors, opacities, depths, ranges, tile_off, keys, rgb, depth,
-            t_final, g_rgb, g_depth, g_alpha, width, height, tile_size)
+            n, packed, ids, tile_off, keys, rgb, depth, t_final, g_rgb, g_depth, g_alpha,
+            width, height, tile_size)
         d_bg = (g_rgb * t_final[..., None]).sum((0, 1)) if ctx.bg_needs_grad else None
         return d_m2d, d_conic, d_col, d_op, d_depth, None, d_bg, None, None, None
 

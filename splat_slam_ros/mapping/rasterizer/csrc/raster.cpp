@@ -31,6 +31,15 @@ void check_inputs(const torch::Tensor& means2d, const torch::Tensor& conics,
               "ranges must be int32 contiguous CPU");
 }
 
+// The packed Gaussians live in a uint8 tensor (torch's CPU allocations are 64-byte aligned,
+// which the cache-line Packed needs).
+Packed* packed_ptr(const torch::Tensor& packed) {
+  auto* p = packed.data_ptr<uint8_t>();
+  TORCH_CHECK(reinterpret_cast<uintptr_t>(p) % alignof(Packed) == 0,
+              "packed Gaussians are not aligned");
+  return reinterpret_cast<Packed*>(p);
+}
+
 #define DISPATCH_TILE(ts, ...)                                      \
   switch (ts) {                                                     \
     case 8: { constexpr int TS = 8; __VA_ARGS__; break; }           \
@@ -40,7 +49,8 @@ void check_inputs(const torch::Tensor& means2d, const torch::Tensor& conics,
   }
 
 // Returns rgb (H,W,3), depth (H,W), alpha (H,W), T_final (H,W), visible (N,) uint8,
-// tile_off (n_tiles+1,) int64, keys (M,) int64.
+// tile_off (n_tiles+1,) int64, keys (M,) int64, and for the backward the packed Gaussians
+// with a footprint (uint8, 64 bytes each) and their indices ids (int32).
 std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tensor conics,
                                              torch::Tensor colors, torch::Tensor opac,
                                              torch::Tensor depths, torch::Tensor ranges,
@@ -55,16 +65,22 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
   const int64_t tiles_x = (width + ts - 1) / ts, tiles_y = (height + ts - 1) / ts;
   const int64_t n_tiles = tiles_x * tiles_y;
   const int32_t* rg = ranges.data_ptr<int32_t>();
-  const std::vector<int64_t> pair_off = pair_offsets(rg, n, ts);
+  const std::vector<int32_t> slots = with_footprint(rg, n);
+  const int64_t nc = int64_t(slots.size());
+  const std::vector<int64_t> pair_off = pair_offsets(rg, slots.data(), nc, ts);
   auto i64 = torch::TensorOptions().dtype(torch::kInt64);
   auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
+  torch::Tensor ids = torch::from_blob(const_cast<int32_t*>(slots.data()), {nc},
+                                       torch::TensorOptions().dtype(torch::kInt32)).clone();
   torch::Tensor tile_off = torch::empty({n_tiles + 1}, i64);
-  torch::Tensor keys = torch::empty({pair_off[n]}, i64);
-  bin_gaussians(rg, depths.data_ptr<float>(), n, ts, tiles_x, tiles_y, pair_off.data(),
-                tile_off.data_ptr<int64_t>(), keys.data_ptr<int64_t>());
-  const std::vector<Packed> gs =
-      pack(n, means2d.data_ptr<float>(), conics.data_ptr<float>(), colors.data_ptr<float>(),
-           opac.data_ptr<float>(), depths.data_ptr<float>(), rg);
+  torch::Tensor keys = torch::empty({pair_off[nc]}, i64);
+  bin_gaussians(rg, depths.data_ptr<float>(), slots.data(), nc, ts, tiles_x, tiles_y,
+                pair_off.data(), tile_off.data_ptr<int64_t>(), keys.data_ptr<int64_t>());
+  torch::Tensor packed = torch::empty({nc, int64_t(sizeof(Packed))},
+                                      torch::TensorOptions().dtype(torch::kUInt8));
+  Packed* gs = packed_ptr(packed);
+  pack(slots.data(), nc, means2d.data_ptr<float>(), conics.data_ptr<float>(),
+       colors.data_ptr<float>(), opac.data_ptr<float>(), depths.data_ptr<float>(), rg, gs);
   torch::Tensor rgb = torch::empty({height, width, 3}, f32);
   torch::Tensor depth = torch::empty({height, width}, f32);
   torch::Tensor alpha = torch::empty({height, width}, f32);
@@ -72,19 +88,18 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
   torch::Tensor visible = torch::zeros({n}, torch::TensorOptions().dtype(torch::kUInt8));
   DISPATCH_TILE(ts, forward_tiles<TS>(
       width, height, tiles_x, n_tiles, tile_off.data_ptr<int64_t>(), keys.data_ptr<int64_t>(),
-      gs.data(), bg.data_ptr<float>(), rgb.data_ptr<float>(), depth.data_ptr<float>(),
+      gs, slots.data(), bg.data_ptr<float>(), rgb.data_ptr<float>(), depth.data_ptr<float>(),
       alpha.data_ptr<float>(), tfin.data_ptr<float>(), visible.data_ptr<uint8_t>()));
-  return {rgb, depth, alpha, tfin, visible, tile_off, keys};
+  return {rgb, depth, alpha, tfin, visible, tile_off, keys, packed, ids};
 }
 
-// Returns grads w.r.t. means2d (N,2), conics (N,3), colors (N,3), opacities (N,), depths (N,).
+// Returns grads w.r.t. means2d (N,2), conics (N,3), colors (N,3), opacities (N,), depths (N,)
+// from the forward's packed Gaussians, ids, binning and outputs.
 std::vector<torch::Tensor> rasterize_backward(
-    torch::Tensor means2d, torch::Tensor conics, torch::Tensor colors, torch::Tensor opac,
-    torch::Tensor depths, torch::Tensor ranges, torch::Tensor tile_off, torch::Tensor keys,
-    torch::Tensor out_rgb, torch::Tensor out_depth, torch::Tensor out_T, torch::Tensor g_rgb,
-    torch::Tensor g_depth, torch::Tensor g_alpha, int64_t width, int64_t height,
-    int64_t tile_size) {
-  check_inputs(means2d, conics, colors, opac, depths, ranges);
+    int64_t n, torch::Tensor packed, torch::Tensor ids, torch::Tensor tile_off,
+    torch::Tensor keys, torch::Tensor out_rgb, torch::Tensor out_depth, torch::Tensor out_T,
+    torch::Tensor g_rgb, torch::Tensor g_depth, torch::Tensor g_alpha, int64_t width,
+    int64_t height, int64_t tile_size) {
   for (const auto* t : {&out_rgb, &out_depth, &out_T, &g_rgb, &g_depth, &g_alpha}) {
     TORCH_CHECK(t->scalar_type() == torch::kFloat32 && t->is_contiguous(),
                 "float32 contiguous image tensors expected");
@@ -93,7 +108,9 @@ std::vector<torch::Tensor> rasterize_backward(
                   out_depth.numel() == width * height && out_T.numel() == width * height &&
                   g_depth.numel() == width * height && g_alpha.numel() == width * height,
               "image tensors do not match the image size");
-  const int64_t n = means2d.size(0);
+  const int64_t nc = ids.numel();
+  TORCH_CHECK(ids.scalar_type() == torch::kInt32 && ids.is_contiguous() && nc <= n,
+              "ids must be int32 contiguous, at most N");
   const int ts = int(tile_size);
   const int64_t tiles_x = (width + ts - 1) / ts, tiles_y = (height + ts - 1) / ts;
   const int64_t n_tiles = tiles_x * tiles_y;
@@ -102,21 +119,20 @@ std::vector<torch::Tensor> rasterize_backward(
                   tile_off.scalar_type() == torch::kInt64 && tile_off.is_contiguous() &&
                   tile_off.data_ptr<int64_t>()[n_tiles] == keys.numel(),
               "binning does not match");
-  const int32_t* rg = ranges.data_ptr<int32_t>();
+  TORCH_CHECK(packed.scalar_type() == torch::kUInt8 && packed.is_contiguous() &&
+                  packed.numel() == nc * int64_t(sizeof(Packed)),
+              "packed Gaussians do not match ids");
   const int64_t m = keys.numel();
-  const std::vector<Packed> gs =
-      pack(n, means2d.data_ptr<float>(), conics.data_ptr<float>(), colors.data_ptr<float>(),
-           opac.data_ptr<float>(), depths.data_ptr<float>(), rg);
   auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
   torch::Tensor pair_grad = torch::empty({m, kNumGrad}, f32);
   DISPATCH_TILE(ts, backward_tiles<TS>(
       width, height, tiles_x, n_tiles, tile_off.data_ptr<int64_t>(), keys.data_ptr<int64_t>(),
-      gs.data(), out_rgb.data_ptr<float>(), out_depth.data_ptr<float>(),
+      packed_ptr(packed), out_rgb.data_ptr<float>(), out_depth.data_ptr<float>(),
       out_T.data_ptr<float>(), g_rgb.data_ptr<float>(), g_depth.data_ptr<float>(),
       g_alpha.data_ptr<float>(), pair_grad.data_ptr<float>()));
   torch::Tensor grads = torch::empty({n, kNumGrad}, f32);
-  reduce_pairs(n, m, keys.data_ptr<int64_t>(), pair_grad.data_ptr<float>(),
-               grads.data_ptr<float>());
+  reduce_pairs(n, ids.data_ptr<int32_t>(), nc, m, keys.data_ptr<int64_t>(),
+               pair_grad.data_ptr<float>(), grads.data_ptr<float>());
   return {grads.narrow(1, 0, 2), grads.narrow(1, 2, 3), grads.narrow(1, 6, 3),
           grads.select(1, 5), grads.select(1, 9)};
 }

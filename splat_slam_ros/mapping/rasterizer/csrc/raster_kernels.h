@@ -18,9 +18,10 @@
 //    reductions); backward: rows x TS lanes, float sums kept per lane and reduced once
 //    per Gaussian (float reductions do not vectorise without -ffast-math, which we avoid);
 //  * exp() is exp_neg() (plain arithmetic) on the exponent clamped to >= -12;
-//  * Gaussians are packed one per cache line; backward gradients are written per
-//    (tile, Gaussian) pair in list order and reduced per Gaussian afterwards
-//    (deterministic, no atomics).
+//  * only the Gaussians with a footprint (a view sees a small part of a large map) are
+//    binned and packed, one per cache line, once per view (the backward reuses the
+//    forward's packing); backward gradients are written per (tile, Gaussian) pair in list
+//    order and reduced per Gaussian afterwards (deterministic, no atomics).
 // The backward recomputes the forward front to back with the same expressions (exact
 // transmittance, no division chain, same decisions); the "everything behind" sums come
 // from the forward outputs minus a running prefix, folded into one scalar per pixel (R).
@@ -73,16 +74,23 @@ inline GaussianTiles tiles_of(const int32_t* r, int ts) {
 
 inline bool has_footprint(const int32_t* r) { return r[0] <= r[1] && r[2] <= r[3]; }
 
-inline std::vector<int64_t> pair_offsets(const int32_t* ranges, int64_t n, int ts) {
-  std::vector<int64_t> off(n + 1, 0);
-  for (int64_t g = 0; g < n; ++g) {
-    const int32_t* r = ranges + 4 * g;
-    int64_t c = 0;
-    if (has_footprint(r)) {
-      const GaussianTiles t = tiles_of(r, ts);
-      c = int64_t(t.tx1 - t.tx0 + 1) * (t.ty1 - t.ty0 + 1);
-    }
-    off[g + 1] = off[g] + c;
+// The Gaussians with a footprint, in index order. A view sees a small part of a large map:
+// binning, packing and the gradient reduction touch only these ("slots"); keys hold the
+// slot, which orders ties exactly as the Gaussian index would.
+inline std::vector<int32_t> with_footprint(const int32_t* ranges, int64_t n) {
+  std::vector<int32_t> ids;
+  for (int64_t g = 0; g < n; ++g)
+    if (has_footprint(ranges + 4 * g)) ids.push_back(int32_t(g));
+  return ids;
+}
+
+// Slot-major pair offsets (nc + 1): a slot's (tile, Gaussian) pairs.
+inline std::vector<int64_t> pair_offsets(const int32_t* ranges, const int32_t* ids, int64_t nc,
+                                         int ts) {
+  std::vector<int64_t> off(nc + 1, 0);
+  for (int64_t s = 0; s < nc; ++s) {
+    const GaussianTiles t = tiles_of(ranges + 4 * int64_t(ids[s]), ts);
+    off[s + 1] = off[s] + int64_t(t.tx1 - t.tx0 + 1) * (t.ty1 - t.ty0 + 1);
   }
   return off;
 }
@@ -109,24 +117,23 @@ inline int max_threads() {
 #endif
 }
 
-// Per-tile lists of keys (float32 depth bits << 32 | gaussian index), each sorted: the
-// Gaussians of a tile front to back, ties by index. Parallel counting sort by tile
-// (stable), then a sort inside each tile. pair_off: Gaussian-major pair offsets (N + 1).
-inline void bin_gaussians(const int32_t* ranges, const float* depths, int64_t n, int ts,
-                          int64_t tiles_x, int64_t tiles_y, const int64_t* pair_off,
-                          int64_t* tile_off, int64_t* keys) {
-  const int64_t n_tiles = tiles_x * tiles_y, m = pair_off[n];
+// Per-tile lists of keys (float32 depth bits << 32 | slot), each sorted: the Gaussians of
+// a tile front to back, ties by index. Parallel counting sort by tile (stable), then a
+// sort inside each tile. pair_off: slot-major pair offsets (nc + 1).
+inline void bin_gaussians(const int32_t* ranges, const float* depths, const int32_t* ids,
+                          int64_t nc, int ts, int64_t tiles_x, int64_t tiles_y,
+                          const int64_t* pair_off, int64_t* tile_off, int64_t* keys) {
+  const int64_t n_tiles = tiles_x * tiles_y, m = pair_off[nc];
   std::vector<int32_t> pair_tile(m);
   std::vector<int64_t> pair_key(m);
 #pragma omp parallel for schedule(static)
-  for (int64_t g = 0; g < n; ++g) {
-    const int32_t* r = ranges + 4 * g;
-    if (!has_footprint(r)) continue;
+  for (int64_t s = 0; s < nc; ++s) {
+    const int64_t g = ids[s];
     uint32_t dbits;
     std::memcpy(&dbits, depths + g, sizeof(float));  // depth > near > 0: bits are monotonic
-    const int64_t key = (int64_t(dbits) << 32) | int64_t(g);
-    const GaussianTiles t = tiles_of(r, ts);
-    int64_t p = pair_off[g];
+    const int64_t key = (int64_t(dbits) << 32) | s;
+    const GaussianTiles t = tiles_of(ranges + 4 * g, ts);
+    int64_t p = pair_off[s];
     for (int32_t ty = t.ty0; ty <= t.ty1; ++ty)
       for (int32_t tx = t.tx0; tx <= t.tx1; ++tx, ++p) {
         pair_tile[p] = int32_t(ty * tiles_x + tx);
@@ -168,13 +175,14 @@ struct alignas(64) Packed {
   int32_t pad[2];
 };
 
-inline std::vector<Packed> pack(int64_t n, const float* means2d, const float* conics,
-                                const float* colors, const float* opac, const float* depths,
-                                const int32_t* ranges) {
-  std::vector<Packed> out(n);
+// One Packed per slot (``out``: nc of them); the backward reuses the forward's.
+inline void pack(const int32_t* ids, int64_t nc, const float* means2d, const float* conics,
+                 const float* colors, const float* opac, const float* depths,
+                 const int32_t* ranges, Packed* out) {
 #pragma omp parallel for schedule(static)
-  for (int64_t g = 0; g < n; ++g) {
-    Packed& p = out[g];
+  for (int64_t s = 0; s < nc; ++s) {
+    const int64_t g = ids[s];
+    Packed& p = out[s];
     p.mx = means2d[2 * g];
     p.my = means2d[2 * g + 1];
     p.ca = conics[3 * g];
@@ -191,17 +199,16 @@ inline std::vector<Packed> pack(int64_t n, const float* means2d, const float* co
     p.y1 = ranges[4 * g + 3];
     p.pad[0] = p.pad[1] = 0;
   }
-  return out;
 }
 
-inline int64_t key_gaussian(int64_t key) { return key & 0xffffffffLL; }
+inline int64_t key_slot(int64_t key) { return key & 0xffffffffLL; }
 
 // ------------------------------------------------------------------ forward
 template <int TS>
 void forward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_tiles,
                    const int64_t* tile_off, const int64_t* keys, const Packed* gs,
-                   const float* bg, float* out_rgb, float* out_depth, float* out_alpha,
-                   float* out_T, uint8_t* visible) {
+                   const int32_t* ids, const float* bg, float* out_rgb, float* out_depth,
+                   float* out_alpha, float* out_T, uint8_t* visible) {
   constexpr int P = TS * TS;
 #pragma omp parallel for schedule(dynamic, 1)
   for (int64_t tile = 0; tile < n_tiles; ++tile) {
@@ -220,9 +227,9 @@ void forward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_til
     int n_active = tw * th;
     const int64_t k_end = tile_off[tile + 1];
     for (int64_t k = tile_off[tile]; k < k_end && n_active > 0; ++k) {
-      const int64_t g = key_gaussian(keys[k]);
-      if (k + 1 < k_end) __builtin_prefetch(gs + key_gaussian(keys[k + 1]));
-      const Packed q = gs[g];
+      const int64_t s = key_slot(keys[k]);
+      if (k + 1 < k_end) __builtin_prefetch(gs + key_slot(keys[k + 1]));
+      const Packed q = gs[s];
       const int ya = int(std::max<int64_t>(q.y0, ty0) - ty0);
       const int yb = int(std::min<int64_t>(q.y1, ty0 + TS - 1) - ty0);
       // one flat loop over the rows the footprint reaches (rows are contiguous)
@@ -251,7 +258,7 @@ void forward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_til
         n_stop += stop;
         vis |= (w > 0.f) & (Tb >= kVisibleT);
       }
-      if (vis) __atomic_store_n(visible + g, uint8_t(1), __ATOMIC_RELAXED);
+      if (vis) __atomic_store_n(visible + ids[s], uint8_t(1), __ATOMIC_RELAXED);
       n_active -= n_stop;
     }
     for (int y = 0; y < th; ++y)
@@ -314,9 +321,9 @@ void backward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_ti
     const int64_t k_end = tile_off[tile + 1];
     int64_t k = tile_off[tile];
     for (; k < k_end && n_active > 0; ++k) {
-      const int64_t g = key_gaussian(keys[k]);
-      if (k + 1 < k_end) __builtin_prefetch(gs + key_gaussian(keys[k + 1]));
-      const Packed q = gs[g];
+      const int64_t s = key_slot(keys[k]);
+      if (k + 1 < k_end) __builtin_prefetch(gs + key_slot(keys[k + 1]));
+      const Packed q = gs[s];
       const int ya = int(std::max<int64_t>(q.y0, ty0) - ty0);
       const int yb = int(std::min<int64_t>(q.y1, ty0 + TS - 1) - ty0);
       for (int j = 0; j < kNumGrad; ++j)
@@ -397,21 +404,26 @@ void backward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_ti
   }
 }
 
-// Deterministic reduction of the per-(tile, Gaussian) gradients: every thread owns a range
-// of Gaussians and scans the whole (tile-major) list, adding in list order.
-inline void reduce_pairs(int64_t n, int64_t m, const int64_t* keys, const float* pair_grad,
-                         float* grads) {
+// Deterministic reduction of the per-(tile, Gaussian) gradients into per-Gaussian ones
+// (grads: n x kNumGrad, zero for Gaussians without a footprint): every thread owns a range
+// of slots and scans the whole (tile-major) list, adding in list order.
+inline void reduce_pairs(int64_t n, const int32_t* ids, int64_t nc, int64_t m,
+                         const int64_t* keys, const float* pair_grad, float* grads) {
+  std::vector<float> acc(size_t(nc) * kNumGrad, 0.f);
 #pragma omp parallel
   {
     const int t = thread_id(), nt = thread_count();
-    const int64_t g0 = n * t / nt, g1 = n * (t + 1) / nt;
-    for (int64_t j = kNumGrad * g0; j < kNumGrad * g1; ++j) grads[j] = 0.f;
+    const int64_t s0 = nc * t / nt, s1 = nc * (t + 1) / nt;
     for (int64_t k = 0; k < m; ++k) {
-      const int64_t g = key_gaussian(keys[k]);
-      if (g < g0 || g >= g1) continue;
-      for (int j = 0; j < kNumGrad; ++j) grads[kNumGrad * g + j] += pair_grad[kNumGrad * k + j];
+      const int64_t s = key_slot(keys[k]);
+      if (s < s0 || s >= s1) continue;
+      for (int j = 0; j < kNumGrad; ++j) acc[kNumGrad * s + j] += pair_grad[kNumGrad * k + j];
     }
   }
+  std::memset(grads, 0, sizeof(float) * size_t(n) * kNumGrad);
+  for (int64_t s = 0; s < nc; ++s)
+    std::memcpy(grads + kNumGrad * int64_t(ids[s]), acc.data() + kNumGrad * s,
+                sizeof(float) * kNumGrad);
 }
 
 }  // namespace splat_raster
