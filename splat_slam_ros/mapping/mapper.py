@@ -100,9 +100,9 @@ class Mapper:
         return self.camera.vignette
 
     # ================================================================ render
-    def _raster(self, pose, intr=None, width=None, height=None, means=None):
+    def _raster(self, pose, intr=None, width=None, height=None, means=None, attrs=None):
         return render_map(self.map, pose, intr or self.intr, width or self.W, height or self.H,
-                          self.raster.name, self.device, means=means)
+                          self.raster.name, self.device, means=means, attrs=attrs)
 
     @torch.no_grad()
     def render(self, pose, width: Optional[int] = None, height: Optional[int] = None,

@@ -25,13 +25,21 @@ def viewmat(pose_c2w: np.ndarray, device) -> torch.Tensor:
     return se3_inverse(T).to(device=device, dtype=torch.float32)
 
 
-def render_map(g, pose, intr, width: int, height: int, backend: str, device, means=None):
+def activated(g):
+    """(unit quaternions, scales, opacities) of the map ``g``: computed once per step, shared
+    by its views (their gradients meet there, not in one copy per view)."""
+    return g.normalized_quats(), g.scales(), g.opacities()
+
+
+def render_map(g, pose, intr, width: int, height: int, backend: str, device, means=None,
+               attrs=None):
     """Rasterise the Gaussian map ``g`` at a camera-to-world pose (``means``: other centres,
-    e.g. a per-view copy whose gradient is that view's)."""
+    e.g. a per-view copy whose gradient is that view's; ``attrs``: :func:`activated` of
+    ``g``, computed here when not given)."""
+    quats, scales, opacities = activated(g) if attrs is None else attrs
     return rasterize(
-        g.means if means is None else means, g.normalized_quats(), g.scales(),
-        g.opacities(), g.colors, viewmat(pose, device), intr, int(width), int(height),
-        backend=backend)
+        g.means if means is None else means, quats, scales, opacities, g.colors,
+        viewmat(pose, device), intr, int(width), int(height), backend=backend)
 
 
 def view_loss(kf: MappedKeyframe, out, expose: Callable, lam: float) -> torch.Tensor:
@@ -76,13 +84,14 @@ def _step(mp, views: List[int], densify: bool) -> None:
     mp.camera.zero_grad()
     loss = 0.0
     tracked = []
+    attrs = activated(mp.map)
     for kid in views:
         kf = mp.keyframes[kid]
         mv = None
         if densify:            # per-view copy of the means: its grad is this view's
             mv = mp.map.means * 1.0
             mv.retain_grad()
-        out = mp._raster(kf.pose, means=mv)
+        out = mp._raster(kf.pose, means=mv, attrs=attrs)
         m2 = out.means2d if densify else None
         if m2 is not None and m2.requires_grad:
             m2.retain_grad()
