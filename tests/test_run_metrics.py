@@ -173,6 +173,20 @@ def test_launcher_writes_lpips_with_the_shared_evaluation(tmp_path, lpips_files,
     assert json.loads((out / "metrics.json").read_text())["lpips"] == m["lpips"]
 
 
+def test_launcher_run_with_keyframes_but_no_map_is_an_error(tmp_path):
+    """A graph run whose mapper finalised without mapping a keyframe (no map.ply) ends with a
+    reason (exit 3), never as a success; tracking-only runs and runs without keyframes are
+    judged elsewhere."""
+    from splat_slam_nodes.tools.launch_results import no_map_reason
+    m = {"keyframes": 5}
+    reason = no_map_reason(True, tmp_path, m)
+    assert reason is not None and "5 keyframes" in reason and "no map" in reason
+    assert no_map_reason(False, tmp_path, m) is None             # --tracking-only / localize
+    assert no_map_reason(True, tmp_path, {"keyframes": 0}) is None
+    (tmp_path / "map.ply").write_bytes(b"ply\n")
+    assert no_map_reason(True, tmp_path, m) is None
+
+
 # ------------------------------------------------------------- depth edges and surfaces
 # a room (side walls at x = -2.5 / 2.5 m, floor 1.2 m below the camera, ceiling 1.3 m above,
 # back wall at 5 m) with floating boxes in front at several distances:

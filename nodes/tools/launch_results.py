@@ -5,7 +5,8 @@ lines, the report and the exit status (:func:`finish`). ``L`` is the
 from __future__ import annotations
 
 import sys
-from typing import Dict
+from pathlib import Path
+from typing import Dict, Optional
 
 
 def node_stats(L) -> Dict[str, dict]:
@@ -70,6 +71,15 @@ def evaluate(L, m: dict) -> None:
         m["evaluation_error"] = f"{type(e).__name__}: {e}"
 
 
+def no_map_reason(with_mapping: bool, out_dir: Path, m: dict) -> Optional[str]:
+    """A run with a mapper that ends with keyframes but without ``map.ply`` (the mapper
+    finalised without mapping one): an error, never a success without a map."""
+    if not with_mapping or not m.get("keyframes") or (Path(out_dir) / "map.ply").is_file():
+        return None
+    return (f"the mapper wrote no map although the tracker made {m['keyframes']} keyframes "
+            "(it finalised without mapping any: see the mapper's lines above)")
+
+
 def finish(L, end_wall: float) -> int:
     """After a complete run: metrics.json, summary, report. The exit status: 0; 3 when
     there is no result (no keyframe or an empty map); 1 when the evaluation (or the LPIPS
@@ -87,6 +97,8 @@ def finish(L, end_wall: float) -> int:
                             L.has_event("loop_closure", "finalized"))  # --load-map
     if reason is None and not (L.session or {}).get("localize"):
         reason = no_result_reason(L.cfg, m)  # never a success without keyframes or map
+    if reason is None:
+        reason = no_map_reason(L.with_mapping, L.out_dir, m)
     if reason:
         m["error"] = reason
         rc = 3
