@@ -5,7 +5,6 @@ lines, the report and the exit status (:func:`finish`). ``L`` is the
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 from typing import Dict, Optional
 
 
@@ -71,10 +70,11 @@ def evaluate(L, m: dict) -> None:
         m["evaluation_error"] = f"{type(e).__name__}: {e}"
 
 
-def no_map_reason(with_mapping: bool, out_dir: Path, m: dict) -> Optional[str]:
-    """A run with a mapper that ends with keyframes but without ``map.ply`` (the mapper
-    finalised without mapping one): an error, never a success without a map."""
-    if not with_mapping or not m.get("keyframes") or (Path(out_dir) / "map.ply").is_file():
+def no_map_reason(runs_mapper: bool, m: dict) -> Optional[str]:
+    """A run whose own mapper node reported no map although the tracker made keyframes (the
+    mapper finalised without mapping one: its "saved" event has no map metrics): an error,
+    never a success without a map."""
+    if not runs_mapper or not m.get("keyframes") or "gaussians" in m:
         return None
     return (f"the mapper wrote no map although the tracker made {m['keyframes']} keyframes "
             "(it finalised without mapping any: see the mapper's lines above)")
@@ -98,7 +98,7 @@ def finish(L, end_wall: float) -> int:
     if reason is None and not (L.session or {}).get("localize"):
         reason = no_result_reason(L.cfg, m)  # never a success without keyframes or map
     if reason is None:
-        reason = no_map_reason(L.with_mapping, L.out_dir, m)
+        reason = no_map_reason("mapper" in L.local_nodes, m)
     if reason:
         m["error"] = reason
         rc = 3
