@@ -152,11 +152,17 @@ class DensifyStrategy:
     @torch.no_grad()
     def visibility_prune(self, mp) -> int:
         """New Gaussians (last ``prune_recent_kfs`` keyframes) seen by fewer than
-        ``prune_covis_min`` other window keyframes are removed (only when the window is full)."""
+        ``prune_covis_min`` other window keyframes are removed (only when the window is full).
+        A window keyframe not rendered since the newest keyframe seeded its Gaussians (few
+        steps per keyframe: fast motion, live input) is rendered first: its old visible set
+        lacks them, and they would go as unseen."""
         m = self.mcfg
         g = mp.map
         if m.prune_covis_min <= 0 or len(g) == 0:
             return 0
+        for j in mp.window.stale(mp.seedings):
+            out = mp._raster(mp.keyframes[j].pose)
+            mp.window.set_visibility(j, g.uid[out.visible], mp.seedings)
         cand = g.created >= mp.next_index - m.prune_recent_kfs
         count = torch.zeros(len(g), dtype=torch.long, device=g.device)
         for j in mp.window.window:

@@ -68,6 +68,9 @@ class KeyframeWindow:
         self.k_fc = float(k_fc)
         self.window: List[int] = []
         self.visibility: Dict[int, torch.Tensor] = {}
+        # the map's seeding generation each visible set was taken at (Mapper.seedings): a set
+        # older than the newest seeding lacks its Gaussians (visibility pruning refreshes it)
+        self.visibility_at: Dict[int, int] = {}
         self.last: Optional[int] = None            # last mapped keyframe
 
     def __len__(self) -> int:
@@ -77,11 +80,18 @@ class KeyframeWindow:
     def full(self) -> bool:
         return len(self.window) >= self.size
 
-    def set_visibility(self, kf_id: int, uids: torch.Tensor) -> None:
+    def set_visibility(self, kf_id: int, uids: torch.Tensor, at: int = -1) -> None:
+        """``uids``: the Gaussians visible from keyframe ``kf_id`` at seeding generation ``at``."""
         self.visibility[kf_id] = uids.detach().flatten().unique()
+        self.visibility_at[kf_id] = int(at)
+
+    def stale(self, generation: int) -> List[int]:
+        """Window keyframes whose visible set was taken before seeding generation ``generation``."""
+        return [j for j in self.window if self.visibility_at.get(j, -1) < generation]
 
     def forget(self, kf_id: int) -> None:
         self.visibility.pop(kf_id, None)
+        self.visibility_at.pop(kf_id, None)
 
     def drop(self, kf_id: int, successor: int) -> None:
         """A keyframe leaves the map (merged into ``successor``): out of the window; if it was
@@ -110,9 +120,10 @@ class KeyframeWindow:
 
     # -------------------------------------------------------------- window
     def add(self, kf_id: int, visible_uids: torch.Tensor,
-            poses: Dict[int, np.ndarray]) -> List[int]:
-        """Insert a newly mapped keyframe; returns the keyframes that left the window."""
-        self.set_visibility(kf_id, visible_uids)
+            poses: Dict[int, np.ndarray], at: int = -1) -> List[int]:
+        """Insert a newly mapped keyframe (``visible_uids`` taken at seeding generation
+        ``at``); returns the keyframes that left the window."""
+        self.set_visibility(kf_id, visible_uids, at)
         self.window.insert(0, kf_id)
         self.last = kf_id
         new_vis = self.visibility[kf_id]

@@ -73,6 +73,7 @@ class Mapper:
         self.gen = torch.Generator().manual_seed(int(m.seed))
         self.rng = np.random.default_rng(int(m.seed))
         self.iteration = 0
+        self.seedings = 0               # keyframes that seeded Gaussians (visible sets' stamp)
         self.settled_uid = 0            # opacity pruning spares uids below (a loaded map's)
         self.n_deformations = 0
         self.n_deformed_gaussians = 0
@@ -223,7 +224,10 @@ class Mapper:
         n_new = int(new["means"].shape[0])
         self.map.add(new["means"], new["colors"], new["log_scales"], new["quats"],
                      new["opacity_logits"], kf_id=kf_id, created=kf.index, born=self.iteration)
-        removed = self.window.add(kf_id, vis, {k: k2.pose for k, k2 in self.keyframes.items()})
+        seen_at = self.seedings            # vis was rendered before these Gaussians existed
+        self.seedings += 1
+        removed = self.window.add(kf_id, vis, {k: k2.pose for k, k2 in self.keyframes.items()},
+                                  at=seen_at)
 
         b = self.keyframe_budget(empty, kf.timestamp)
         done = optimise(self, b.steps, densify=True, progress=self.progress and b.steps >= 200,

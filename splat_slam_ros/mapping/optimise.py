@@ -103,7 +103,7 @@ def _step(mp, views: List[int], densify: bool) -> None:
     with torch.no_grad():
         for kf, mv, m2, radii, visible in tracked:
             if kf.kf_id in mp.window.window:
-                mp.window.set_visibility(kf.kf_id, mp.map.uid[visible])
+                mp.window.set_visibility(kf.kf_id, mp.map.uid[visible], mp.seedings)
             if m2 is not None and m2.grad is not None:
                 mp.strategy.accumulate(mp, kf, radii, grad2d=m2.grad)
             elif mv is not None and mv.grad is not None:
