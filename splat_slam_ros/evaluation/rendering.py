@@ -69,10 +69,15 @@ def evaluate_map(mapper, frames: Optional[Iterable] = None, gt_depth=None,
 
 
 def evaluate_keyframes(mapper, render_dir=None, gt_depth=None) -> dict:
-    """Keyframe metrics (what the pipeline reports), renders written to ``render_dir``."""
-    out = evaluate_map(mapper, None, gt_depth=gt_depth, render_dir=render_dir)
-    if render_dir is not None:                     # per-keyframe views for the report
-        write_keyframe_views(mapper, render_dir, gt_depth)
+    """Keyframe metrics (what the pipeline reports), renders written to ``render_dir``
+    (with the per-keyframe views for the report: each keyframe is rendered once)."""
+    if render_dir is None:
+        return evaluate_map(mapper, None, gt_depth=gt_depth)
+    _, per_view = _keyframe_views(mapper, Path(render_dir), gt_depth)
+    out = summarize([{k: m[k] for k in ("psnr", "ssim", "depth_l1_cm") if k in m}
+                     for m in per_view]) if per_view else {}
+    out.update({"views": len(per_view), "gaussians": len(mapper.map),
+                "map_mb": round(mapper.map.nbytes() / 2 ** 20, 4)})
     return out
 
 
@@ -115,9 +120,14 @@ def write_keyframe_views(mapper, folder, gt_depth=None,
     ``gt_depth``: kf_id -> ground-truth depth (H, W metres), optional; ``depth_scale``: 16-bit
     steps per map unit (default: :func:`depth_scale_for` the deepest pixel). Returns the per
     keyframe entries."""
-    folder = Path(folder)
+    return _keyframe_views(mapper, Path(folder), gt_depth, depth_scale)[0]
+
+
+def _keyframe_views(mapper, folder: Path, gt_depth=None, depth_scale: Optional[float] = None):
+    """:func:`write_keyframe_views`; also returns each keyframe's unrounded metrics."""
     folder.mkdir(parents=True, exist_ok=True)
     entries: List[dict] = []
+    metrics: List[Dict[str, float]] = []
     views = []
     max_depth = 0.0
     for k, kf in sorted(mapper.keyframes.items()):
@@ -132,6 +142,7 @@ def write_keyframe_views(mapper, folder, gt_depth=None,
         ref = kf.image.cpu().numpy()
         gd = gt_depth.get(k) if isinstance(gt_depth, dict) else None
         m = _view_metrics(rgb, ref, depth_t, kf.depth, kf.valid, gd)
+        metrics.append(m)
         name = f"kf_{k:05d}"
         cv2.imwrite(str(folder / f"{name}.png"), rgb[..., ::-1])
         cv2.imwrite(str(folder / f"{name}_input.png"), ref[..., ::-1])
@@ -145,4 +156,4 @@ def write_keyframe_views(mapper, folder, gt_depth=None,
     doc = {"depth_scale": scale, "keyframes": entries,
            "history": list(getattr(mapper, "history", [])), "map": mapper.stats()}
     (folder / KEYFRAMES_JSON).write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
-    return entries
+    return entries, metrics
