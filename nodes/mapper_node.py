@@ -69,6 +69,8 @@ class MapperNode(SplatNode):
             from splat_slam_ros.mapping.rasterizer import select_backend
             from splat_slam_ros.runtime import resolve_device
             warm_up()
+            if self.cfg.mapping.mesh:   # Open3D (1-1.5 s to import) now, not after the input
+                from splat_slam_ros.mapping import mesh  # noqa: F401
             # an explicit mapping.raster_backend that cannot run stops the node now (exit 2)
             select_backend(self.cfg.mapping.raster_backend,
                            resolve_device(self.cfg.mapping.device, "mapping.device"))
