@@ -41,6 +41,7 @@ class MapperRole:
         self.taken: Dict[int, int] = {}             # kf_id -> last revision taken
         self.last_update_seq = 0
         self.digest: Optional[Dict[int, int]] = None
+        self.t_digest: Optional[float] = None       # epoch s the digest was sent: input's end
         self.finalized = False
         self.dirty: set = set()                     # keyframes whose depth changed
         self.held: set = set()                      # acked, waiting for a depth (see _try_map)
@@ -156,6 +157,8 @@ class MapperRole:
     def on_final(self, node: str, info: dict) -> Outbox:
         if node == "depth":
             self.digest = {int(k): int(v) for k, v in (info.get("digest") or {}).items()}
+            if self.t_digest is None:       # sent then (graph event "t"), maybe queued here since
+                self.t_digest = float(info.get("t") or time.time())
             return self._try_map()                  # held keyframes: mapped with what is there
         return Outbox()
 
@@ -252,7 +255,9 @@ class MapperRole:
         info: dict = {"keyframes": sum(self.offered.values())}
         if self.mapper is not None:
             t0 = time.perf_counter()
-            info["refine"] = self.mapper.final_refine()
+            # mapping.final_deadline_s counts from the input's end (the digest), not from now
+            info["refine"] = self.mapper.final_refine(
+                since_input_s=0.0 if self.t_digest is None else time.time() - self.t_digest)
             self.timings["refine"] += time.perf_counter() - t0
             self.snapshot()
         return Outbox(final=info)

@@ -12,6 +12,7 @@ import yaml
 
 from splat_slam_ros.config import (ConfigError, MappingConfig, SlamConfig, dump_config,
                                    load_config)
+from splat_slam_ros.mapping.budget import final_refine_budget
 from splat_slam_ros.mapping.mapper import Mapper
 from splat_slam_ros.ros_env import ros_environment
 from splat_slam_ros.types import Intrinsics
@@ -177,6 +178,46 @@ def test_final_refinement_time_cap():
     r = mp.final_refine()
     assert time.perf_counter() - t0 < 1.0 and 0 < r["refine_iters"] < 10 ** 6
     assert r["refine_iters"] + r["refine_skipped"] == 10 ** 6
+
+
+def test_final_deadline_counts_from_the_end_of_input():
+    """mapping.final_deadline_s (live): the refinement ends that long after the input ended;
+    the time queued keyframes took since then is taken from it (one step at least)."""
+    m = MappingConfig(time_budget=True, final_refine_s=8.0, final_deadline_s=8.0)
+    assert final_refine_budget(m, 10, 0.0).wall_s == 8.0
+    assert final_refine_budget(m, 10, 5.0).wall_s == pytest.approx(3.0)
+    assert 0 < final_refine_budget(m, 10, 30.0).wall_s < 0.01
+    m.final_refine_s = 2.0                          # the tighter cap wins
+    assert final_refine_budget(m, 10, 5.0).wall_s == 2.0
+    m.time_budget = False                           # offline: steps only, whatever the delay
+    assert final_refine_budget(m, 10, 30.0) == (min(m.final_refine_iters, 200), 0.0, 0)
+    mp = _mapper(iters_first=3, final_refine_iters=10 ** 6, final_refine_s=0.0,
+                 final_deadline_s=0.5, time_budget=True)
+    img, pose, depth = _views(1)[0]
+    mp.add_keyframe(0, img, pose, depth)
+    t0 = time.perf_counter()
+    assert 1 < mp.final_refine(since_input_s=0.2)["refine_iters"] < 10 ** 6
+    assert time.perf_counter() - t0 < 0.6
+    assert mp.final_refine(since_input_s=5.0)["refine_iters"] == 1     # already past
+
+
+def test_visibility_pruning_sees_window_views_the_steps_did_not_render():
+    """With one step per keyframe that renders the newest view only (live input, fast
+    motion), the other window views' visible sets predate the newest Gaussians; pruning
+    renders those views first, so Gaussians the other views see are kept."""
+    mp = _mapper(iters_first=3, iters_per_keyframe=1, window_size=4, window_views_per_iter=1,
+                 random_views_per_iter=0, prune_covis_min=2, prune_recent_kfs=1,
+                 kf_covisibility=1.1)
+    for k, (img, pose, depth) in enumerate(_views(7)):
+        mp.add_keyframe(k, img, pose, depth, force=True)
+        if mp.window.full:                          # pruning runs: it refreshed what it needed
+            assert not mp.window.stale(mp.seedings)
+    assert mp.window.full
+    kf_ids = set(mp.map.kf_id.tolist())
+    assert {4, 5, 6} <= kf_ids, kf_ids              # the newest keyframes kept their Gaussians
+    # a view not rendered since the newest seeding is listed as stale
+    mp.window.set_visibility(mp.window.window[-1], mp.map.uid[:0], at=mp.seedings - 1)
+    assert mp.window.stale(mp.seedings) == [mp.window.window[-1]]
 
 
 def test_default_schedule_is_in_steps_and_scaled():

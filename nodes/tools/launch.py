@@ -69,7 +69,8 @@ REALTIME_KEEP_UP = 0.8      # mapping.keep_up on realtime input unless the confi
 # refinement's wall seconds, and the steps of a keyframe while input waits, so the map keeps
 # pace and is done soon after the stream (background steps refine it while the mapper has
 # time; docs/live-camera.md "What the graph does on live input")
-REALTIME_MAPPING = {"budget_s_first": 4.0, "min_iters_per_keyframe": 1, "final_refine_s": 8.0}
+REALTIME_MAPPING = {"budget_s_first": 4.0, "min_iters_per_keyframe": 1, "final_refine_s": 8.0,
+                    "final_deadline_s": 8.0}
 BACKGROUND_NODES = ("depth", "mapper", "loop_closure", "rerun")   # niced on realtime input
 FINISHED_MARK = "FINISHED"  # in OUT/state once a run finished: a new run may discard it
 

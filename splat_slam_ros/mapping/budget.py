@@ -11,7 +11,8 @@ Two kinds of budget (docs/mapping.md "Budgets"):
 - **Time** (``mapping.time_budget``: live input, where the camera sets the pace; the launcher
   turns it on for realtime input). The step caps above stay, and wall-clock caps come on top:
   ``budget_s_first`` / ``budget_s_per_keyframe`` shrunk to ``stream_pace`` x the stream time,
-  ``keep_up`` x the stream time, ``final_refine_s``. Steps a wall-clock cap cuts are counted
+  ``keep_up`` x the stream time, ``final_refine_s``, ``final_deadline_s`` (after the input
+  ended). Steps a wall-clock cap cuts are counted
   (``Mapper.skipped_iters``, per keyframe in the history) so a user sees what the load cost.
 """
 from __future__ import annotations
@@ -20,6 +21,8 @@ import math
 from typing import Dict, Iterable, NamedTuple, Optional
 
 from splat_slam_ros.config import MappingConfig
+
+MIN_DEADLINE_S = 1e-3   # a deadline already past still leaves the refinement's first step
 
 
 class Budget(NamedTuple):
@@ -46,14 +49,20 @@ def keyframe_budget(m: MappingConfig, first: bool, stream_dt: Optional[float]) -
     return Budget(steps, float(wall), int(m.min_iters_per_keyframe))
 
 
-def final_refine_budget(m: MappingConfig, n_keyframes: int) -> Budget:
+def final_refine_budget(m: MappingConfig, n_keyframes: int,
+                        since_input_s: float = 0.0) -> Budget:
     """The final refinement (supplementary "Final Refinement"): ``final_refine_iters`` (the
     paper's beta), or ``final_refine_per_keyframe`` x keyframes when that is fewer (a short
-    clip does not pay 2000 steps); ``final_refine_s`` caps it with ``time_budget``."""
+    clip does not pay 2000 steps); with ``time_budget``, ``final_refine_s`` caps it, and
+    ``final_deadline_s`` ends it that long after the input ended (``since_input_s`` ago:
+    keyframes still queued then use up the refinement's time; one step at least)."""
     steps = int(m.final_refine_iters)
     if m.final_refine_per_keyframe > 0:
         steps = min(steps, int(m.final_refine_per_keyframe) * int(n_keyframes))
     wall = float(m.final_refine_s) if m.time_budget else 0.0
+    if m.time_budget and m.final_deadline_s > 0:
+        left = max(MIN_DEADLINE_S, float(m.final_deadline_s) - max(0.0, float(since_input_s)))
+        wall = min(wall, left) if wall > 0 else left
     return Budget(steps, wall, 0)
 
 

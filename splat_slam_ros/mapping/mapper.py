@@ -252,9 +252,10 @@ class Mapper:
         dt = None if first or last is None or not timestamp > last else timestamp - last
         return keyframe_budget(self.mcfg, first, dt)
 
-    def final_refine_budget(self) -> Budget:
-        """The final refinement's steps (and wall cap with ``mapping.time_budget``)."""
-        return final_refine_budget(self.mcfg, len(self.keyframes))
+    def final_refine_budget(self, since_input_s: float = 0.0) -> Budget:
+        """The final refinement's steps (and wall cap with ``mapping.time_budget``;
+        ``since_input_s``: wall seconds since the input ended)."""
+        return final_refine_budget(self.mcfg, len(self.keyframes), since_input_s)
 
     def add_keyframe_record(self, kf: MappedKeyframe) -> None:
         """Store a mapped keyframe; its exposure joins the camera model's optimiser."""
@@ -301,13 +302,15 @@ class Mapper:
         return done
 
     # ============================================================== refinement
-    def final_refine(self, iters: Optional[int] = None, progress: bool = False) -> dict:
+    def final_refine(self, iters: Optional[int] = None, progress: bool = False,
+                     since_input_s: float = 0.0) -> dict:
         """Supplementary "Final Refinement": beta iterations on random single keyframes,
-        same loss, no pruning or densification."""
+        same loss, no pruning or densification (``since_input_s``: wall seconds since the
+        input ended, for ``mapping.final_deadline_s``)."""
         t0 = time.perf_counter()
         budget = 0.0
         if iters is None:
-            iters, budget, _ = self.final_refine_budget()
+            iters, budget, _ = self.final_refine_budget(since_input_s)
         done = 0
         if self.keyframes:
             done = optimise(self, int(iters), densify=False, single_random=True,
