@@ -202,16 +202,21 @@ def test_final_deadline_counts_from_the_end_of_input():
 
 
 def test_visibility_pruning_sees_window_views_the_steps_did_not_render():
-    """With one step per keyframe that renders the newest view only (live input, fast
-    motion), the other window views' visible sets predate the newest Gaussians; pruning
-    renders those views first, so Gaussians the other views see are kept."""
-    mp = _mapper(iters_first=3, iters_per_keyframe=1, window_size=4, window_views_per_iter=1,
-                 random_views_per_iter=0, prune_covis_min=2, prune_recent_kfs=1,
-                 kf_covisibility=1.1)
-    for k, (img, pose, depth) in enumerate(_views(7)):
-        mp.add_keyframe(k, img, pose, depth, force=True)
-        if mp.window.full:                          # pruning runs: it refreshed what it needed
-            assert not mp.window.stale(mp.seedings)
+    """With one step per keyframe that renders the newest view only (live input), the other
+    window views' visible sets predate the newest Gaussians; pruning renders those views
+    first, so Gaussians the other views see are kept."""
+    def run(live):
+        mp = _mapper(iters_first=3, iters_per_keyframe=1, window_size=4,
+                     window_views_per_iter=1, random_views_per_iter=0, prune_covis_min=2,
+                     prune_recent_kfs=1, kf_covisibility=1.1, time_budget=live,
+                     budget_s_first=0.0, budget_s_per_keyframe=0.0, stream_pace=0.0)
+        for k, (img, pose, depth) in enumerate(_views(7)):
+            mp.add_keyframe(k, img, pose, depth, force=True)
+            if mp.window.full:                  # pruning ran: refreshed live, not offline
+                assert bool(mp.window.stale(mp.seedings)) != live
+        return mp
+    run(False)                                  # offline step budgets keep their pruning
+    mp = run(True)
     assert mp.window.full
     kf_ids = set(mp.map.kf_id.tolist())
     assert {4, 5, 6} <= kf_ids, kf_ids              # the newest keyframes kept their Gaussians
