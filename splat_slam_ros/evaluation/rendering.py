@@ -62,6 +62,11 @@ def evaluate_map(mapper, frames: Optional[Iterable] = None, gt_depth=None,
         if render_dir is not None:
             Path(render_dir).mkdir(parents=True, exist_ok=True)
             cv2.imwrite(str(Path(render_dir) / f"{name}.png"), rgb[..., ::-1])
+    return _summary(mapper, per_view)
+
+
+def _summary(mapper, per_view: List[Dict[str, float]]) -> dict:
+    """Per-view metrics averaged, with the view count and the map's size."""
     out = summarize(per_view) if per_view else {}
     out.update({"views": len(per_view), "gaussians": len(mapper.map),
                 "map_mb": round(mapper.map.nbytes() / 2 ** 20, 4)})
@@ -74,11 +79,8 @@ def evaluate_keyframes(mapper, render_dir=None, gt_depth=None) -> dict:
     if render_dir is None:
         return evaluate_map(mapper, None, gt_depth=gt_depth)
     _, per_view = _keyframe_views(mapper, Path(render_dir), gt_depth)
-    out = summarize([{k: m[k] for k in ("psnr", "ssim", "depth_l1_cm") if k in m}
-                     for m in per_view]) if per_view else {}
-    out.update({"views": len(per_view), "gaussians": len(mapper.map),
-                "map_mb": round(mapper.map.nbytes() / 2 ** 20, 4)})
-    return out
+    return _summary(mapper, [{k: m[k] for k in ("psnr", "ssim", "depth_l1_cm") if k in m}
+                             for m in per_view])
 
 
 def save_renders(mapper, folder, depth_scale: float = 1000.0) -> int:

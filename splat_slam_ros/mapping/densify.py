@@ -162,9 +162,10 @@ class DensifyStrategy:
         g = mp.map
         if m.prune_covis_min <= 0 or len(g) == 0:
             return 0
-        for j in mp.window.stale(mp.seedings) if m.time_budget else ():
-            out = mp._raster(mp.keyframes[j].pose)
-            mp.window.set_visibility(j, g.uid[out.visible], mp.seedings)
+        if m.time_budget:
+            for j in mp.window.stale(mp.seedings):
+                out = mp._raster(mp.keyframes[j].pose)
+                mp.window.set_visibility(j, g.uid[out.visible], mp.seedings)
         cand = g.created >= mp.next_index - m.prune_recent_kfs
         count = torch.zeros(len(g), dtype=torch.long, device=g.device)
         for j in mp.window.window:
