@@ -3,7 +3,8 @@
 Subscribes  /splat/keyframes (images), /splat/proxy_depth (a keyframe is mapped once its
             depth is there; newer revisions deform its Gaussians, §3.2 "Map Deformation"),
             /splat/pose_graph_updates (reported in MapperStatus.last_update_seq),
-            /splat/map/render_request (PoseStamped), /splat/graph_events (depth ``finalized``).
+            /splat/map/render_request (PoseStamped), /splat/graph_events (depth ``finalized``; the
+            player's ``end_of_stream``: the refinement deadline counts from it).
 Asks        while it lacks a revision of the depth node's final digest and no input is waiting
             (two checks RESYNC_S apart without progress), graph event ``resend_depth``
             {kf_ids}: the depth node sends their current proxy depth again (a DDS history
@@ -122,7 +123,11 @@ class MapperNode(SplatNode):
         self._status()
 
     def _on_request(self, d: dict) -> None:
-        if d.get("event") == "save_map" and load_request(d, self.started):
+        if d.get("event") == "end_of_stream" and isinstance(d.get("t"), (int, float)):
+            # the player's stream end (mapping.final_deadline_s); set at once, not queued:
+            # a queued job would count as waiting input and cut a mapping step
+            self.role.input_ended(float(d["t"]))
+        elif d.get("event") == "save_map" and load_request(d, self.started):
             self.worker.submit(self._save_map, d)
         elif loaded_by_tracker(d, self.started):
             self.worker.submit(self._load_requested, d)

@@ -41,7 +41,7 @@ class MapperRole:
         self.taken: Dict[int, int] = {}             # kf_id -> last revision taken
         self.last_update_seq = 0
         self.digest: Optional[Dict[int, int]] = None
-        self.t_digest: Optional[float] = None       # epoch s the digest was sent: input's end
+        self.t_input_end: Optional[float] = None    # epoch s the input ended (input_ended)
         self.finalized = False
         self.dirty: set = set()                     # keyframes whose depth changed
         self.held: set = set()                      # acked, waiting for a depth (see _try_map)
@@ -154,11 +154,17 @@ class MapperRole:
         self.loop_seen |= int(ev.seq) >= LOOP_SEQ_START
         return Outbox()
 
+    def input_ended(self, t: float) -> None:
+        """The input ended at epoch second ``t``: the player's end_of_stream event or, at the
+        latest, the depth stage's final digest. ``mapping.final_deadline_s`` counts from the
+        earliest (the depth stage, behind on live input, sent its digest seconds later)."""
+        self.t_input_end = t if self.t_input_end is None else min(self.t_input_end, t)
+
     def on_final(self, node: str, info: dict) -> Outbox:
         if node == "depth":
             self.digest = {int(k): int(v) for k, v in (info.get("digest") or {}).items()}
-            if self.t_digest is None:       # sent then (graph event "t"), maybe queued here since
-                self.t_digest = float(info.get("t") or time.time())
+            # sent then (graph event "t"), maybe queued here since
+            self.input_ended(float(info.get("t") or time.time()))
             return self._try_map()                  # held keyframes: mapped with what is there
         return Outbox()
 
@@ -255,9 +261,9 @@ class MapperRole:
         info: dict = {"keyframes": sum(self.offered.values())}
         if self.mapper is not None:
             t0 = time.perf_counter()
-            # mapping.final_deadline_s counts from the input's end (the digest), not from now
+            # mapping.final_deadline_s counts from the input's end, not from now
             info["refine"] = self.mapper.final_refine(
-                since_input_s=0.0 if self.t_digest is None else time.time() - self.t_digest)
+                since_input_s=0.0 if self.t_input_end is None else time.time() - self.t_input_end)
             self.timings["refine"] += time.perf_counter() - t0
             self.snapshot()
         return Outbox(final=info)

@@ -151,9 +151,10 @@ def test_mapper_role_background_steps_only_on_live_input_and_within_the_allowanc
     assert role.finalized and not role.wants_background()
 
 
-def test_mapper_role_refinement_deadline_counts_from_when_the_digest_was_sent():
+def test_mapper_role_refinement_deadline_counts_from_when_the_input_ended():
     """mapping.final_deadline_s (live): the depth stage's digest may wait in the mapper's
-    queue behind keyframes; the deadline counts from when it was sent (the event's "t")."""
+    queue behind keyframes; the deadline counts from when it was sent (the event's "t"), or
+    from the player's end of stream when that came first."""
     import time
     for sent_ago, expect_one in ((60.0, True), (0.0, False)):
         role, k0, depth, f = mapper_role_inputs()
@@ -166,6 +167,23 @@ def test_mapper_role_refinement_deadline_counts_from_when_the_digest_was_sent():
         out = role.on_final("depth", {"digest": {"0": 0}, "t": time.time() - sent_ago})
         steps = out.final["refine"]["refine_iters"]
         assert (steps == 1) if expect_one else (steps > 1), (sent_ago, steps)
+    # the player's end of stream came first (the depth stage lagged): the deadline counts
+    # from it, whichever of the two arrived first
+    for first_stream_end in (True, False):
+        role, k0, depth, f = mapper_role_inputs()
+        role.cfg.mapping.time_budget = True
+        role.cfg.mapping.final_deadline_s = 1.0
+        role.cfg.mapping.final_refine_s = 0.0
+        role.cfg.mapping.final_refine_iters = role.cfg.mapping.final_refine_per_keyframe = 50
+        role.on_keyframe(k0)
+        role.on_proxy_depth(ProxyDepth(0, depth, np.ones_like(depth, np.uint8), f.gt_pose))
+        if first_stream_end:
+            role.input_ended(time.time() - 60.0)
+        out = role.on_final("depth", {"digest": {"0": 0}, "t": time.time()})
+        if not first_stream_end:
+            role.input_ended(time.time() - 60.0)        # too late: already refined
+        steps = out.final["refine"]["refine_iters"]
+        assert (steps == 1) if first_stream_end else (steps > 1), (first_stream_end, steps)
 
 
 def test_node_worker_runs_idle_work_only_while_nothing_is_queued():

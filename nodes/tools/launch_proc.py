@@ -52,9 +52,13 @@ class Child:
 
     def start(self) -> None:
         self.error = None
+        # a process group of its own (signals reach it through the launcher only), in the
+        # launcher's session: a session of its own is a scheduler autogroup of its own, and
+        # autogroups share the CPU per group whatever the nice value (a niced mapper then
+        # took as much CPU as the tracker)
         self.proc = subprocess.Popen(self.args, env=self.env, stdout=subprocess.PIPE,
                                      stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     start_new_session=True,
+                                     process_group=0,
                                      preexec_fn=_child_setup(self.nice))
         self.thread = threading.Thread(target=self._forward, args=(self.proc,), daemon=True)
         self.thread.start()
