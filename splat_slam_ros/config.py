@@ -266,8 +266,9 @@ class MappingConfig:
     final_refine_per_keyframe: int = 20  # refinement = min(beta, this x keyframes) (0 = beta)
     final_refine_s: float = 60.0         # time_budget: wall-second cap of the refinement (0 = none)
     # time_budget: the refinement ends at most this many wall seconds after the input ended
-    # (the depth stage's final digest reached the mapper), so keyframes still queued then take
-    # the refinement's time and the map is done at a bounded delay (0 = off)
+    # (the player's end of stream, or the depth stage's final digest when that came first), so
+    # keyframes still queued then take the refinement's time and the map is done at a bounded
+    # delay (0 = off)
     final_deadline_s: float = 0.0
     lr_means: float = 0.0016              # 10x 3DGS: +0.6 dB, -0.4 cm depth L1 on ICL (bench_mapping)
     lr_colors: float = 0.0025            # learning rate of the Gaussians' colours

@@ -329,7 +329,7 @@ def test_background_nodes_run_at_lower_priority_in_the_launchers_session():
     """A niced node stays in the launcher's session (its own process group: Ctrl-C and
     signals still reach it through the launcher only). In a session of its own the kernel's
     autogroups would share the CPU per session and ignore the nice value: a tracker beside
-    two nice-10 busy loops in another session tracked 51 of 300 frames of the fr2/desk
+    two nice-10 busy loops started from another terminal tracked 51 of 300 frames of the fr2/desk
     render at 30 Hz instead of 152 (docs/live-camera.md)."""
     import io
     import sys
