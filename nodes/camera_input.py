@@ -6,10 +6,11 @@ tracker started with, and drops what it cannot use with a logged reason; every f
 or dropped, is acknowledged on /splat/frame_ack (lockstep). ``node.max_queue`` bounds the
 frames in flight (waiting or being tracked; 1 = a frame is tracked only when the tracker is
 free, so a live camera stays current; 0 = never skip): a frame that arrives while that many
-are in flight is *skipped*, not dropped: its constant-velocity pose is
-published at once and the final trajectory places it between its tracked neighbours
-(``Tracker.skip``). Only when ``node.max_backlog`` jobs already wait for the worker is a frame
-dropped. Pose latency (arrival at this node -> pose published) is kept per frame.
+are in flight is *skipped*, not dropped: its constant-velocity pose is published at once and
+the final trajectory places it between its tracked neighbours (``Tracker.skip``); when the
+stream ends, its last frame, if skipped, is tracked (``track_last``), so no skipped frame lies
+after the last tracked one. Only when ``node.max_backlog`` jobs already wait for the worker
+is a frame dropped. Pose latency (arrival at this node -> pose published) is kept per frame.
 """
 from __future__ import annotations
 
@@ -37,6 +38,7 @@ class CameraInput:
         self.arrived: Dict[int, float] = {}       # frame index -> arrival (monotonic s)
         self.latency_ms: List[float] = []         # arrival -> pose published, per posed frame
         self.last_ns: Optional[int] = None        # newest frame stamp taken (replays: older)
+        self.last_skipped = None                  # (message, index) of the newest skipped frame
         # a replayed frame is recognised by its stamp on the player's reliable input (a live
         # camera's clock may jump back: its frames are never dropped for that)
         self.dedup = self.opts["input_qos"] == "reliable"
@@ -105,6 +107,7 @@ class CameraInput:
                                           f"({self.n_dropped} so far)", error=False)
                 return
             self.n_skipped += 1
+            self.last_skipped = (msg, index)
             from .convert import from_stamp
             stamp = from_stamp(msg.header.stamp)
             self.on_skip(index, stamp, now=True)      # the predicted pose, at once
@@ -158,6 +161,20 @@ class CameraInput:
                 self.queued -= 1                   # in flight until tracked
             self.arrived.pop(index, None)          # not posed (warm-up, lost, dropped)
             self._ack(index, msg.header.stamp, kf_id)
+
+    def track_last(self, unskip: Callable[[int], bool]) -> bool:
+        """End of input (worker): the stream's last frame, when it was skipped, is tracked now
+        that the tracker is free, so the skipped frames before it lie between tracked frames
+        (interpolated) instead of after the last one (extrapolated: up to 11 cm off on the
+        fr2/desk render's last 0.7 s). ``unskip(index)`` takes back its skipped record."""
+        last, self.last_skipped = self.last_skipped, None
+        if last is None or last[1] != self.n_frames - 1 or not unskip(last[1]):
+            return False
+        self.n_skipped -= 1                        # tracked now (or dropped, and counted so)
+        frame = self._frame(*last)
+        if frame is not None:
+            self.on_frame(frame)
+        return frame is not None
 
     def drop(self, index: int, why: str) -> None:
         self.n_dropped += 1

@@ -15,7 +15,8 @@ preprocessor). Node options: node.input_qos (sensor = BEST_EFFORT, matches any c
 driver; reliable for the bag player), node.max_queue (frames in flight, waiting or being
 tracked; 1: a frame is tracked only when the tracker is free, so a live camera stays current;
 the others are skipped: posed at once by constant velocity and placed between their tracked
-neighbours in the final trajectory; the launcher sets 0 = track every frame in lockstep), node.max_backlog (worker jobs waiting beyond which a frame is dropped),
+neighbours in the final trajectory, the stream's last frame tracked at its end when it was
+skipped; the launcher sets 0 = track every frame in lockstep), node.max_backlog (worker jobs waiting beyond which a frame is dropped),
 node.camera_info_timeout, node.intrinsics_file (when no camera_info is published),
 node.path_every (the trajectory Path is published at every keyframe and every N frames),
 node.loop_closure / node.mapping (which stages the graph runs; set by the launcher).
@@ -247,6 +248,9 @@ class TrackerNode(SplatNode):
         if self.eos:
             return
         self.eos = True
+        unskip = getattr(self.role.tracker, "unskip", None) if self.role is not None else None
+        if unskip is not None and self.camera.track_last(unskip):
+            self.log.info("the last frame, skipped while the tracker was busy, tracked at the end")
         out = self.role.finalize() if self.role is not None else Outbox(final={"last_seq": 0})
         c = self.camera
         self.log.info(f"finalized: {c.n_frames} frames, {self._keyframes()} keyframes, "

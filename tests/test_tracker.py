@@ -507,6 +507,53 @@ def test_skipped_frames_are_posed_between_their_tracked_neighbours():
         assert np.linalg.norm(predicted[i][:3, 3] - prev[:3, 3]) < 0.1
 
 
+
+def test_the_last_frame_skipped_is_tracked_at_the_end_of_input():
+    """Live input: frames skipped after the last tracked one would be extrapolated from the
+    keyframes (constant velocity). The camera stops for the last 8 frames, all skipped while
+    the tracker is busy; tracking the last one at the end of input (``unskip`` its record,
+    then ``track``) places them between tracked frames: at the stop, not past it."""
+    import dataclasses
+    from splat_slam_ros.tracking.tracker import Tracker
+    moving, _ = sequence(36)
+    last = moving[-1]
+    dt = last.timestamp - moving[-2].timestamp
+    stopped = [dataclasses.replace(last, index=last.index + i, timestamp=last.timestamp + i * dt)
+               for i in range(1, 9)]
+    frames = moving + stopped
+    gt = np.stack([f.gt_pose for f in frames])
+
+    def run(track_last: bool):
+        tr = Tracker(small_cfg(), INTR)
+        for f in frames:
+            if f.index > last.index:
+                tr.skip(f.index, f.timestamp)
+            else:
+                tr.track(f)
+        if track_last:
+            assert not tr.unskip(frames[-2].index)           # only the newest record
+            assert tr.unskip(frames[-1].index) and not tr.unskip(frames[-1].index)
+            tr.track(frames[-1])
+        return tr
+    extrapolated, tracked = run(False), run(True)
+    assert extrapolated.n_skipped == 8 and tracked.n_skipped == 7
+    for tr in (extrapolated, tracked):
+        ts, poses = tr.trajectory_full()
+        assert len(ts) == len(frames) and np.all(np.diff(ts) > 0)   # every frame once, in order
+    tail = np.array([f.timestamp for f in stopped])
+
+    def tail_err(tr):
+        ts, poses = tr.trajectory_full()
+        i = np.searchsorted(ts, tail)
+        return float(np.linalg.norm(poses[i][:, :3, 3] - poses[list(ts).index(last.timestamp)][:3, 3],
+                                    axis=1).max())
+    # the camera stood still: the tracked version keeps the tail at the stop
+    assert tail_err(tracked) < 0.25 * tail_err(extrapolated), (tail_err(tracked),
+                                                               tail_err(extrapolated))
+    assert ate_cm(frames, gt, *tracked.trajectory_full()) < \
+        ate_cm(frames, gt, *extrapolated.trajectory_full())
+
+
 def test_a_gap_of_skipped_frames_is_bridged_by_the_predicted_flow(shared_data, tmp_path):
     """Live input at 20 Hz on fast drone motion (EuRoC V1_02, realistic render): when the
     tracker skips three frames of every four, DIS started from the previous frame's flow

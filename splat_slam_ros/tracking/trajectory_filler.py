@@ -203,6 +203,16 @@ class TrajectoryRecorder:
         self.records.append(FrameRecord(int(index), float(timestamp), skipped=True))
         return self.predict()
 
+    def unskip(self, index: int) -> bool:
+        """Frame ``index``, the newest and skipped, is to be tracked after all (the end of
+        live input, the tracker free again): its skipped record goes, so that :meth:`track`
+        records it. False (nothing changed) unless the newest record is that skipped frame."""
+        if not self.records or not self.records[-1].skipped or self.records[-1].index != index:
+            return False
+        self.records.pop()
+        self.n_skipped -= 1
+        return True
+
     def _add_pending(self, rec: FrameRecord, frame, img, prep) -> None:
         if rec.ref_kf == self.window[-1]:
             self._pending.append((rec, prep))
