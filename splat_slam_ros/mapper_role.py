@@ -215,9 +215,12 @@ class MapperRole:
         if revisit is not None:             # consumed, not mapped (bounded map)
             st = dict(self.mapper.stats(), kf_id=int(kf.kf_id), mapped=False, reason=revisit)
         else:
+            # after the input ended, keyframes still queued get no step of their own while
+            # more wait: the final refinement (one view a step) has the time instead
             st = self.mapper.add_keyframe(kf.kf_id, kf.image, pd.pose, pd.depth,
                                           pd.depth_weight(self.cfg.mapping.ba_depth_weight),
-                                          timestamp=kf.timestamp, yield_to=self.input_waiting)
+                                          timestamp=kf.timestamp, yield_to=self.input_waiting,
+                                          min_steps=0 if self.t_input_end is not None else None)
         self.timings["mapping"] += time.perf_counter() - t0
         mapped = bool(st.get("mapped"))
         self.background_mark = self.mapper.background_iters     # a new allowance

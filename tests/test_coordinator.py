@@ -186,6 +186,32 @@ def test_mapper_role_refinement_deadline_counts_from_when_the_input_ended():
         assert (steps == 1) if first_stream_end else (steps > 1), (first_stream_end, steps)
 
 
+
+def test_mapper_role_after_the_input_ended_queued_keyframes_leave_their_steps_to_the_refinement():
+    """Live input: a keyframe mapped while more input waits gets its minimum steps; once the
+    input ended (the player's end of stream), none: the keyframes still queued are mapped
+    at once and the final refinement, before its deadline, has the time."""
+    import time
+    frames, _ = sequence(40)
+    for ended in (False, True):
+        role, k0, depth, f = mapper_role_inputs()
+        role.cfg.mapping.time_budget = True
+        role.cfg.mapping.min_iters_per_keyframe = 3
+        role.input_waiting = lambda: True               # more input queued all along
+        role.on_keyframe(k0)
+        role.on_proxy_depth(ProxyDepth(0, depth, np.ones_like(depth, np.uint8), f.gt_pose))
+        if ended:
+            role.input_ended(time.time())
+        f1 = frames[20]
+        k1 = replace(kf(1), image=f1.image, timestamp=1.0, disparity=np.ones((30, 40), np.float32),
+                     confidence=np.ones((30, 40), np.float32))
+        role.on_keyframe(k1)
+        out = role.on_proxy_depth(ProxyDepth(1, f1.gt_depth.astype(np.float32),
+                                             np.ones_like(depth, np.uint8), f1.gt_pose))
+        assert [m["kf_id"] for m in out.mapped] == [1] and out.mapped[0]["mapped"]
+        assert out.mapped[0]["steps"] == (0 if ended else 3), (ended, out.mapped[0]["steps"])
+
+
 def test_node_worker_runs_idle_work_only_while_nothing_is_queued():
     """The node worker runs queued jobs first and the idle work (the mapper's background
     steps) in pieces while the queue is empty and the work is wanted."""

@@ -71,7 +71,9 @@ REALTIME_KEEP_UP = 0.8      # mapping.keep_up on realtime input unless the confi
 # time; docs/live-camera.md "What the graph does on live input")
 REALTIME_MAPPING = {"budget_s_first": 4.0, "min_iters_per_keyframe": 1, "final_refine_s": 8.0,
                     "final_deadline_s": 8.0}
-BACKGROUND_NODES = ("depth", "mapper", "loop_closure", "rerun")   # niced on realtime input
+# niced on realtime input; not the depth node: the mapper waits for its proxy depth, and niced
+# too it finalised about 5 s after the stream, leaving the mapper's refinement no time
+BACKGROUND_NODES = ("mapper", "loop_closure", "rerun")
 FINISHED_MARK = "FINISHED"  # in OUT/state once a run finished: a new run may discard it
 
 
@@ -497,7 +499,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "(the tracker alone, the map read-only; poses in the loaded map's frame)")
     ap.add_argument("--no-loop-closure", action="store_true", help="no loop_closure node")
     ap.add_argument("--background-nice", type=int, default=10, metavar="N",
-                    help="realtime input: run the depth, mapper, loop-closure (and rerun) nodes "
+                    help="realtime input: run the mapper, loop-closure (and rerun) nodes "
                          "at OS priority +N so that the tracker gets the CPU first (default 10; "
                          "0 = off; lockstep replay never changes priorities)")
     ap.add_argument("--max-restarts", type=int, default=3,

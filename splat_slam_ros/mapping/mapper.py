@@ -168,13 +168,15 @@ class Mapper:
 
     def add_keyframe(self, kf_id: int, image, pose, depth, valid=None,
                      timestamp: Optional[float] = None, force: bool = False,
-                     yield_to: Optional[Callable[[], bool]] = None) -> dict:
+                     yield_to: Optional[Callable[[], bool]] = None,
+                     min_steps: Optional[int] = None) -> dict:
         """Offer a tracker keyframe to the map. Returns statistics of this step.
 
         image (H,W,3) uint8 RGB; pose 4x4 camera-to-world; depth (H,W) float32 metres (proxy
         depth, 0 = missing); valid (H,W) bool, or float depth-loss weights in [0, 1] (0 = no
         depth), or None. ``force`` maps it regardless of the covisibility rules; ``yield_to``
-        (live input) cuts the steps when input waits (not the first keyframe's)."""
+        (live input) cuts the steps when input waits (not the first keyframe's), after
+        ``min_steps`` (default ``mapping.min_iters_per_keyframe``)."""
         t0 = time.perf_counter()
         kf_id = int(kf_id)
         if kf_id in self.keyframes:
@@ -231,7 +233,8 @@ class Mapper:
 
         b = self.keyframe_budget(empty, kf.timestamp)
         done = optimise(self, b.steps, densify=True, progress=self.progress and b.steps >= 200,
-                        budget_s=b.wall_s, min_iters=b.min_steps,
+                        budget_s=b.wall_s,
+                        min_iters=b.min_steps if min_steps is None else int(min_steps),
                         yield_to=None if empty else yield_to)
         self.last_mapped_ts = kf.timestamp
         n_vis_pruned = self.strategy.visibility_prune(self) \
