@@ -156,7 +156,8 @@ def test_mapper_role_refinement_deadline_counts_from_when_the_input_ended():
     queue behind keyframes; the deadline counts from when it was sent (the event's "t"), or
     from the player's end of stream when that came first."""
     import time
-    for sent_ago, expect_one in ((60.0, True), (0.0, False)):
+
+    def refine_steps(digest_ago: float, stream_end_ago=None, stream_end_after=False) -> int:
         role, k0, depth, f = mapper_role_inputs()
         role.cfg.mapping.time_budget = True
         role.cfg.mapping.final_deadline_s = 1.0
@@ -164,27 +165,18 @@ def test_mapper_role_refinement_deadline_counts_from_when_the_input_ended():
         role.cfg.mapping.final_refine_iters = role.cfg.mapping.final_refine_per_keyframe = 50
         role.on_keyframe(k0)
         role.on_proxy_depth(ProxyDepth(0, depth, np.ones_like(depth, np.uint8), f.gt_pose))
-        out = role.on_final("depth", {"digest": {"0": 0}, "t": time.time() - sent_ago})
-        steps = out.final["refine"]["refine_iters"]
-        assert (steps == 1) if expect_one else (steps > 1), (sent_ago, steps)
+        if stream_end_ago is not None and not stream_end_after:
+            role.input_ended(time.time() - stream_end_ago)
+        out = role.on_final("depth", {"digest": {"0": 0}, "t": time.time() - digest_ago})
+        if stream_end_ago is not None and stream_end_after:
+            role.input_ended(time.time() - stream_end_ago)      # too late: already refined
+        return out.final["refine"]["refine_iters"]
+    assert refine_steps(60.0) == 1                     # the digest was sent a minute ago
+    assert refine_steps(0.0) > 1
     # the player's end of stream came first (the depth stage lagged): the deadline counts
     # from it, whichever of the two arrived first
-    for first_stream_end in (True, False):
-        role, k0, depth, f = mapper_role_inputs()
-        role.cfg.mapping.time_budget = True
-        role.cfg.mapping.final_deadline_s = 1.0
-        role.cfg.mapping.final_refine_s = 0.0
-        role.cfg.mapping.final_refine_iters = role.cfg.mapping.final_refine_per_keyframe = 50
-        role.on_keyframe(k0)
-        role.on_proxy_depth(ProxyDepth(0, depth, np.ones_like(depth, np.uint8), f.gt_pose))
-        if first_stream_end:
-            role.input_ended(time.time() - 60.0)
-        out = role.on_final("depth", {"digest": {"0": 0}, "t": time.time()})
-        if not first_stream_end:
-            role.input_ended(time.time() - 60.0)        # too late: already refined
-        steps = out.final["refine"]["refine_iters"]
-        assert (steps == 1) if first_stream_end else (steps > 1), (first_stream_end, steps)
-
+    assert refine_steps(0.0, stream_end_ago=60.0) == 1
+    assert refine_steps(0.0, stream_end_ago=60.0, stream_end_after=True) > 1
 
 
 def test_mapper_role_after_the_input_ended_queued_keyframes_leave_their_steps_to_the_refinement():

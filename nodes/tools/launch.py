@@ -266,7 +266,8 @@ class Launcher:
         a = self.args
         acks = [n for n in ("loop_closure", "mapper") if n in self.nodes]
         args = [sys.executable, "-m", NODE_MODULES["player"], str(Path(a.bag).resolve()),
-                "--mode", a.mode, "--rate", str(a.rate), "--wait-nodes", ",".join(self.nodes),
+                "--mode", a.mode, "--rate", str(a.rate),
+                "--wait-nodes", ",".join(self.input_waits_for()),
                 "--wait-acks", ",".join(acks), "--start-timeout", str(a.start_timeout)]
         if a.max_frames:
             args += ["--max-frames", str(a.max_frames)]
@@ -280,6 +281,12 @@ class Launcher:
             args += ["--out-camera-info", str(self.overrides["ros.camera_info_topic"])]
         return args
 
+    def input_waits_for(self) -> List[str]:
+        """The nodes whose ``ready`` the player or camera waits for before the first frame:
+        the graph's and the rerun logger when one records (niced on realtime input, it
+        starts last and would miss the first frames)."""
+        return self.nodes + (["rerun"] if self.args.rerun or self.args.rerun_connect else [])
+
     def start_all(self) -> None:
         from .camera_node import launch_args
         names = list(self.local_nodes) + (["rerun"] if self.args.rerun or self.args.rerun_connect
@@ -289,7 +296,8 @@ class Launcher:
         for n in names:
             args = self._player_args() if n == "player" else self._node_args(n)
             if n == "camera":
-                args = launch_args(self.args, self.cfg, self.nodes, self.out_dir is not None)
+                args = launch_args(self.args, self.cfg, self.input_waits_for(),
+                                   self.out_dir is not None)
             c = Child(n, args, self.env, self.out, w, nice=self.nice_of(n))
             self.children[n] = c
         for n in names:
