@@ -29,11 +29,6 @@ from splat_slam_ros.ros_env import RosEnvError, apply_ros_environment
 
 from .tool_runner import is_shutdown_race
 
-# when this node process started (before rclpy, torch and the stage are imported): a graph
-# request from after it is this process's, even one that TRANSIENT_LOCAL delivers late to a
-# node that was slow to start (niced on realtime input, a loaded machine)
-PROCESS_STARTED = time.time()
-
 # --------------------------------------------------------------------------- names
 NS = "/splat"
 TOPICS = {
@@ -137,7 +132,7 @@ class SplatNode:
         from splat_slam_ros.config import ConfigError, load_config
 
         self.name = name
-        self.started = PROCESS_STARTED      # graph requests older than this are not ours
+        self.started = time.time()          # graph requests older than this are not ours
         self.node: Node = rclpy.create_node(name)
         self.log = self.node.get_logger()
         self.throttle = Throttle()
