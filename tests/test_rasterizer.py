@@ -214,9 +214,10 @@ def test_backward_is_deterministic(ext):
 
 
 # ---------------------------------------------------------------- projection
-def _project_both(scene, dtype, seed=5):
-    """C++ and torch projections of ``scene`` in ``dtype``, and the gradients w.r.t. means,
-    quats and scales of a random linear function of (means2d, conics, depths)."""
+def _project_both(scene, dtype, low_pass=0.3, seed=5):
+    """C++ and torch projections of ``scene`` in ``dtype`` (``low_pass`` px^2 on the 2D
+    covariances), and the gradients w.r.t. means, quats and scales of a random linear
+    function of (means2d, conics, depths)."""
     means, quats, scales, _o, _c, viewmat, (fx, fy, cx, cy) = scene
     quats = quats.clone()
     quats[6] *= 1e-10                       # norm below the normalisation's epsilon
@@ -230,9 +231,9 @@ def _project_both(scene, dtype, seed=5):
         vm = viewmat.to(dtype)
         if proj == "cpp":
             m2d, con, dep, rng, rad, val = rkernel.ProjectCpp.apply(
-                *p, vm.contiguous(), fx, fy, cx, cy, W, H, 0.01)
+                *p, vm.contiguous(), fx, fy, cx, cy, W, H, 0.01, low_pass)
         else:
-            o = project_gaussians(*p, vm, fx, fy, cx, cy, W, H, 0.01)
+            o = project_gaussians(*p, vm, fx, fy, cx, cy, W, H, 0.01, low_pass)
             m2d, con, dep, rng, rad, val = (o.means2d, o.conics, o.depths, o.ranges, o.radii,
                                             o.valid)
         ((m2d * up[0]).sum() + (con * up[1]).sum() + (dep * up[2]).sum()).backward()
@@ -240,12 +241,14 @@ def _project_both(scene, dtype, seed=5):
     return res
 
 
-@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_cpp_projection_matches_torch(ext, dtype):
+@pytest.mark.parametrize("dtype,low_pass", [(torch.float64, 0.3), (torch.float32, 0.3),
+                                            (torch.float64, 0.075)])
+def test_cpp_projection_matches_torch(ext, dtype, low_pass):
     """The C++ projection (forward and hand-written backward) against projection.py: culled
-    (behind, too close, off-screen), FOV-clamped, huge, tiny, near-zero quaternions."""
+    (behind, too close, off-screen), FOV-clamped, huge, tiny, near-zero quaternions; the
+    default low-pass filter and a lattice render's."""
     scene = make_scene(seed=4)
-    (fa, ga), (fb, gb) = _project_both(scene, dtype)
+    (fa, ga), (fb, gb) = _project_both(scene, dtype, low_pass)
     tol = 1e-10 if dtype == torch.float64 else 2e-5
     for name, x, y in zip(("means2d", "conics", "depths"), fa[:3], fb[:3]):
         assert x.dtype == dtype and rel(x, y) < tol, (name, rel(x, y))
@@ -266,7 +269,8 @@ def test_cpp_projection_matches_torch(ext, dtype):
 def test_projection_binding_refuses_mismatched_gradients(ext):
     means, quats, scales, _o, _c, viewmat, (fx, fy, cx, cy) = make_scene(n=30, edge_cases=False)
     n = means.shape[0]
-    args = (means, quats.contiguous(), scales, viewmat.contiguous(), fx, fy, cx, cy, W, H, 0.01)
+    args = (means, quats.contiguous(), scales, viewmat.contiguous(), fx, fy, cx, cy, W, H, 0.01,
+            0.3)
     zeros = lambda *s: torch.zeros(*s, dtype=torch.float64)  # noqa: E731
     d = ext.project_backward(*args, zeros(n, 2), zeros(n, 3), zeros(n))
     assert [tuple(t.shape) for t in d] == [(n, 3), (n, 4), (n, 3)]

@@ -22,7 +22,7 @@ import torch
 from splat_slam_ros.config import ConfigError
 from splat_slam_ros.mapping.rasterizer.kernel import (ProjectCpp, RasterizerBuildError, RasterizerError,
                                                      RasterizeCpp, load_extension)
-from splat_slam_ros.mapping.rasterizer.projection import Projected, project_gaussians
+from splat_slam_ros.mapping.rasterizer.projection import LOW_PASS, Projected, project_gaussians
 from splat_slam_ros.mapping.rasterizer.reference import rasterize_reference
 
 __all__ = ["rasterize", "RasterOutput", "RasterizerError", "RasterizerBuildError",
@@ -193,13 +193,15 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
               intrinsics: Union[Sequence[float], torch.Tensor], width: int, height: int,
               backend: str = "auto", near: float = 0.01,
               background: Optional[Union[Sequence[float], torch.Tensor]] = None,
-              tile_size: int = 16) -> RasterOutput:
+              tile_size: int = 16, low_pass: float = LOW_PASS) -> RasterOutput:
     """Render N Gaussians (world frame) from world-to-camera ``viewmat``.
 
     ``quats`` are (x, y, z, w) (normalised here), ``scales`` positive std-devs (not log),
     ``opacities`` in [0, 1], ``intrinsics`` = (fx, fy, cx, cy). Differentiable w.r.t. means,
     quats, scales, opacities, colors (and background; viewmat only on the torch/cpp
-    projection, not guaranteed).
+    projection, not guaranteed). ``low_pass``: px^2 added to every projected covariance's
+    diagonal (anti-aliasing; 0.3 as in 3DGS; a render on a 1/n pixel lattice passes 0.3 / n^2
+    for the filter of the full-resolution image).
     """
     _check(means, quats, scales, opacities, colors, viewmat, width, height, near, tile_size)
     width, height = int(width), int(height)
@@ -213,11 +215,12 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
         raise RasterizerInputError(f"rasterize: backend 'gsplat' needs CUDA tensors, got {dev}")
     if which == "gsplat":
         return _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat,
-                                 (fx, fy, cx, cy), width, height, near, bg, tile_size)
+                                 (fx, fy, cx, cy), width, height, near, bg, tile_size, low_pass)
 
     if which == "cpp" and dev.type != "cpu":
         raise RasterizerInputError(f"rasterize: backend 'cpp' needs CPU tensors, got {dev}")
-    proj = _project(which, means, quats, scales, viewmat, fx, fy, cx, cy, width, height, near)
+    proj = _project(which, means, quats, scales, viewmat, fx, fy, cx, cy, width, height, near,
+                    low_pass)
     if which == "cpp":
         f32 = lambda t: t.float().contiguous()  # noqa: E731
         rgb, depth, alpha, visible = RasterizeCpp.apply(
@@ -233,22 +236,23 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
 
 
 def _project(which, means, quats, scales, viewmat, fx, fy, cx, cy, width, height,
-             near) -> Projected:
+             near, low_pass=LOW_PASS) -> Projected:
     """The C++ projection for the C++ kernel when ``viewmat`` needs no gradient, else the
     torch one (``projection.project_gaussians``, the same rules)."""
     if which != "cpp" or viewmat.requires_grad:
         return project_gaussians(means, quats, scales, viewmat, fx, fy, cx, cy, width, height,
-                                 near)
+                                 near, low_pass)
     dt = means.dtype
     m2d, conics, depths, ranges, radii, valid = ProjectCpp.apply(
         means.contiguous(), quats.to(dt).contiguous(), scales.to(dt).contiguous(),
-        viewmat.to(dt).contiguous(), fx, fy, cx, cy, width, height, float(near))
+        viewmat.to(dt).contiguous(), fx, fy, cx, cy, width, height, float(near),
+        float(low_pass))
     return Projected(means2d=m2d, conics=conics, depths=depths, ranges=ranges, radii=radii,
                      valid=valid)
 
 
 def _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat, intr, width, height,
-                      near, bg, tile_size) -> RasterOutput:
+                      near, bg, tile_size, low_pass=LOW_PASS) -> RasterOutput:
     """CUDA path through gsplat.rasterization (render mode RGB+D = alpha-blended depth).
 
     Conventions adapted: quaternions (x,y,z,w) -> (w,x,y,z); gsplat samples pixel (u, v) at
@@ -264,7 +268,7 @@ def _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat, intr, wi
     wxyz = torch.cat([quats[:, 3:4], quats[:, :3]], -1)
     img, alphas, info = rasterization(
         means, wxyz, scales, opacities, colors, viewmat.to(means)[None], K[None], width, height,
-        near_plane=near, render_mode="RGB+D", tile_size=tile_size, packed=False)
+        near_plane=near, render_mode="RGB+D", tile_size=tile_size, packed=False, eps2d=low_pass)
     alpha = alphas[0, ..., 0]
     rgb = img[0, ..., :3] + (1 - alpha)[..., None] * bg
     radii = info["radii"][0]

@@ -226,11 +226,12 @@ class ProjectCpp(torch.autograd.Function):
     w.r.t. means, quats and scales (CPU, float32 or float64; viewmat without gradient)."""
 
     @staticmethod
-    def forward(ctx, means, quats, scales, viewmat, fx, fy, cx, cy, width, height, near):
+    def forward(ctx, means, quats, scales, viewmat, fx, fy, cx, cy, width, height, near,
+                low_pass):
         means2d, conics, depths, ranges, radii, valid = load_extension().project_forward(
-            means, quats, scales, viewmat, fx, fy, cx, cy, width, height, near)
+            means, quats, scales, viewmat, fx, fy, cx, cy, width, height, near, low_pass)
         ctx.save_for_backward(means, quats, scales, viewmat)
-        ctx.cam = (fx, fy, cx, cy, width, height, near)
+        ctx.cam = (fx, fy, cx, cy, width, height, near, low_pass)
         valid = valid.bool()
         ctx.mark_non_differentiable(ranges, radii, valid)
         return means2d, conics, depths, ranges, radii, valid
@@ -245,4 +246,4 @@ class ProjectCpp(torch.autograd.Function):
         d_means, d_quats, d_scales = load_extension().project_backward(
             means, quats, scales, viewmat, *ctx.cam, grad(g_m2d, n, 2), grad(g_con, n, 3),
             grad(g_dep, n, 0))
-        return d_means, d_quats, d_scales, None, None, None, None, None, None, None, None
+        return d_means, d_quats, d_scales, None, None, None, None, None, None, None, None, None

@@ -38,8 +38,10 @@ class Projected:
 
 def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
                       viewmat: torch.Tensor, fx: float, fy: float, cx: float, cy: float,
-                      width: int, height: int, near: float) -> Projected:
-    """Project N Gaussians with world-to-camera ``viewmat``; quats are (x, y, z, w)."""
+                      width: int, height: int, near: float,
+                      low_pass: float = LOW_PASS) -> Projected:
+    """Project N Gaussians with world-to-camera ``viewmat``; quats are (x, y, z, w);
+    ``low_pass`` px^2 added to the 2D covariance diagonal."""
     dtype = means.dtype
     R = viewmat[:3, :3].to(dtype)
     t = viewmat[:3, 3].to(dtype)
@@ -48,7 +50,7 @@ def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     in_front = z > near
     zs = torch.where(in_front, z, torch.ones_like(z))            # safe z for culled Gaussians
 
-    # Sigma' = J W Sigma W^T J^T + 0.3 I with Sigma = (R_q S)(R_q S)^T  (paper §3.2, EWA).
+    # Sigma' = J W Sigma W^T J^T + low_pass I with Sigma = (R_q S)(R_q S)^T  (paper §3.2, EWA).
     # Written with few, large ops: autograd overhead per op dominates on CPU.
     Rq = quat_to_matrix(quats)                                   # (N, 3, 3)
     n = Rq.shape[0]
@@ -61,9 +63,9 @@ def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     # J = [[fx/z, 0, -fx tx/z], [0, fy/z, -fy ty/z]] (tx, ty: clamped x/z, y/z)
     A0 = (fx * inv_z)[:, None] * (M[0] - tx[:, None] * M[2])     # rows of J W R_q S
     A1 = (fy * inv_z)[:, None] * (M[1] - ty[:, None] * M[2])
-    a = (A0 * A0).sum(-1) + LOW_PASS
+    a = (A0 * A0).sum(-1) + low_pass
     b = (A0 * A1).sum(-1)
-    c = (A1 * A1).sum(-1) + LOW_PASS
+    c = (A1 * A1).sum(-1) + low_pass
     det = a * c - b * b
     conics = torch.stack([c, -b, a], -1) / det[:, None]
     means2d = torch.stack([fx * x * inv_z + cx, fy * y * inv_z + cy], -1)

@@ -10,7 +10,6 @@
 
 namespace splat_raster {
 
-constexpr double kLowPass = 0.3;      // projection.LOW_PASS
 constexpr double kSigmaExtent = 3.0;  // projection.SIGMA_EXTENT
 constexpr double kFovClamp = 0.3;     // projection.FOV_CLAMP
 constexpr double kQuatEps = 1e-8;     // geometry._EPS (quaternion normalisation)
@@ -19,19 +18,22 @@ template <typename T>
 struct Camera {
   T R[9], t[3];               // world-to-camera rotation (row-major) and translation
   T fx, fy, cx, cy, near;
+  T low_pass;                 // added to the 2D covariance diagonal, px^2 (projection.LOW_PASS)
   T lox, hix, loy, hiy;       // clamp range of x/z, y/z (frustum widened by kFovClamp)
   int64_t width, height;
 };
 
 template <typename T>
 Camera<T> make_camera(const T* viewmat, double fx, double fy, double cx, double cy,
-                      int64_t width, int64_t height, double near) {
+                      int64_t width, int64_t height, double near, double low_pass) {
   Camera<T> c;
   for (int i = 0; i < 3; ++i) {
     for (int j = 0; j < 3; ++j) c.R[3 * i + j] = viewmat[4 * i + j];
     c.t[i] = viewmat[4 * i + 3];
   }
   c.fx = T(fx), c.fy = T(fy), c.cx = T(cx), c.cy = T(cy), c.near = T(near);
+  c.low_pass = T(low_pass);
+  c.low_pass = T(low_pass);
   const double tan_x = 0.5 * double(width) / fx, tan_y = 0.5 * double(height) / fy;
   c.lox = T(-(cx / fx + kFovClamp * tan_x));
   c.hix = T((double(width) - cx) / fx + kFovClamp * tan_x);
@@ -86,9 +88,9 @@ inline void project_one(const Camera<T>& cam, const T* m, const T* q, const T* s
     o.A0[k] = kx * (o.M[k] - o.tx * o.M[6 + k]);
     o.A1[k] = ky * (o.M[3 + k] - o.ty * o.M[6 + k]);
   }
-  o.a = o.A0[0] * o.A0[0] + o.A0[1] * o.A0[1] + o.A0[2] * o.A0[2] + T(kLowPass);
+  o.a = o.A0[0] * o.A0[0] + o.A0[1] * o.A0[1] + o.A0[2] * o.A0[2] + cam.low_pass;
   o.b = o.A0[0] * o.A1[0] + o.A0[1] * o.A1[1] + o.A0[2] * o.A1[2];
-  o.c = o.A1[0] * o.A1[0] + o.A1[1] * o.A1[1] + o.A1[2] * o.A1[2] + T(kLowPass);
+  o.c = o.A1[0] * o.A1[0] + o.A1[1] * o.A1[1] + o.A1[2] * o.A1[2] + cam.low_pass;
   o.det = o.a * o.c - o.b * o.b;
 }
 

@@ -158,7 +158,7 @@ void check_projection(const torch::Tensor& means, const torch::Tensor& quats,
 std::vector<torch::Tensor> project_fwd(torch::Tensor means, torch::Tensor quats,
                                        torch::Tensor scales, torch::Tensor viewmat, double fx,
                                        double fy, double cx, double cy, int64_t width,
-                                       int64_t height, double near) {
+                                       int64_t height, double near, double low_pass) {
   check_projection(means, quats, scales, viewmat);
   const int64_t n = means.size(0);
   auto opt = means.options();
@@ -169,7 +169,8 @@ std::vector<torch::Tensor> project_fwd(torch::Tensor means, torch::Tensor quats,
   torch::Tensor valid = torch::empty({n}, torch::TensorOptions().dtype(torch::kUInt8));
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_fwd", [&] {
     const Camera<scalar_t> cam = make_camera<scalar_t>(viewmat.data_ptr<scalar_t>(), fx, fy,
-                                                       cx, cy, width, height, near);
+                                                       cx, cy, width, height, near,
+                                                       low_pass);
     project_forward<scalar_t>(n, cam, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
                               scales.data_ptr<scalar_t>(), means2d.data_ptr<scalar_t>(),
                               conics.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
@@ -183,7 +184,8 @@ std::vector<torch::Tensor> project_fwd(torch::Tensor means, torch::Tensor quats,
 std::vector<torch::Tensor> project_bwd(torch::Tensor means, torch::Tensor quats,
                                        torch::Tensor scales, torch::Tensor viewmat, double fx,
                                        double fy, double cx, double cy, int64_t width,
-                                       int64_t height, double near, torch::Tensor g_m2d,
+                                       int64_t height, double near, double low_pass,
+                                       torch::Tensor g_m2d,
                                        torch::Tensor g_con, torch::Tensor g_dep) {
   check_projection(means, quats, scales, viewmat);
   const int64_t n = means.size(0);
@@ -198,7 +200,8 @@ std::vector<torch::Tensor> project_bwd(torch::Tensor means, torch::Tensor quats,
   torch::Tensor d_scales = torch::empty_like(scales);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_bwd", [&] {
     const Camera<scalar_t> cam = make_camera<scalar_t>(viewmat.data_ptr<scalar_t>(), fx, fy,
-                                                       cx, cy, width, height, near);
+                                                       cx, cy, width, height, near,
+                                                       low_pass);
     project_backward<scalar_t>(n, cam, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
                                scales.data_ptr<scalar_t>(), g_m2d.data_ptr<scalar_t>(),
                                g_con.data_ptr<scalar_t>(), g_dep.data_ptr<scalar_t>(),
