@@ -285,6 +285,15 @@ class MappingConfig:
     render_every: int = 1                # publish / save a render every N keyframes
     # views per iteration: the window (Eq. 11 sums over it; 0 = all) + random older keyframes
     window_views_per_iter: int = 3       # (paper: 0, the whole window)
+    # a keyframe step (and a live background step) renders each view on a random lattice of
+    # 1/n of its pixels per axis: pixel (i, j) of the render is pixel (n i + dx, n j + dy),
+    # (dx, dy) drawn per view and step, filtered as the full image, so every pixel is trained
+    # in turn (1 = every pixel every step; the launcher uses 2 on live input, where a step
+    # costs about half; offline 2 gave -0.04 dB on fr2/desk but -0.9 dB on fr1/xyz;
+    # docs/mapping.md "Lattice steps")
+    step_subsample: int = 1
+    # ... the final refinement's steps (the launcher uses 2 on live input)
+    refine_subsample: int = 1
     random_views_per_iter: int = 1       # MonoGS practice against forgetting (paper/MonoGS: 2)
     # pruning / densification (supplementary "Pruning and Densification", MonoGS / 3DGS)
     prune_recent_kfs: int = 3            # visibility pruning looks at Gaussians of the last N KFs

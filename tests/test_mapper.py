@@ -383,3 +383,62 @@ def test_learned_vignetting_explains_a_radial_falloff(scene):
     assert float(v2[0, 0]) == pytest.approx(corner, abs=0.03)
     arrays, meta = map_state(mp)
     assert meta["vignette"] == pytest.approx(mp.vignette.tolist())
+
+
+# -------------------------------------------------------------- lattice steps
+def test_a_lattice_render_is_the_full_render_at_its_pixels(scene):
+    from splat_slam_ros.mapping.optimise import lattice
+    from splat_slam_ros.mapping.rasterizer import rasterize
+    V = se3_inverse(torch.as_tensor(pose_at(0.1, 0.0, 0.2))).float()
+    intr = (K.fx, K.fy, K.cx, K.cy)
+    full = rasterize(*scene, V, intr, W, H)
+    for n, dx, dy in [(2, 0, 0), (2, 1, 1), (3, 2, 1)]:
+        li, w, h = lattice(intr, W, H, n, dx, dy)
+        # lattice pixel (i, j) is full pixel (n i + dx, n j + dy), filtered as in the full image
+        out = rasterize(*scene, V, li, w, h, low_pass=0.3 / n ** 2)
+        assert out.rgb.shape == full.rgb[dy::n, dx::n].shape
+        assert (out.rgb - full.rgb[dy::n, dx::n]).abs().max() < 1e-4, (n, dx, dy)
+        assert (out.depth - full.depth[dy::n, dx::n]).abs().max() < 1e-4, (n, dx, dy)
+        torch.testing.assert_close(out.means2d, (full.means2d - torch.tensor([dx, dy])) / n)
+        # with the lattice's own filter (0.3 of its pixels^2) the ~1 px Gaussians blur
+        blurred = rasterize(*scene, V, li, w, h)
+        assert (blurred.rgb - full.rgb[dy::n, dx::n]).abs().mean() > 0.02
+
+
+def test_lattice_steps_train_the_map_like_full_steps(scene):
+    from splat_slam_ros.mapping.optimise import _step
+    pose = pose_at()
+    img, depth = render_view(scene, pose)
+
+    def fresh(n):
+        mp = Mapper(small_cfg(iters_first=0, downsample_first=4, step_subsample=n), K)
+        mp.add_keyframe(0, img, pose, depth)
+        return mp
+    # one step's densification statistic (NDC positional gradient) in the same units
+    grads = []
+    for n in (1, 2):
+        mp = fresh(n)
+        _step(mp, [0], densify=True, subsample=n)
+        seen = mp.map.grad_count > 0
+        grads.append(float((mp.map.grad_accum[seen] / mp.map.grad_count[seen]).mean()))
+    assert 0.7 < grads[1] / grads[0] < 1.4, grads
+    # lattice steps alone fit the view at full resolution, the exposure included
+    mp = fresh(2)
+    p0 = psnr(mp.render(pose)[0], img)
+    optimise(mp, 80, subsample=2)
+    p1 = psnr(mp.render(pose)[0], img)
+    assert p1 > p0 + 3 and p1 > 24, (p0, p1)
+    with pytest.raises(MapError, match="step_subsample"):
+        Mapper(small_cfg(step_subsample=0), K)
+
+
+def test_lattice_steps_keep_full_resolution_visible_sets(scene):
+    # a lattice render misses small Gaussians: the window's visible sets come from full renders
+    pose = pose_at()
+    img, depth = render_view(scene, pose)
+    mp = Mapper(small_cfg(iters_first=20, iters_per_keyframe=5, step_subsample=3), K)
+    mp.add_keyframe(0, img, pose, depth)
+    with torch.no_grad():
+        full = set(mp.map.uid[mp._raster(pose).visible].tolist())
+    assert set(mp.window.visibility[0].tolist()) == full
+    assert not mp.add_keyframe(1, img, pose, depth)["mapped"]       # the same view: redundant

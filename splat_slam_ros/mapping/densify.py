@@ -153,19 +153,19 @@ class DensifyStrategy:
     def visibility_prune(self, mp) -> int:
         """New Gaussians (last ``prune_recent_kfs`` keyframes) seen by fewer than
         ``prune_covis_min`` other window keyframes are removed (only when the window is full).
-        On live input (``time_budget``: one step per keyframe) a window keyframe not rendered
-        since the newest keyframe seeded its Gaussians is rendered first: its old visible set
-        lacks them, and they would all go as unseen. Offline step budgets render nearly every
-        window view between keyframes and keep the pruning they were tuned with (refreshing
-        the few stale views there cost 0.09 dB on fr1/xyz and on a V1_02 drone render)."""
+        On live input (``time_budget``: one step per keyframe) and with lattice steps
+        (``step_subsample`` > 1, whose renders miss small Gaussians and set no visible set) a
+        window keyframe not rendered in full since the newest keyframe seeded its Gaussians is
+        rendered first: its old visible set lacks them, and they would all go as unseen.
+        Full-resolution offline steps render nearly every window view between keyframes and
+        keep the pruning they were tuned with (refreshing the few stale views there cost 0.09
+        dB on fr1/xyz and on a V1_02 drone render)."""
         m = self.mcfg
         g = mp.map
         if m.prune_covis_min <= 0 or len(g) == 0:
             return 0
-        if m.time_budget:
-            for j in mp.window.stale(mp.seedings):
-                out = mp._raster(mp.keyframes[j].pose)
-                mp.window.set_visibility(j, g.uid[out.visible], mp.seedings)
+        if m.time_budget or m.step_subsample > 1:
+            mp.refresh_visibility(mp.window.stale(mp.seedings))
         cand = g.created >= mp.next_index - m.prune_recent_kfs
         count = torch.zeros(len(g), dtype=torch.long, device=g.device)
         for j in mp.window.window:

@@ -2,7 +2,7 @@
 image, proxy depth (with its validity mask or depth-loss weights) and pose."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional, Tuple
 
 import numpy as np
@@ -24,6 +24,15 @@ class MappedKeyframe:
     valid: torch.Tensor             # (H, W) bool
     exposure: torch.Tensor          # (2,) (log a, b): colour a * C + b (Eq. 11)
     weight: Optional[torch.Tensor] = None   # (H, W) depth-loss weight; None: 1 where valid
+
+
+def lattice_view(kf: MappedKeyframe, n: int, dx: int, dy: int) -> MappedKeyframe:
+    """The keyframe's pixels (n i + dx, n j + dy) (views, no copies); the same exposure
+    tensor, so a loss on the lattice trains the keyframe's exposure."""
+    def sub(t):
+        return None if t is None else t[dy::n, dx::n]
+    return replace(kf, image=sub(kf.image), depth=sub(kf.depth), valid=sub(kf.valid),
+                   weight=sub(kf.weight))
 
 
 def check_keyframe_inputs(image, depth, valid, W: int, H: int, device

@@ -40,6 +40,7 @@ from splat_slam_ros.mapping.map_init import init_gaussians, uncovered
 from splat_slam_ros.mapping.optimise import optimise, render_map
 from splat_slam_ros.mapping.ply_io import PlyError, load_gaussians_ply, save_gaussians_ply
 from splat_slam_ros.mapping.rasterizer import select_backend
+from splat_slam_ros.mapping.rasterizer.projection import LOW_PASS
 from splat_slam_ros.runtime import resolve_device
 from splat_slam_ros.types import Intrinsics
 
@@ -56,6 +57,10 @@ class Mapper:
                            "which converts negative-focal (ICL-NUIM) cameras")
         if m.window_size < 1 or m.downsample < 1 or m.downsample_first < 1:
             raise MapError("mapping.window_size and mapping.downsample* must be >= 1")
+        if not (1 <= m.step_subsample <= 8 and 1 <= m.refine_subsample <= 8):
+            raise MapError(f"mapping.step_subsample and mapping.refine_subsample must be 1..8 "
+                           f"(render 1/n of the pixels per axis), got {m.step_subsample} and "
+                           f"{m.refine_subsample}")
         if not 0.0 <= m.ba_depth_weight <= 1.0:
             raise MapError(f"mapping.ba_depth_weight must be in [0, 1], got {m.ba_depth_weight}")
         self.device = resolve_device(device or m.device, "mapping.device")
@@ -101,9 +106,11 @@ class Mapper:
         return self.camera.vignette
 
     # ================================================================ render
-    def _raster(self, pose, intr=None, width=None, height=None, means=None, attrs=None):
+    def _raster(self, pose, intr=None, width=None, height=None, means=None, attrs=None,
+                low_pass: float = LOW_PASS):
         return render_map(self.map, pose, intr or self.intr, width or self.W, height or self.H,
-                          self.raster.name, self.device, means=means, attrs=attrs)
+                          self.raster.name, self.device, means=means, attrs=attrs,
+                          low_pass=low_pass)
 
     @torch.no_grad()
     def render(self, pose, width: Optional[int] = None, height: Optional[int] = None,
@@ -235,7 +242,10 @@ class Mapper:
         done = optimise(self, b.steps, densify=True, progress=self.progress and b.steps >= 200,
                         budget_s=b.wall_s,
                         min_iters=b.min_steps if min_steps is None else int(min_steps),
-                        yield_to=None if empty else yield_to)
+                        yield_to=None if empty else yield_to,
+                        subsample=self.mcfg.step_subsample)
+        if self.mcfg.step_subsample > 1:     # lattice steps set no visible set (optimise.py)
+            self.refresh_visibility([kf_id])
         self.last_mapped_ts = kf.timestamp
         n_vis_pruned = self.strategy.visibility_prune(self) \
             if self.strategy.enough_views(self) else 0
@@ -245,6 +255,14 @@ class Mapper:
                       "loss": round(self.last_loss, 5), **self.stats()})
         self.history.append(history_entry(stats, timestamp))
         return stats
+
+    @torch.no_grad()
+    def refresh_visibility(self, kf_ids: Sequence[int]) -> None:
+        """Render keyframes ``kf_ids`` in full: their visible sets (keyframe selection, window
+        membership, visibility pruning) as the map is now."""
+        for j in kf_ids:
+            out = self._raster(self.keyframes[j].pose)
+            self.window.set_visibility(j, self.map.uid[out.visible], self.seedings)
 
     def keyframe_budget(self, first: bool, timestamp: float) -> Budget:
         """The steps (and, with ``mapping.time_budget``, wall seconds) of one keyframe's
@@ -300,7 +318,8 @@ class Mapper:
     def background(self, iters: int, yield_to: Optional[Callable[[], bool]] = None) -> int:
         """Live input, while no keyframe waits: ``iters`` more steps of the keyframe
         optimisation (window + random views, densify / prune on schedule), cut by ``yield_to``."""
-        done = optimise(self, int(iters), densify=True, yield_to=yield_to) if self.keyframes else 0
+        done = optimise(self, int(iters), densify=True, yield_to=yield_to,
+                        subsample=self.mcfg.step_subsample) if self.keyframes else 0
         self.background_iters += done
         return done
 
@@ -317,7 +336,8 @@ class Mapper:
         done = 0
         if self.keyframes:
             done = optimise(self, int(iters), densify=False, single_random=True,
-                            progress=progress, budget_s=budget)
+                            progress=progress, budget_s=budget,
+                            subsample=self.mcfg.refine_subsample)
         self.refine_info = {"refine_iters": done, "refine_skipped": int(iters) - done,
                             "refine_s": round(time.perf_counter() - t0, 3)}
         return dict(self.refine_info)

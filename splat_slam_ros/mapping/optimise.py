@@ -5,6 +5,8 @@ camera-to-world pose), :func:`view_loss` and :func:`isotropy` (the Eq. 11 terms)
 :func:`pick_views` (the window keyframes of one step, plus random older ones) and
 :func:`optimise`: Adam steps on the Eq. 11 loss summed over the window keyframes, each step
 followed by the densify / prune schedule of the mapper's :class:`DensifyStrategy`.
+A step may render each view on a random pixel lattice (:func:`lattice`, ``subsample`` > 1):
+1/n^2 of the pixels, point-sampled, so the loss is the full-resolution one in expectation.
 """
 from __future__ import annotations
 
@@ -15,8 +17,9 @@ import numpy as np
 import torch
 
 from splat_slam_ros.geometry import se3_inverse
-from splat_slam_ros.mapping.keyframe_inputs import MappedKeyframe
+from splat_slam_ros.mapping.keyframe_inputs import MappedKeyframe, lattice_view
 from splat_slam_ros.mapping.rasterizer import rasterize
+from splat_slam_ros.mapping.rasterizer.projection import LOW_PASS
 
 
 def viewmat(pose_c2w: np.ndarray, device) -> torch.Tensor:
@@ -32,14 +35,15 @@ def activated(g):
 
 
 def render_map(g, pose, intr, width: int, height: int, backend: str, device, means=None,
-               attrs=None):
+               attrs=None, low_pass: float = LOW_PASS):
     """Rasterise the Gaussian map ``g`` at a camera-to-world pose (``means``: other centres,
     e.g. a per-view copy whose gradient is that view's; ``attrs``: :func:`activated` of
-    ``g``, computed here when not given)."""
+    ``g``, computed here when not given; ``low_pass``: the rasterizer's screen-space filter)."""
     quats, scales, opacities = activated(g) if attrs is None else attrs
     return rasterize(
         g.means if means is None else means, quats, scales, opacities, g.colors,
-        viewmat(pose, device), intr, int(width), int(height), backend=backend)
+        viewmat(pose, device), intr, int(width), int(height), backend=backend,
+        low_pass=low_pass)
 
 
 def view_loss(kf: MappedKeyframe, out, expose: Callable, lam: float) -> torch.Tensor:
@@ -77,8 +81,17 @@ def pick_views(keyframes: Dict[int, MappedKeyframe], window: List[int], rng, mcf
     return win
 
 
-def _step(mp, views: List[int], densify: bool) -> None:
-    """One Adam step of the map and the camera model on the Eq. 11 loss of ``views``."""
+def lattice(intr, W: int, H: int, n: int, dx: int, dy: int):
+    """Intrinsics and size of the render whose pixel (i, j) is pixel (n i + dx, n j + dy) of
+    a W x H view with intrinsics ``intr`` (pixel centres at integer coordinates)."""
+    fx, fy, cx, cy = intr
+    return (fx / n, fy / n, (cx - dx) / n, (cy - dy) / n), (W - dx + n - 1) // n, \
+        (H - dy + n - 1) // n
+
+
+def _step(mp, views: List[int], densify: bool, subsample: int = 1) -> None:
+    """One Adam step of the map and the camera model on the Eq. 11 loss of ``views``, each
+    rendered at full resolution or (``subsample`` n > 1) on a random 1/n pixel lattice."""
     m = mp.mcfg
     mp.map.zero_grad()
     mp.camera.zero_grad()
@@ -91,23 +104,33 @@ def _step(mp, views: List[int], densify: bool) -> None:
         if densify:            # per-view copy of the means: its grad is this view's
             mv = mp.map.means * 1.0
             mv.retain_grad()
-        out = mp._raster(kf.pose, means=mv, attrs=attrs)
+        if subsample > 1:
+            dx, dy = (int(x) for x in mp.rng.integers(subsample, size=2))
+            intr, w, h = lattice(mp.intr, mp.W, mp.H, subsample, dx, dy)
+            # the full image's screen-space filter: LOW_PASS full pixels^2
+            out = mp._raster(kf.pose, intr, w, h, means=mv, attrs=attrs,
+                             low_pass=LOW_PASS / subsample ** 2)
+            loss = loss + view_loss(lattice_view(kf, subsample, dx, dy), out,
+                                    lambda rgb, k, _i=intr: mp.expose(rgb, k, _i),
+                                    m.rgb_weight)
+        else:
+            out = mp._raster(kf.pose, means=mv, attrs=attrs)
+            loss = loss + view_loss(kf, out, mp.expose, m.rgb_weight)
         m2 = out.means2d if densify else None
         if m2 is not None and m2.requires_grad:
             m2.retain_grad()
-        loss = loss + view_loss(kf, out, mp.expose, m.rgb_weight)
         tracked.append((kf, mv, m2, out.radii, out.visible))
     loss = loss + m.isotropy_weight * isotropy(mp.map)
     loss.backward()
     mp.last_loss = float(loss.detach())
     with torch.no_grad():
         for kf, mv, m2, radii, visible in tracked:
-            if kf.kf_id in mp.window.window:
+            if subsample == 1 and kf.kf_id in mp.window.window:   # a lattice misses some
                 mp.window.set_visibility(kf.kf_id, mp.map.uid[visible], mp.seedings)
-            if m2 is not None and m2.grad is not None:
-                mp.strategy.accumulate(mp, kf, radii, grad2d=m2.grad)
+            if m2 is not None and m2.grad is not None:   # lattice pixels are n full ones
+                mp.strategy.accumulate(mp, kf, radii * subsample, grad2d=m2.grad / subsample)
             elif mv is not None and mv.grad is not None:
-                mp.strategy.accumulate(mp, kf, radii, grad3d=mv.grad)
+                mp.strategy.accumulate(mp, kf, radii * subsample, grad3d=mv.grad)
     mp.map.step()
     mp.camera.step()
     mp.iteration += 1
@@ -117,10 +140,10 @@ def _step(mp, views: List[int], densify: bool) -> None:
 
 def optimise(mp, iters: int, densify: bool = True, single_random: bool = False,
              progress: bool = False, budget_s: float = 0.0, min_iters: int = 0,
-             yield_to: Optional[Callable[[], bool]] = None) -> int:
+             yield_to: Optional[Callable[[], bool]] = None, subsample: int = 1) -> int:
     """Up to ``iters`` Adam steps of the mapper ``mp`` (returns the number run); after
     ``min_iters`` they stop before one would end past ``budget_s`` (> 0) and, live, once
-    ``yield_to()`` is true."""
+    ``yield_to()`` is true. ``subsample``: views rendered on a random 1/n pixel lattice."""
     if iters <= 0 or len(mp.map) == 0:
         return 0
     m = mp.mcfg
@@ -139,7 +162,7 @@ def optimise(mp, iters: int, densify: bool = True, single_random: bool = False,
         if yield_to is not None and m.time_budget and done >= min_iters and yield_to():
             break
         _step(mp, pick_views(mp.keyframes, mp.window.window, mp.rng, m, single_random),
-              densify)
+              densify, subsample)
         if bar is not None:
             bar.update(1)
             bar.set_postfix(loss=f"{mp.last_loss:.4f}")
