@@ -292,6 +292,10 @@ class MappingConfig:
     # costs about half; offline 2 gave -0.04 dB on fr2/desk but -0.9 dB on fr1/xyz;
     # docs/mapping.md "Lattice steps")
     step_subsample: int = 1
+    # ... the newest keyframe's view of a keyframe step (0 = step_subsample); with
+    # step_subsample 2, 1 here is the offline speed setting: fr2/desk, fr1/xyz, V1_02 drone
+    # render -15 / -19 / -25 % time, -0.07 / -0.21 / +0.09 dB (docs/mapping.md "Lattice steps")
+    step_subsample_newest: int = 0
     # ... the final refinement's steps (the launcher uses 2 on live input)
     refine_subsample: int = 1
     random_views_per_iter: int = 1       # MonoGS practice against forgetting (paper/MonoGS: 2)

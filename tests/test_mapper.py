@@ -442,3 +442,28 @@ def test_lattice_steps_keep_full_resolution_visible_sets(scene):
         full = set(mp.map.uid[mp._raster(pose).visible].tolist())
     assert set(mp.window.visibility[0].tolist()) == full
     assert not mp.add_keyframe(1, img, pose, depth)["mapped"]       # the same view: redundant
+
+
+def test_the_newest_keyframe_can_keep_full_resolution_steps(scene, monkeypatch):
+    """mapping.step_subsample_newest: the first view of a keyframe step (the newest keyframe)
+    at its own lattice (1 = full resolution), the other views on step_subsample's."""
+    from splat_slam_ros.mapping import mapper as mapper_mod
+    p0, p1 = pose_at(), pose_at(0.3, 0, 0.1)
+    sizes = []
+    real = mapper_mod.Mapper._raster
+
+    def spy(self, pose, intr=None, width=None, height=None, **kw):
+        if "means" in kw and kw["means"] is not None:             # a training render
+            sizes.append(width or self.W)
+        return real(self, pose, intr, width, height, **kw)
+    monkeypatch.setattr(mapper_mod.Mapper, "_raster", spy)
+    for newest, expect in ((0, [W // 2, W // 2]), (1, [W, W // 2])):
+        mp = Mapper(small_cfg(iters_first=2, iters_per_keyframe=1, step_subsample=2,
+                              step_subsample_newest=newest, random_views_per_iter=0), K)
+        for k, p in enumerate((p0, p1)):
+            img, d = render_view(scene, p)
+            mp.add_keyframe(k, img, p, d, force=True)
+        assert sizes[-2:] == expect, (newest, sizes)
+        sizes.clear()
+    with pytest.raises(MapError, match="step_subsample_newest"):
+        Mapper(small_cfg(step_subsample_newest=9), K)

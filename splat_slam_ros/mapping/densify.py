@@ -14,7 +14,7 @@ import torch
 
 from splat_slam_ros.geometry import quat_to_matrix
 from splat_slam_ros.mapping.keyframe_inputs import MappedKeyframe
-from splat_slam_ros.mapping.optimise import viewmat
+from splat_slam_ros.mapping.optimise import lattice_steps, viewmat
 
 
 class DensifyStrategy:
@@ -154,7 +154,7 @@ class DensifyStrategy:
         """New Gaussians (last ``prune_recent_kfs`` keyframes) seen by fewer than
         ``prune_covis_min`` other window keyframes are removed (only when the window is full).
         On live input (``time_budget``: one step per keyframe) and with lattice steps
-        (``step_subsample`` > 1, whose renders miss small Gaussians and set no visible set) a
+        (``optimise.lattice_steps``, whose renders miss small Gaussians and set no visible set) a
         window keyframe not rendered in full since the newest keyframe seeded its Gaussians is
         rendered first: its old visible set lacks them, and they would all go as unseen.
         Full-resolution offline steps render nearly every window view between keyframes and
@@ -164,7 +164,7 @@ class DensifyStrategy:
         g = mp.map
         if m.prune_covis_min <= 0 or len(g) == 0:
             return 0
-        if m.time_budget or m.step_subsample > 1:
+        if m.time_budget or lattice_steps(m):
             mp.refresh_visibility(mp.window.stale(mp.seedings))
         cand = g.created >= mp.next_index - m.prune_recent_kfs
         count = torch.zeros(len(g), dtype=torch.long, device=g.device)

@@ -37,7 +37,7 @@ from splat_slam_ros.mapping.keyframe_inputs import (MapError, MappedKeyframe,
 from splat_slam_ros.mapping.keyframe_views import history_entry
 from splat_slam_ros.mapping.keyframe_window import KeyframeDecision, KeyframeWindow
 from splat_slam_ros.mapping.map_init import init_gaussians, uncovered
-from splat_slam_ros.mapping.optimise import optimise, render_map
+from splat_slam_ros.mapping.optimise import lattice_steps, optimise, render_map
 from splat_slam_ros.mapping.ply_io import PlyError, load_gaussians_ply, save_gaussians_ply
 from splat_slam_ros.mapping.rasterizer import select_backend
 from splat_slam_ros.mapping.rasterizer.projection import LOW_PASS
@@ -57,10 +57,12 @@ class Mapper:
                            "which converts negative-focal (ICL-NUIM) cameras")
         if m.window_size < 1 or m.downsample < 1 or m.downsample_first < 1:
             raise MapError("mapping.window_size and mapping.downsample* must be >= 1")
-        if not (1 <= m.step_subsample <= 8 and 1 <= m.refine_subsample <= 8):
-            raise MapError(f"mapping.step_subsample and mapping.refine_subsample must be 1..8 "
-                           f"(render 1/n of the pixels per axis), got {m.step_subsample} and "
-                           f"{m.refine_subsample}")
+        if not (1 <= m.step_subsample <= 8 and 1 <= m.refine_subsample <= 8
+                and 0 <= m.step_subsample_newest <= 8):
+            raise MapError(f"mapping.step_subsample and mapping.refine_subsample must be 1..8, "
+                           f"mapping.step_subsample_newest 0..8 (render 1/n of the pixels per "
+                           f"axis), got {m.step_subsample}, {m.refine_subsample} and "
+                           f"{m.step_subsample_newest}")
         if not 0.0 <= m.ba_depth_weight <= 1.0:
             raise MapError(f"mapping.ba_depth_weight must be in [0, 1], got {m.ba_depth_weight}")
         self.device = resolve_device(device or m.device, "mapping.device")
@@ -243,8 +245,9 @@ class Mapper:
                         budget_s=b.wall_s,
                         min_iters=b.min_steps if min_steps is None else int(min_steps),
                         yield_to=None if empty else yield_to,
-                        subsample=self.mcfg.step_subsample)
-        if self.mcfg.step_subsample > 1:     # lattice steps set no visible set (optimise.py)
+                        subsample=self.mcfg.step_subsample,
+                        subsample_first=self.mcfg.step_subsample_newest)
+        if lattice_steps(self.mcfg):         # lattice views set no visible set
             self.refresh_visibility([kf_id])
         self.last_mapped_ts = kf.timestamp
         n_vis_pruned = self.strategy.visibility_prune(self) \
@@ -319,7 +322,8 @@ class Mapper:
         """Live input, while no keyframe waits: ``iters`` more steps of the keyframe
         optimisation (window + random views, densify / prune on schedule), cut by ``yield_to``."""
         done = optimise(self, int(iters), densify=True, yield_to=yield_to,
-                        subsample=self.mcfg.step_subsample) if self.keyframes else 0
+                        subsample=self.mcfg.step_subsample,
+                        subsample_first=self.mcfg.step_subsample_newest) if self.keyframes else 0
         self.background_iters += done
         return done
 

@@ -89,28 +89,37 @@ def lattice(intr, W: int, H: int, n: int, dx: int, dy: int):
         (H - dy + n - 1) // n
 
 
-def _step(mp, views: List[int], densify: bool, subsample: int = 1) -> None:
+def lattice_steps(mcfg) -> bool:
+    """Whether keyframe steps render some views on a lattice (``mapping.step_subsample`` /
+    ``step_subsample_newest``): those set no visible sets, full renders must."""
+    return mcfg.step_subsample > 1 or mcfg.step_subsample_newest > 1
+
+
+def _step(mp, views: List[int], densify: bool, subsample: int = 1,
+          subsample_first: int = 0) -> None:
     """One Adam step of the map and the camera model on the Eq. 11 loss of ``views``, each
-    rendered at full resolution or (``subsample`` n > 1) on a random 1/n pixel lattice."""
+    rendered at full resolution or (``subsample`` n > 1) on a random 1/n pixel lattice; the
+    first view (a keyframe step's newest keyframe) with ``subsample_first`` when > 0."""
     m = mp.mcfg
     mp.map.zero_grad()
     mp.camera.zero_grad()
     loss = 0.0
     tracked = []
     attrs = activated(mp.map)
-    for kid in views:
+    for vi, kid in enumerate(views):
         kf = mp.keyframes[kid]
+        n = subsample_first if vi == 0 and subsample_first > 0 else subsample
         mv = None
         if densify:            # per-view copy of the means: its grad is this view's
             mv = mp.map.means * 1.0
             mv.retain_grad()
-        if subsample > 1:
-            dx, dy = (int(x) for x in mp.rng.integers(subsample, size=2))
-            intr, w, h = lattice(mp.intr, mp.W, mp.H, subsample, dx, dy)
+        if n > 1:
+            dx, dy = (int(x) for x in mp.rng.integers(n, size=2))
+            intr, w, h = lattice(mp.intr, mp.W, mp.H, n, dx, dy)
             # the full image's screen-space filter: LOW_PASS full pixels^2
             out = mp._raster(kf.pose, intr, w, h, means=mv, attrs=attrs,
-                             low_pass=LOW_PASS / subsample ** 2)
-            loss = loss + view_loss(lattice_view(kf, subsample, dx, dy), out,
+                             low_pass=LOW_PASS / n ** 2)
+            loss = loss + view_loss(lattice_view(kf, n, dx, dy), out,
                                     lambda rgb, k, _i=intr: mp.expose(rgb, k, _i),
                                     m.rgb_weight)
         else:
@@ -119,18 +128,18 @@ def _step(mp, views: List[int], densify: bool, subsample: int = 1) -> None:
         m2 = out.means2d if densify else None
         if m2 is not None and m2.requires_grad:
             m2.retain_grad()
-        tracked.append((kf, mv, m2, out.radii, out.visible))
+        tracked.append((kf, mv, m2, out.radii, out.visible, n))
     loss = loss + m.isotropy_weight * isotropy(mp.map)
     loss.backward()
     mp.last_loss = float(loss.detach())
     with torch.no_grad():
-        for kf, mv, m2, radii, visible in tracked:
-            if subsample == 1 and kf.kf_id in mp.window.window:   # a lattice misses some
+        for kf, mv, m2, radii, visible, n in tracked:
+            if n == 1 and kf.kf_id in mp.window.window:   # a lattice misses some
                 mp.window.set_visibility(kf.kf_id, mp.map.uid[visible], mp.seedings)
             if m2 is not None and m2.grad is not None:   # lattice pixels are n full ones
-                mp.strategy.accumulate(mp, kf, radii * subsample, grad2d=m2.grad / subsample)
+                mp.strategy.accumulate(mp, kf, radii * n, grad2d=m2.grad / n)
             elif mv is not None and mv.grad is not None:
-                mp.strategy.accumulate(mp, kf, radii * subsample, grad3d=mv.grad)
+                mp.strategy.accumulate(mp, kf, radii * n, grad3d=mv.grad)
     mp.map.step()
     mp.camera.step()
     mp.iteration += 1
@@ -140,10 +149,12 @@ def _step(mp, views: List[int], densify: bool, subsample: int = 1) -> None:
 
 def optimise(mp, iters: int, densify: bool = True, single_random: bool = False,
              progress: bool = False, budget_s: float = 0.0, min_iters: int = 0,
-             yield_to: Optional[Callable[[], bool]] = None, subsample: int = 1) -> int:
+             yield_to: Optional[Callable[[], bool]] = None, subsample: int = 1,
+             subsample_first: int = 0) -> int:
     """Up to ``iters`` Adam steps of the mapper ``mp`` (returns the number run); after
     ``min_iters`` they stop before one would end past ``budget_s`` (> 0) and, live, once
-    ``yield_to()`` is true. ``subsample``: views rendered on a random 1/n pixel lattice."""
+    ``yield_to()`` is true. ``subsample``: views rendered on a random 1/n pixel lattice
+    (``subsample_first`` > 0: the first view of a step on its own)."""
     if iters <= 0 or len(mp.map) == 0:
         return 0
     m = mp.mcfg
@@ -162,7 +173,7 @@ def optimise(mp, iters: int, densify: bool = True, single_random: bool = False,
         if yield_to is not None and m.time_budget and done >= min_iters and yield_to():
             break
         _step(mp, pick_views(mp.keyframes, mp.window.window, mp.rng, m, single_random),
-              densify, subsample)
+              densify, subsample, subsample_first)
         if bar is not None:
             bar.update(1)
             bar.set_postfix(loss=f"{mp.last_loss:.4f}")
