@@ -119,12 +119,12 @@ def _step(mp, views: List[int], densify: bool, subsample: int = 1,
             # the full image's screen-space filter: LOW_PASS full pixels^2
             out = mp._raster(kf.pose, intr, w, h, means=mv, attrs=attrs,
                              low_pass=LOW_PASS / n ** 2)
-            loss = loss + view_loss(lattice_view(kf, n, dx, dy), out,
-                                    lambda rgb, k, _i=intr: mp.expose(rgb, k, _i),
-                                    m.rgb_weight)
+            target = lattice_view(kf, n, dx, dy)
+            expose = lambda rgb, k, _i=intr: mp.expose(rgb, k, _i)   # noqa: E731
         else:
             out = mp._raster(kf.pose, means=mv, attrs=attrs)
-            loss = loss + view_loss(kf, out, mp.expose, m.rgb_weight)
+            target, expose = kf, mp.expose
+        loss = loss + view_loss(target, out, expose, m.rgb_weight)
         m2 = out.means2d if densify else None
         if m2 is not None and m2.requires_grad:
             m2.retain_grad()

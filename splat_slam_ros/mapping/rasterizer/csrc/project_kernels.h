@@ -33,7 +33,6 @@ Camera<T> make_camera(const T* viewmat, double fx, double fy, double cx, double 
   }
   c.fx = T(fx), c.fy = T(fy), c.cx = T(cx), c.cy = T(cy), c.near = T(near);
   c.low_pass = T(low_pass);
-  c.low_pass = T(low_pass);
   const double tan_x = 0.5 * double(width) / fx, tan_y = 0.5 * double(height) / fy;
   c.lox = T(-(cx / fx + kFovClamp * tan_x));
   c.hix = T((double(width) - cx) / fx + kFovClamp * tan_x);
