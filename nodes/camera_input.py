@@ -22,8 +22,9 @@ from typing import Callable, Dict, List, Optional, Tuple
 class CameraInput:
     def __init__(self, owner, on_frame: Callable, on_skip: Callable):
         """``on_frame(frame)`` runs on the owner's worker; it returns the kf_id made or None.
-        ``on_skip(index, stamp, now)``: a skipped frame, once on the executor at arrival
-        (``now``: publish its predicted pose) and once on the worker (record it)."""
+        ``on_skip(index, stamp, now, frame=None)``: a skipped frame, once on the executor at
+        arrival (``now``: publish its predicted pose) and once on the worker (record it, with
+        its decoded ``frame`` when ``tracking.bridge_frames`` keeps skipped frames)."""
         from sensor_msgs.msg import CameraInfo, Image
 
         from . import qos as Q
@@ -111,7 +112,7 @@ class CameraInput:
             from .convert import from_stamp
             stamp = from_stamp(msg.header.stamp)
             self.on_skip(index, stamp, now=True)      # the predicted pose, at once
-            self.owner.worker.submit(self._skip, index, stamp, msg.header.stamp)
+            self.owner.worker.submit(self._skip, index, stamp, msg.header.stamp, msg)
             return
         self.owner.worker.submit(self._process, msg, index)
 
@@ -146,8 +147,11 @@ class CameraInput:
                 self.info_lock.wait(timeout=float(self.opts["camera_info_timeout"]))
             return self.cam_info
 
-    def _skip(self, index: int, stamp: float, ros_stamp) -> None:
-        self.on_skip(index, stamp, now=False)      # the record, in frame order
+    def _skip(self, index: int, stamp: float, ros_stamp, msg) -> None:
+        # the record, in frame order, with the image: the next tracked frame may track it
+        # after all to bridge a large motion (tracking.bridge_frames)
+        frame = self._frame(msg, index, quiet=True) if self.cfg.tracking.bridge_frames else None
+        self.on_skip(index, stamp, now=False, frame=frame)
         self._ack(index, ros_stamp, None)
 
     def _process(self, msg, index: int) -> None:
@@ -180,15 +184,20 @@ class CameraInput:
         self.n_dropped += 1
         self.owner.warn_throttled(why.split(":")[0], f"frame {index} dropped: {why}")
 
-    def _frame(self, msg, index: int):
+    def _frame(self, msg, index: int, quiet: bool = False):
+        """The core Frame of an Image message, or None: dropped with a logged reason (``quiet``:
+        None, nothing counted: a skipped frame's image that cannot serve as a bridge)."""
         from splat_slam_ros.types import Frame
 
         from .convert import ConversionError, from_stamp, msg_to_rgb
         try:
             rgb = msg_to_rgb(msg)
         except ConversionError as e:
-            return self.drop(index, f"{e}")
+            return None if quiet else self.drop(index, f"{e}")
         h, w = rgb.shape[:2]
+        if quiet and (self.size is None or (w, h) != self.size or self.intr is None and
+                      self.cam_info is None):
+            return None
         if self.size is not None and (w, h) != self.size:
             return self.drop(index, f"image size changed: {w}x{h}, the tracker runs on "
                                     f"{self.size[0]}x{self.size[1]} (restart the graph for a "

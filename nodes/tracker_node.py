@@ -211,15 +211,16 @@ class TrackerNode(SplatNode):
         refined pose and its /tf follow): the pose latency does not wait for the BA."""
         self._publish_pose(index, stamp, T, tf=False)
 
-    def _skip(self, index: int, stamp: float, now: bool) -> None:
+    def _skip(self, index: int, stamp: float, now: bool, frame=None) -> None:
         """A frame the busy tracker skips (live input). ``now`` (executor thread, at arrival):
         publish its constant-velocity pose; else (worker, in frame order): record it, to be
-        placed between its tracked neighbours in the final trajectory."""
+        placed between its tracked neighbours in the final trajectory (``frame``: its image,
+        a possible bridge for the next tracked frame)."""
         role = self.role
         if role is None:
             return
         if not now:
-            role.tracker.skip(index, stamp)
+            role.tracker.skip(index, stamp, frame)
         elif role.tracker.initialized:
             self._publish_pose(index, stamp, role.tracker.predict())
 
@@ -254,12 +255,19 @@ class TrackerNode(SplatNode):
         out = self.role.finalize() if self.role is not None else Outbox(final={"last_seq": 0})
         c = self.camera
         self.log.info(f"finalized: {c.n_frames} frames, {self._keyframes()} keyframes, "
-                      f"{c.n_skipped} skipped (posed by interpolation), {c.n_dropped} dropped")
+                      f"{self._skipped()} skipped (posed by interpolation), {c.n_dropped} "
+                      f"dropped")
         out.final = dict(out.final or {}, keyframes=self._keyframes(), frames=c.n_frames,
                          dropped=c.n_dropped)
         self.emit(out)
         self.kf_images.update((kd.kf_id, kd.image) for kd in out.keyframes)
         self._maybe_save()
+
+    def _skipped(self) -> int:
+        """Frames skipped and never tracked: those tracked after all as bridges count as
+        tracked."""
+        trk = self.role.tracker if self.role is not None else None
+        return self.camera.n_skipped - int(getattr(trk, "n_bridged", 0))
 
     def _keyframes(self) -> int:
         return len(self.role.tracker.published) if self.role is not None else 0
@@ -280,7 +288,7 @@ class TrackerNode(SplatNode):
                 self._publish_path(float(ts[-1]))
         self.publish_event("saved", files=files, frames=self.camera.n_frames,
                            session=self._session_info(trk),
-                           dropped=self.camera.n_dropped, skipped=self.camera.n_skipped,
+                           dropped=self.camera.n_dropped, skipped=self._skipped(),
                            lost=trk.n_lost if trk is not None else 0,
                            posed=posed, latency_ms=self.camera.latency_stats(),
                            keyframes=self._keyframes(),

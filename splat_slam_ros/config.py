@@ -120,6 +120,11 @@ class TrackingConfig:
     lost_min_valid: float = 0.12         # lost if fewer BA cells than this have a usable flow
     lost_rms: float = 1.0                # lost if the frame's pose fit leaves this rms (BA px)
     reloc_keyframes: int = 4             # recent keyframes tried when the last one fails
+    # live input: up to this many frames skipped while the tracker was busy are kept (thinned
+    # over a longer gap) until the next frame is tracked; when that frame's flow fails on the
+    # motion since the last tracked one, the skipped frame halfway is tracked first
+    # (bisection; 0 = off)
+    bridge_frames: int = 16
     filler_iters: int = 3                # pose-only iterations per non-keyframe at the end
     max_stored_flows: int = 20000        # newest frames whose flow is kept for that refinement
     # at the keyframe that ends the warm-up, the newest this many warm-up frames also get a

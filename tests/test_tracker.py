@@ -554,29 +554,37 @@ def test_the_last_frame_skipped_is_tracked_at_the_end_of_input():
         ate_cm(frames, gt, *extrapolated.trajectory_full())
 
 
-def test_a_gap_of_skipped_frames_is_bridged_by_the_predicted_flow(shared_data, tmp_path):
-    """Live input at 20 Hz on fast drone motion (EuRoC V1_02, realistic render): when the
-    tracker skips three frames of every four, DIS started from the previous frame's flow
-    fails on the large motion; started again from the flow that the constant-velocity pose
-    (scaled to the frames since the last tracked one) induces, it keeps tracking. Compared
-    with the same frames without that retry (the prediction replaced by the last pose)."""
-    traj = shared_data / "trajectories" / "V102_groundtruth.csv"
+@pytest.fixture(scope="module")
+def v102_render(tmp_path_factory):
+    """80 frames of a realistic 320x240 render along EuRoC V1_02 drone motion at 20 Hz."""
+    from conftest import SHARED_DATA
+    traj = SHARED_DATA / "trajectories" / "V102_groundtruth.csv"
     if not traj.is_file():
-        pytest.skip(f"{traj} not found")
+        pytest.skip(f"{traj} not found (only present in the dev/CI setup)")
     import subprocess
     import sys
-    from splat_slam_ros.tracking import frontend, initialisation
-    from splat_slam_ros.tracking.tracker import Tracker
-    out = tmp_path / "v102"
+    out = tmp_path_factory.mktemp("v102") / "render"
     subprocess.run([sys.executable, "-m", "splat_slam_synth.cli", "--trajectory", str(traj),
                     "--frames", "80", "--size", "320x240", "--fps", "20", "--start", "6",
                     "--out", str(out), "--realism", "realistic", "--quiet"],
                    check=True, capture_output=True, timeout=300)
     ds = open_dataset(out)
-    frames = list(ds)
+    return ds, list(ds)
+
+
+def test_a_gap_of_skipped_frames_is_bridged_by_the_predicted_flow(v102_render):
+    """Live input at 20 Hz on fast drone motion (EuRoC V1_02, realistic render): when the
+    tracker skips three frames of every four, DIS started from the previous frame's flow
+    fails on the large motion; started again from the flow that the constant-velocity pose
+    (scaled to the frames since the last tracked one) induces, it keeps tracking. Compared
+    with the same frames without that retry (the prediction replaced by the last pose)."""
+    from splat_slam_ros.tracking import frontend, initialisation
+    from splat_slam_ros.tracking.tracker import Tracker
+    ds, frames = v102_render
     gt = np.stack([f.gt_pose for f in frames])
     cfg = SlamConfig()
     cfg.tracking.loop_closure = cfg.tracking.global_ba = False
+    cfg.tracking.bridge_frames = 0          # the skipped frames' images are not given here
 
     def run():
         tr = Tracker(cfg, ds.intrinsics)
@@ -596,6 +604,55 @@ def test_a_gap_of_skipped_frames_is_bridged_by_the_predicted_flow(shared_data, t
         frontend.predict_pose = initialisation.predict_pose = tm_predict
     assert lost < lost_without and err < 0.5 * err_without, (lost, err, lost_without,
                                                               err_without)
+
+
+def test_skipped_frames_bridge_a_motion_too_large_for_the_flow(v102_render):
+    """Live input on fast drone motion, the tracker busy for 7 of every 8 frames: the flow
+    from the newest keyframe to the next tracked frame finds nothing, even started from the
+    constant-velocity pose. With the skipped frames kept (``tracking.bridge_frames``), the
+    one halfway is tracked first (bisection), and the frame after it: the track holds where
+    without them it is lost. Bridged frames count as tracked, keep their place in frame
+    order, and their keyframes are handed on with their step's, with the current pose, after
+    every update of that step (which names only keyframes already handed on)."""
+    from splat_slam_ros.tracking.tracker import Tracker
+    ds, frames = v102_render
+    gt = np.stack([f.gt_pose for f in frames])
+
+    def run(bridge_frames: int):
+        cfg = SlamConfig()
+        cfg.tracking.loop_closure = cfg.tracking.global_ba = False
+        cfg.tracking.bridge_frames = bridge_frames
+        tr = Tracker(cfg, ds.intrinsics)
+        steps, handed_on = [], set()
+        for f in frames:
+            if tr.initialized and f.index % 8 != 0:
+                tr.skip(f.index, f.timestamp, f)
+                continue
+            st = tr.track(f)
+            steps.append(st)
+            for ev in st.events:            # updates first: only keyframes handed on
+                assert set(ev.kf_ids) <= handed_on, (f.index, ev.kf_ids, handed_on)
+            for kd in st.keyframes:
+                assert kd.kf_id not in handed_on
+                handed_on.add(kd.kf_id)
+                np.testing.assert_allclose(kd.pose, tr.kfs[kd.kf_id].pose.cpu().numpy())
+        assert handed_on == set(tr.published)
+        ts, poses = tr.trajectory_full()
+        assert len(ts) == len(frames) and np.all(np.diff(ts) > 0)   # every frame, in order
+        n_tracked = sum(1 for r in tr.records if not r.skipped and not r.lost)
+        assert tr.n_skipped == sum(r.skipped for r in tr.records)
+        assert n_tracked + tr.n_skipped + tr.n_lost == len(frames)
+        return tr, steps, ate_cm(frames, gt, ts, poses)
+    without, _, err_without = run(0)
+    tr, steps, err = run(16)
+    assert without.n_bridged == 0 and without.n_lost >= 5
+    assert tr.n_bridged >= 3 and any(st.info.get("bridged") for st in steps)
+    assert tr.n_lost <= 2 and tr.n_lost < without.n_lost
+    assert err < 0.5 * err_without, (err, err_without)
+    with pytest.raises(ValueError, match="bridge_frames"):
+        cfg = SlamConfig()
+        cfg.tracking.bridge_frames = -1
+        Tracker(cfg, ds.intrinsics)
 
 
 def test_constant_velocity_prediction_spans_the_frames_since_the_last_pose():

@@ -21,6 +21,7 @@ import torch
 
 from splat_slam_ros.geometry import (disparity_through_flow, orthonormalize, se3_exp,
                                      se3_inverse, se3_log)
+from splat_slam_ros.imaging import image_is_degenerate
 from splat_slam_ros.tracking.dense_ba import induced_flow_distance, pose_only_refine, reproject
 from splat_slam_ros.tracking.flow_frontend import predict_both
 from splat_slam_ros.tracking.motion_filter import MotionFilter, predict_pose
@@ -86,7 +87,11 @@ class TrackerFrontend:
         self.timings["pose"] += time.perf_counter() - t0
         return best if best is not None else (inits[0], None)
 
-    def _track(self, frame, img, prep) -> TrackStep:
+    def _track(self, frame, img, prep, gap=(), bridged: bool = False):
+        """Track ``frame`` against the newest keyframe. ``gap``: frames skipped since the
+        last tracked one (live input, :meth:`skip`), in order, to bridge a motion too large
+        for the flow (:meth:`_bridge`). ``bridged``: the frame is such a skipped frame, tracked
+        after all: None instead of a lost step when it cannot be aligned."""
         tc = self.tc
         ref = self.window[-1]
         was_lost = self.lost_count > 0
@@ -106,6 +111,12 @@ class TrackerFrontend:
             fc_p = self.motion.check(fl[0], fl[1])
             if fc_p.ok:
                 flows, fc, pred = fl, fc_p, T_p
+        if not fc.ok and not was_lost and gap:
+            rest = self._bridge(gap)
+            if rest is not None:                    # tracked again from a nearer frame
+                return self._track(frame, img, prep, rest, bridged)
+        if not fc.ok and bridged:
+            return None
         if not fc.ok:
             self._last_flow = None
             # relocalise against the other recent keyframes
@@ -121,6 +132,8 @@ class TrackerFrontend:
         inits = [T_ref.clone()] if was_lost else [pred, self.last_pose.clone(), T_ref.clone()]
         T, pinfo = self._fit_pose(ref, f, w, inits)
         if pinfo is None or not np.isfinite(pinfo.rms) or pinfo.rms > tc.lost_rms:
+            if bridged:
+                return None
             return self._lost(frame, f"pose did not fit the flow (rms "
                                      f"{getattr(pinfo, 'rms', float('nan')):.2f} BA px)")
         if was_lost:
@@ -131,7 +144,9 @@ class TrackerFrontend:
         info = {"mean_flow": fc.mean_flow, "valid": fc.valid_frac, "pose_rms": pinfo.rms}
         since_kf = float(frame.timestamp) - self.kfs[ref].timestamp
         if self.motion.is_candidate(fc, since_kf) and ref == self.window[-1]:
-            if self.on_pose_estimate is not None:      # a keyframe's pose before its local BA
+            # a keyframe's pose before its local BA (not a bridged frame's: its pose was
+            # published when it arrived, and a robot reads the newest frame's)
+            if self.on_pose_estimate is not None and not bridged:
                 self.on_pose_estimate(frame.index, float(frame.timestamp), T.cpu().numpy())
             return self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, info)
         self._set_pose(T, frame.index)
@@ -142,6 +157,30 @@ class TrackerFrontend:
         self._add_pending(rec, frame, img, prep)
         return TrackStep(frame.index, float(frame.timestamp), False, None,
                          T.cpu().numpy().copy(), info=info)
+
+    def _bridge(self, gap):
+        """Frames skipped since the last tracked one (live input, a busy tracker) bridge a
+        motion too large for the flow: the one in the middle of ``gap`` is tracked first
+        (itself bridged by the frames before it), so the frame that needed it is aligned
+        against a nearer pose and keyframe. Its step joins ``_bridged_steps`` and its record
+        replaces its skipped one. Returns the frames of ``gap`` after it, or None when no
+        frame of the gap could be tracked."""
+        mid = len(gap) // 2
+        f = gap[mid]
+        n_before = self.n_bridged
+        pos = self._take_skipped(f.index)
+        n0 = len(self.records)
+        img = self.pre(f.image)
+        step = None
+        if not image_is_degenerate(img):
+            step = self._track(f, img, self.flow.prepare(img), gap[:mid], bridged=True)
+        if step is None:                    # not aligned: it stays a skipped frame
+            self._put_skipped(pos, f)
+        else:
+            self._move_record(f.index, n0, pos)
+            self.n_bridged += 1
+            self._bridged_steps.append(step)
+        return list(gap[mid + 1:]) if self.n_bridged > n_before else None
 
     def _set_pose(self, T, index: int):
         self._spacing = (self._spacing[1], int(index))

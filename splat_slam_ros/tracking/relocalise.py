@@ -263,7 +263,7 @@ class Localizer:
     def predict(self) -> np.ndarray:
         return self.trk.predict()
 
-    def skip(self, index: int, timestamp: float) -> None:
+    def skip(self, index: int, timestamp: float, frame=None) -> None:
         """A frame the busy node did not track: not posed (no keyframe to place it by)."""
 
     def keyframe_ids(self) -> List[int]:

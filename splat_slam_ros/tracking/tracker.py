@@ -17,6 +17,7 @@ ROS graph); their events come back through :meth:`Tracker.apply_update`.
 """
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import time
@@ -92,6 +93,11 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
         self._spacing = (None, None)   # frame indices of the velocity's step (predict_pose)
         self.lost_count = self.n_lost = 0
         self.n_skipped = 0              # frames skip() posed without tracking (live, busy)
+        if tc.bridge_frames < 0:
+            raise TrackingError(f"tracking.bridge_frames must be >= 0, got {tc.bridge_frames}")
+        self._gap: List[Frame] = []     # skipped frames since the last tracked one (bridges)
+        self._bridged_steps: List[TrackStep] = []   # skipped frames tracked after all ...
+        self.n_bridged = 0                          # ... (a bridge, TrackerFrontend._bridge)
         self.n_segments = 1             # initialisations (a new one after a long loss)
         self._anchor = self._before_loss = None   # a new segment's start; the motion at a loss
         self.on_pose_estimate: Optional[Callable] = None   # (index, stamp, pose) before BA
@@ -136,6 +142,8 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
             img = self.pre(frame.image)
         except ValueError as e:
             raise TrackingError(str(e)) from None
+        gap = [g for g in self._gap if g.index < frame.index]   # (unskip: not itself)
+        self._gap = []
         if image_is_degenerate(img):
             step = self._lost(frame, "degenerate image (black/uniform)")
         else:
@@ -145,10 +153,33 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
             if not self.initialized:
                 step = self._warmup(frame, img, prep)
             else:
-                step = self._track(frame, img, prep)
+                step = self._track(frame, img, prep, gap)
+        if self._bridged_steps:
+            step = self._with_bridged(step)
         self.timings["track"] += time.perf_counter() - t0
         self.timings["frames"] += 1
         return step
+
+    def _with_bridged(self, step: TrackStep) -> TrackStep:
+        """``step`` with the steps of the skipped frames tracked before it (bridges): their
+        keyframes published after every update of this step, so those keyframes carry their
+        current pose and disparity and the updates name only keyframes already published."""
+        steps, self._bridged_steps = self._bridged_steps + [step], []
+        kfs = [kd for s in steps for kd in s.keyframes]
+        new = {kd.kf_id for kd in kfs}
+        events = []
+        for ev in (ev for s in steps for ev in s.events):
+            ids = [k for k in ev.kf_ids if k not in new and k in self.kfs]
+            if ids:
+                events.append(self.kfs.update_event(ev.seq, ev.reason, ids))
+        for kd in kfs:
+            if kd.kf_id in self.kfs:
+                ks = self.kfs[kd.kf_id]
+                kd.pose = ks.pose.cpu().numpy().copy()
+                kd.disparity = ks.disp.cpu().numpy().astype(np.float32)
+        info = {**step.info, "bridged": len(steps) - 1}
+        return dataclasses.replace(step, events=events, keyframes=kfs,
+                                   keyframe=kfs[-1] if kfs else None, info=info)
 
     def predict(self) -> np.ndarray:     # constant velocity: the next frame's camera-to-world
         return (self.last_pose @ self.velocity).cpu().numpy()

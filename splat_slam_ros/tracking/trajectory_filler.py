@@ -197,11 +197,37 @@ class TrajectoryRecorder:
             self.records[old].flow2 = self.records[old].weight2 = None
         return r
 
-    def skip(self, index: int, timestamp: float) -> np.ndarray:
-        """A frame not tracked (live, busy): placed between its tracked neighbours later."""
+    def skip(self, index: int, timestamp: float, frame: Optional[Frame] = None) -> np.ndarray:
+        """A frame not tracked (live, busy): placed between its tracked neighbours later.
+        With its ``frame`` it is kept (``tracking.bridge_frames``) until the next frame is
+        tracked, which may track it after all to bridge a large motion
+        (:meth:`~splat_slam_ros.tracking.frontend.TrackerFrontend._bridge`)."""
         self.n_skipped += 1
         self.records.append(FrameRecord(int(index), float(timestamp), skipped=True))
+        if frame is not None and self.initialized and self.tc.bridge_frames > 0:
+            self._gap.append(frame)
+            if len(self._gap) > self.tc.bridge_frames:   # thinned, spread over the gap
+                self._gap = self._gap[::2]
         return self.predict()
+
+    def _take_skipped(self, index: int) -> int:
+        """Remove the skipped record of frame ``index`` (to be tracked): its position."""
+        pos = next(n for n in range(len(self.records) - 1, -1, -1)
+                   if self.records[n].index == index and self.records[n].skipped)
+        del self.records[pos]
+        self.n_skipped -= 1
+        return pos
+
+    def _put_skipped(self, pos: int, frame: Frame) -> None:
+        self.records.insert(pos, FrameRecord(int(frame.index), float(frame.timestamp),
+                                             skipped=True))
+        self.n_skipped += 1
+
+    def _move_record(self, index: int, start: int, pos: int) -> None:
+        """The record of frame ``index`` appended at ``start`` or later goes to ``pos`` (the
+        place of its skipped record: the records stay in frame order)."""
+        n = next(n for n in range(start, len(self.records)) if self.records[n].index == index)
+        self.records.insert(pos, self.records.pop(n))
 
     def unskip(self, index: int) -> bool:
         """Frame ``index``, the newest and skipped, is to be tracked after all (the end of
