@@ -467,3 +467,42 @@ def test_the_newest_keyframe_can_keep_full_resolution_steps(scene, monkeypatch):
         sizes.clear()
     with pytest.raises(MapError, match="step_subsample_newest"):
         Mapper(small_cfg(step_subsample_newest=9), K)
+
+
+def test_keyframes_mapped_without_a_step_share_one_visibility_pruning(scene, monkeypatch):
+    """Live input waiting: a keyframe mapped without an optimisation step changed no Gaussian
+    but its own, so its visibility pruning (which renders every stale window view first)
+    waits for a later keyframe, at most prune_recent_kfs - 1 of them: every such keyframe's
+    Gaussians are still among the candidates of a pruning after it. Keyframes with steps
+    prune each time, as offline."""
+    poses = [pose_at(0.08 * k, 0.0, 0.02 * k) for k in range(10)]
+    views = [render_view(scene, p) for p in poses]
+
+    def run(min_steps):
+        calls = []                   # (newest keyframe index, candidate lower bound)
+        mp = Mapper(small_cfg(iters_first=5, iters_per_keyframe=2, window_size=3,
+                              prune_covis_min=1, prune_recent_kfs=3, time_budget=True), K)
+        strategy = type(mp.strategy)
+        real = strategy.visibility_prune
+
+        def spy(self, m):
+            calls.append((m.next_index - 1, m.next_index - m.mcfg.prune_recent_kfs))
+            return real(self, m)
+        monkeypatch.setattr(strategy, "visibility_prune", spy)
+        steps = []
+        for k, (p, (img, d)) in enumerate(zip(poses, views)):
+            st = mp.add_keyframe(k, img, p, d, force=True, yield_to=lambda: True,
+                                 min_steps=min_steps)
+            steps.append(st["steps"])
+        monkeypatch.undo()
+        return mp, calls, steps
+    _, calls_with, steps_with = run(1)
+    assert min(steps_with[1:]) >= 1
+    full = [i for i, _ in calls_with]
+    assert full == list(range(full[0], 10))          # every keyframe once the window is full
+    mp, calls, steps = run(0)
+    assert steps[1:] == [0] * 9
+    assert 0 < len(calls) <= len(calls_with) // 3 + 1, (calls, calls_with)
+    # every keyframe from the first pruning on is judged by a pruning at or after it
+    for k in range(calls[0][0], calls[-1][0] + 1):
+        assert any(i >= k >= lo for i, lo in calls), (k, calls)

@@ -86,6 +86,7 @@ class Mapper:
         self.n_deformed_gaussians = 0
         self.strategy = DensifyStrategy(m)           # densify / prune and their counts
         self.next_index = 0            # MappedKeyframe.index of the next mapped keyframe
+        self.pruned_at = 0             # next_index at the last visibility pruning
         self.last_ms = 0.0
         self.skipped_iters = 0         # steps a wall-clock budget cut (mapping.time_budget)
         self.background_iters = 0      # steps between keyframes (live: mapping.background_steps)
@@ -250,8 +251,15 @@ class Mapper:
         if lattice_steps(self.mcfg):         # lattice views set no visible set
             self.refresh_visibility([kf_id])
         self.last_mapped_ts = kf.timestamp
-        n_vis_pruned = self.strategy.visibility_prune(self) \
-            if self.strategy.enough_views(self) else 0
+        # a keyframe mapped without a step (live input waiting) changed no Gaussian but its
+        # own: its pruning (which renders every stale window view first) waits for a later
+        # keyframe, up to prune_recent_kfs - 1 of them, whose pruning still judges these
+        # Gaussians (its candidates are the newest prune_recent_kfs keyframes')
+        prune = done > 0 or self.next_index - self.pruned_at >= self.mcfg.prune_recent_kfs
+        n_vis_pruned = 0
+        if prune and self.strategy.enough_views(self):
+            n_vis_pruned = self.strategy.visibility_prune(self)
+            self.pruned_at = self.next_index
         self.last_ms = 1000 * (time.perf_counter() - t0)
         stats.update({"steps": done, "steps_skipped": b.steps - done, "new_gaussians": n_new,
                       "left_window": removed, "visibility_pruned": n_vis_pruned,
