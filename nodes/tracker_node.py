@@ -207,8 +207,9 @@ class TrackerNode(SplatNode):
         self.camera.posed(index)
 
     def _early_pose(self, index: int, stamp: float, T) -> None:
-        """A new keyframe's pose from its alignment, published before its local BA runs (the
-        refined pose and its /tf follow): the pose latency does not wait for the BA."""
+        """A frame's pose before its step ends (the refined pose and its /tf follow), so the
+        pose latency waits neither for a new keyframe's local BA (its pose from its alignment)
+        nor for the skipped frames tracked to bridge a large motion (its predicted pose)."""
         self._publish_pose(index, stamp, T, tf=False)
 
     def _skip(self, index: int, stamp: float, now: bool, frame=None) -> None:

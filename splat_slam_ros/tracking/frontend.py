@@ -96,22 +96,23 @@ class TrackerFrontend:
         ref = self.window[-1]
         was_lost = self.lost_count > 0
         pred = self.last_pose @ self.velocity
+        predicted = 0.0                         # 1: the flow was started from the prediction
         flows, fc = self._try_reference(ref, prep, not was_lost)
         if not fc.ok and not was_lost:
             # a large motion since the last tracked frame (skipped frames on live input, fast
             # motion): DIS again, pre-warped by the flow the constant-velocity pose induces
-            if self._spacing[0] is None and len(self.window) > 1:   # no step since init / loss
-                a, b = self.kfs[self.window[-2]], self.kfs[self.window[-1]]   # keyframes' motion
-                T_p = predict_pose(b.pose, se3_inverse(a.pose) @ b.pose,
-                                   (a.frame_index, b.frame_index), frame.index)
-            else:
-                T_p = predict_pose(self.last_pose, self.velocity, self._spacing, frame.index)
+            T_p = self._predict_at(frame.index)
             init = self._induced(self.kfs[ref].pose, self.kfs[ref].disp, T_p)
             fl = self._flows(self.kfs[ref].prep, prep, init)
             fc_p = self.motion.check(fl[0], fl[1])
             if fc_p.ok:
-                flows, fc, pred = fl, fc_p, T_p
-        if not fc.ok and not was_lost and gap:
+                flows, fc, pred, predicted = fl, fc_p, T_p, 1.0
+        # a gap of skipped frames and a flow that failed or is weak: a skipped frame between
+        if (not fc.ok or self._weak_flow(fc)) and not was_lost and gap:
+            if self.on_pose_estimate is not None and not bridged:
+                # the bridge takes a few frames' tracking: the predicted pose goes out first
+                self.on_pose_estimate(frame.index, float(frame.timestamp),
+                                      self._predict_at(frame.index).cpu().numpy())
             rest = self._bridge(gap)
             if rest is not None:                    # tracked again from a nearer frame
                 return self._track(frame, img, prep, rest, bridged)
@@ -141,7 +142,8 @@ class TrackerFrontend:
                      frame.index, ref, self.lost_count)
         self.lost_count = 0
         self._last_flow = (ref, f)
-        info = {"mean_flow": fc.mean_flow, "valid": fc.valid_frac, "pose_rms": pinfo.rms}
+        info = {"mean_flow": fc.mean_flow, "valid": fc.valid_frac, "pose_rms": pinfo.rms,
+                "predicted": predicted}
         since_kf = float(frame.timestamp) - self.kfs[ref].timestamp
         if self.motion.is_candidate(fc, since_kf) and ref == self.window[-1]:
             # a keyframe's pose before its local BA (not a bridged frame's: its pose was
@@ -157,6 +159,24 @@ class TrackerFrontend:
         self._add_pending(rec, frame, img, prep)
         return TrackStep(frame.index, float(frame.timestamp), False, None,
                          T.cpu().numpy().copy(), info=info)
+
+    def _predict_at(self, index: int) -> torch.Tensor:
+        """Constant-velocity pose of frame ``index``, the motion scaled to the frames since
+        the last tracked one (right after the initialisation or a loss: the last two
+        keyframes' motion)."""
+        if self._spacing[0] is None and len(self.window) > 1:   # no step since init / loss
+            a, b = self.kfs[self.window[-2]], self.kfs[self.window[-1]]
+            return predict_pose(b.pose, se3_inverse(a.pose) @ b.pose,
+                                (a.frame_index, b.frame_index), index)
+        return predict_pose(self.last_pose, self.velocity, self._spacing, index)
+
+    def _weak_flow(self, fc) -> bool:
+        """A flow that passed the check but holds only as far as when the view is leaving the
+        keyframe (confident cells below ``keyframe_urgent_valid`` x their typical fraction):
+        after a large motion it is partly wrong, and a keyframe made from it corrupts the
+        window's depth (a V1_02 render live: 67 cm after such a keyframe, 0.53 cm bridged)."""
+        m = self.motion
+        return fc.ok and fc.valid_frac < m.urgent_valid * m.typical_valid_frac
 
     def _bridge(self, gap):
         """Frames skipped since the last tracked one (live input, a busy tracker) bridge a

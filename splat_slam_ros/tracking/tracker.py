@@ -100,7 +100,8 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
         self.n_bridged = 0                          # ... (a bridge, TrackerFrontend._bridge)
         self.n_segments = 1             # initialisations (a new one after a long loss)
         self._anchor = self._before_loss = None   # a new segment's start; the motion at a loss
-        self.on_pose_estimate: Optional[Callable] = None   # (index, stamp, pose) before BA
+        # (index, stamp, pose) before a keyframe's local BA, or before a bridge (its prediction)
+        self.on_pose_estimate: Optional[Callable] = None
         self._last_flow = None          # (ref kf, flow ref -> previous frame): DIS init
         self._warm_best = None          # warm-up: the frame that moved most since the last kf
         # non-keyframes tracked against the newest keyframe: (record, prepared image); they
