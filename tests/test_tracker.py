@@ -706,7 +706,7 @@ def test_a_weak_flow_after_a_gap_is_bridged_too(v102_render, monkeypatch):
     their typical fraction) is partly wrong: a keyframe made from it corrupts the window's
     depth. Such a frame is bridged too. Every fourth frame tracked on a fast drone render
     (its first 66 frames): with the rule, frames are bridged and the ATE is less than half
-    (over 14 skip patterns the rule lowered the ATE in 12)."""
+    (over 14 skip patterns of these frames the rule lowered the ATE in 12)."""
     from splat_slam_ros.tracking import frontend
     from splat_slam_ros.tracking.tracker import Tracker
     ds, frames = v102_render
