@@ -298,9 +298,9 @@ class TrackerNode(SplatNode):
 
     def _write_outputs(self, trk, ts, P, out=None) -> List[str]:
         """trajectory_full.txt (the posed frames), and unless localizing
-        trajectory_keyframes.txt and the keyframes' part of session/ (the mapper node writes
-        its map state there): a later run can load this one's map. Into node.output_dir or
-        ``out``."""
+        trajectory_keyframes.txt, frames_skipped.txt (live input: the frames skipped on
+        arrival) and the keyframes' part of session/ (the mapper node writes its map state
+        there): a later run can load this one's map. Into node.output_dir or ``out``."""
         from splat_slam_ros.io.trajectory_io import write_tum
         out = out or self.output_dir
         if len(ts) or not self.localize:
@@ -308,6 +308,13 @@ class TrackerNode(SplatNode):
         if self.localize:
             return ["trajectory_full.txt"] if len(ts) else []
         write_tum(out / "trajectory_keyframes.txt", *trk.trajectory_keyframes())
+        files = ["trajectory_full.txt", "trajectory_keyframes.txt", "session/"]
+        if trk.skipped_at:          # splat-slam-run --skip-frames replays this tracker's work
+            from splat_slam_ros.io.trajectory_io import SKIPPED_FRAMES, write_stamps
+            write_stamps(out / SKIPPED_FRAMES, [t for _, t in trk.skipped_at],
+                         "frames the live tracker skipped on arrival (timestamp, s); "
+                         "splat-slam-run INPUT --skip-frames FILE replays them")
+            files.append(SKIPPED_FRAMES)
         from splat_slam_ros.tracking.relocalise import (published_images, save_session,
                                                         session_ids)
         images = dict(self.kf_images)
@@ -315,7 +322,7 @@ class TrackerNode(SplatNode):
             if k not in images and self._store is not None and self._store.has(f"timg{k}"):
                 images[k] = self._store.get(f"timg{k}")["image"]
         save_session(trk, published_images(trk, images), self.cfg, self.role.intrinsics, out)
-        return ["trajectory_full.txt", "trajectory_keyframes.txt", "session/"]
+        return files
 
     def _session_info(self, trk) -> Optional[dict]:
         """The loaded session's part of the launcher's metrics (node.load_map)."""

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict, deque
-from typing import Dict, Iterable, List, Optional
+from typing import Callable, Dict, Iterable, List, Optional
 
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.io.prefetch import read_frames
@@ -111,15 +111,20 @@ class Coordinator:
 
     # ------------------------------------------------------------ driver
     def run(self, frames: Iterable[Frame], progress: bool = True, total: Optional[int] = None,
-            max_frames: Optional[int] = None) -> int:
-        """Every frame, then :meth:`finalize`; returns the number of frames."""
+            max_frames: Optional[int] = None,
+            skip: Optional[Callable[[Frame], bool]] = None) -> int:
+        """Every frame, then :meth:`finalize`; returns the number of frames. ``skip(frame)``
+        true: the tracker skips it as a busy live tracker did (a live run replayed)."""
         t_start, n = time.perf_counter(), 0
 
         def postfix(k):
             return dict(kf=self.n_keyframes, lost=self.tracker.tracker.n_lost,
                         fps=f"{k / max(time.perf_counter() - t_start, 1e-9):.2f}")
         for frame in read_frames(frames, progress, total, max_frames, postfix):
-            self.on_frame(frame)
+            if skip is not None and skip(frame):
+                self.tracker.on_skip(frame)
+            else:
+                self.on_frame(frame)
             n += 1
         self.finalize()
         return n

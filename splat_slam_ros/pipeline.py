@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import itertools
 import json
+import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, Optional
+from typing import Dict, Optional, Sequence
 
 import numpy as np
 
@@ -23,11 +24,13 @@ from splat_slam_ros.evaluation.rendering import evaluate_keyframes, save_renders
 from splat_slam_ros.evaluation.run import (check_lpips_config, evaluate_lpips, evaluate_map_depth,
                                            evaluate_trajectories)
 from splat_slam_ros.io.session import remove_session
-from splat_slam_ros.io.trajectory_io import write_tum
+from splat_slam_ros.io.trajectory_io import stamp_matcher, write_tum
 from splat_slam_ros.mapping.persistence import mapper_arrays
 from splat_slam_ros.report.build import write_report
 from splat_slam_ros.report.recording import WarningRecorder
 from splat_slam_ros.tracking.relocalise import input_images, save_session, session_ids
+
+log = logging.getLogger(__name__)
 
 
 class NotInitializedError(RuntimeError):
@@ -109,12 +112,15 @@ def _write_json(path: Path, data: dict) -> None:
 
 
 def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool = True,
-        max_frames: Optional[int] = None, session=None) -> RunResult:
+        max_frames: Optional[int] = None, session=None,
+        skip_stamps: Optional[Sequence[float]] = None) -> RunResult:
     """Run the in-process pipeline over a dataset and write the standard outputs to ``out``.
 
     mode: "full" (tracking + depth + mapping), "tracking" (--tracking-only),
     "gt_mapping" (--gt-poses --gt-depth: the mapper alone on ground truth), "extend" (a full
     run that continues the loaded ``session``: :mod:`splat_slam_ros.extend`).
+    ``skip_stamps``: the tracker skips the frames at these timestamps as a busy live tracker
+    did (a live run's ``frames_skipped.txt``): the live tracker's work, replayed in process.
     Raises :class:`NotInitializedError` (after writing metrics.json) when the tracker made no
     keyframe, an extend run never relocalised, or a full run's map has no Gaussian
     (:func:`no_result_reason`); ConfigError before any work when a configured LPIPS backbone
@@ -135,7 +141,8 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
     if mode == "gt_mapping":
         _run_gt_mapping(dataset, cfg, out, progress, max_frames, result, metrics)
     else:
-        _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics, co, session)
+        _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics, co, session,
+                  skip_stamps)
     result.wall_s = time.perf_counter() - t_start
     metrics["frames"] = result.frames
     metrics["keyframes"] = result.keyframes
@@ -191,13 +198,28 @@ def _run_gt_mapping(dataset, cfg, out, progress, max_frames, result, metrics) ->
 
 
 def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics, co=None,
-              session=None) -> None:
+              session=None, skip_stamps=None) -> None:
     """``co``: the coordinator of an extend run (:func:`extend.extend_coordinator`)."""
     from splat_slam_ros import extend
     remove_session(out)                # an earlier run's session must not outlive its outputs
     if co is None:
         co = Coordinator(cfg, dataset.intrinsics, mapping=(mode == "full"))
-    result.frames = co.run(dataset, progress=progress, total=len(dataset), max_frames=max_frames)
+    skip = None
+    if skip_stamps is not None:
+        listed, replayed = stamp_matcher(skip_stamps), []
+
+        def skip(frame) -> bool:
+            if listed(float(frame.timestamp)):
+                replayed.append(frame.index)
+                return True
+            return False
+    result.frames = co.run(dataset, progress=progress, total=len(dataset), max_frames=max_frames,
+                           skip=skip)
+    if skip is not None:
+        metrics["skips_replayed"] = len(replayed)
+        if len(replayed) < len(skip_stamps):
+            log.warning("%d of the %d skipped frames listed match no frame of the input",
+                        len(skip_stamps) - len(replayed), len(skip_stamps))
     trk = co.tracker.tracker
     result.keyframes = len(trk.published)
     if mode == "extend":
@@ -211,7 +233,8 @@ def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics, co
         return
     ts_full, poses_full = trk.trajectory_full()
     write_tum(out / "trajectory_full.txt", ts_full, poses_full)
-    metrics.update(frame_counts(result.frames, 0, len(ts_full), lost=trk.n_lost))
+    metrics.update(frame_counts(result.frames, 0, len(ts_full), skipped=trk.n_skipped,
+                                lost=trk.n_lost))
     write_tum(out / "trajectory_keyframes.txt", *trk.trajectory_keyframes())
     timings = {k: co.timings.get(k, 0.0) for k in ("tracking", "loop_closure", "depth",
                                                     "mapping")}

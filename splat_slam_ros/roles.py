@@ -183,6 +183,11 @@ class TrackerRole:
             self._checkpoint(kfs, list(step.events))
         return step, Outbox(updates=list(step.events), keyframes=kfs)
 
+    def on_skip(self, frame: Frame) -> None:
+        """A frame skipped as a busy live tracker skipped it (posed between its tracked
+        neighbours, or tracked later as a bridge)."""
+        self.tracker.skip(frame.index, frame.timestamp, frame)
+
     def on_update(self, ev: UpdateEvent) -> Outbox:
         if ev.source not in self.update_sources or ev.seq <= self.loop_seq:   # ours, a replay
             return Outbox()

@@ -324,6 +324,13 @@ def test_live_topics_ctrl_c_finalises(tiny_bag, tmp_path):
     rows = [ln for ln in (out / "trajectory_full.txt").read_text().splitlines()
             if ln and not ln.startswith("#")]
     assert len(rows) == m["frames_posed"] <= m["frames_received"] - m["frames_dropped"], m
+    # the frames skipped on arrival are listed (bridges too) for splat-slam-run --skip-frames
+    if m["frames_skipped"]:
+        from splat_slam_ros.io.trajectory_io import read_stamps
+        listed = read_stamps(out / "frames_skipped.txt")
+        posed = {round(float(r.split()[0]), 4) for r in rows}
+        assert len(listed) >= m["frames_skipped"], (len(listed), m)
+        assert all(round(float(t), 4) in posed for t in listed)
     # pose latency (arrival at the tracker -> pose published) of every frame posed live
     lat = m["pose_latency_ms"]
     assert 0 < lat["frames"] <= m["frames_received"], m

@@ -76,6 +76,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "map is not changed (copied to --out)")
     p.add_argument("--format", default="auto", help="input format (see splat-slam-convert)")
     p.add_argument("--intrinsics", help="intrinsics YAML when the input has none")
+    p.add_argument("--skip-frames", metavar="FILE",
+                   help="replay a live run's tracker: the frames whose timestamps FILE lists "
+                        "(the frames_skipped.txt a live splat-slam-launch run writes) are "
+                        "skipped as the busy live tracker skipped them (posed between their "
+                        "tracked neighbours, or tracked later to bridge a large motion); the "
+                        "others are tracked. In process, so a live run's tracking is reproduced "
+                        "exactly, whatever this machine's speed")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -93,6 +100,8 @@ def _session_usage(args) -> str:
         return "--out must be another folder than --load-map (the loaded map is not changed)"
     if args.load_map and (args.gt_poses or args.gt_depth):
         return "--load-map cannot be combined with --gt-poses/--gt-depth"
+    if args.skip_frames and (args.localize or args.gt_poses or args.gt_depth):
+        return "--skip-frames replays the tracker: not with --localize or --gt-poses/--gt-depth"
     return ""
 
 
@@ -135,6 +144,10 @@ def main(argv=None) -> int:
             return 2
         overrides = parse_overrides(args.set)
         cfg = load_config(args.config, overrides, preset=args.preset)
+        skip_stamps = None
+        if args.skip_frames:
+            from splat_slam_ros.io.trajectory_io import read_stamps
+            skip_stamps = read_stamps(args.skip_frames)     # checked before any frame
         session = None
         if args.load_map:
             from splat_slam_ros.io.session import load_session
@@ -162,7 +175,8 @@ def main(argv=None) -> int:
                                    max_frames=args.max_frames)
             else:
                 res = run(ds, cfg, out, mode=mode, progress=not args.no_progress,
-                          max_frames=args.max_frames, session=session)
+                          max_frames=args.max_frames, session=session,
+                          skip_stamps=skip_stamps)
         except NotInitializedError as e:       # no result: never initialised / relocalised
             print(f"error: {e} (metrics.json in {out})", file=sys.stderr)
             return 3

@@ -111,6 +111,45 @@ def read_trajectory(path: str | Path, fmt: str = "auto",
     return ts, pose_from_tq(torch.from_numpy(tq)).numpy()
 
 
+# the frames a live tracker skipped on arrival (its output folder); splat-slam-run
+# --skip-frames replays them
+SKIPPED_FRAMES = "frames_skipped.txt"
+STAMP_TOL = 5e-4            # s: a listed stamp names the input frame this close to it
+
+
+def write_stamps(path: str | Path, stamps, header: str) -> None:
+    """One timestamp (s) per line, under a ``# header`` line."""
+    with open(path, "w") as f:
+        f.write(f"# {header}\n")
+        for t in stamps:
+            f.write(f"{float(t):.6f}\n")
+
+
+def read_stamps(path: str | Path) -> np.ndarray:
+    """Timestamps (s), one per line (``#`` comments), as :func:`write_stamps` writes them."""
+    p = Path(path)
+    if not p.is_file():
+        raise TrajectoryFormatError(f"{p}: no such file")
+    if not [ln for ln in p.read_text(errors="replace").splitlines()
+            if ln.strip() and not ln.strip().startswith("#")]:
+        return np.zeros(0)
+    rows = _numeric_rows(p)
+    if rows.shape[1] != 1:
+        raise TrajectoryFormatError(f"{p}: expected one timestamp per line, found "
+                                    f"{rows.shape[1]} columns")
+    return rows[:, 0]
+
+
+def stamp_matcher(stamps):
+    """``match(t)``: whether ``t`` is within :data:`STAMP_TOL` of one of ``stamps``."""
+    st = np.sort(np.asarray(stamps, dtype=np.float64))
+
+    def match(t: float) -> bool:
+        i = int(np.searchsorted(st, t))
+        return any(abs(st[j] - t) <= STAMP_TOL for j in (i - 1, i) if 0 <= j < len(st))
+    return match
+
+
 def write_tum(path: str | Path, timestamps, poses) -> None:
     """Write camera-to-world poses as a TUM trajectory file (what evo reads)."""
     p = Path(path)

@@ -93,6 +93,9 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
         self._spacing = (None, None)   # frame indices of the velocity's step (predict_pose)
         self.lost_count = self.n_lost = 0
         self.n_skipped = 0              # frames skip() posed without tracking (live, busy)
+        # (index, stamp) of every frame skipped on arrival, in order, bridges included (a live
+        # run's frames_skipped.txt: splat-slam-run --skip-frames replays them)
+        self.skipped_at: List[Tuple[int, float]] = []
         if tc.bridge_frames < 0:
             raise TrackingError(f"tracking.bridge_frames must be >= 0, got {tc.bridge_frames}")
         self._gap: List[Frame] = []     # skipped frames since the last tracked one (bridges)

@@ -204,6 +204,7 @@ class TrajectoryRecorder:
         (:meth:`~splat_slam_ros.tracking.frontend.TrackerFrontend._bridge`)."""
         self.n_skipped += 1
         self.records.append(FrameRecord(int(index), float(timestamp), skipped=True))
+        self.skipped_at.append((int(index), float(timestamp)))
         if frame is not None and self.initialized and self.tc.bridge_frames > 0:
             self._gap.append(frame)
             if len(self._gap) > self.tc.bridge_frames:   # thinned, spread over the gap
@@ -237,6 +238,8 @@ class TrajectoryRecorder:
             return False
         self.records.pop()
         self.n_skipped -= 1
+        if self.skipped_at and self.skipped_at[-1][0] == index:
+            self.skipped_at.pop()
         return True
 
     def _add_pending(self, rec: FrameRecord, frame, img, prep) -> None:
