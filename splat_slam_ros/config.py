@@ -122,8 +122,8 @@ class TrackingConfig:
     reloc_keyframes: int = 4             # recent keyframes tried when the last one fails
     # live input: up to this many frames skipped while the tracker was busy are kept (thinned
     # over a longer gap) until the next frame is tracked; when that frame's flow fails on the
-    # motion since the last tracked one, the skipped frame halfway is tracked first
-    # (bisection; 0 = off)
+    # motion since the last tracked one, or is weak (below keyframe_urgent_valid x the typical
+    # confident fraction), the skipped frame halfway is tracked first (bisection; 0 = off)
     bridge_frames: int = 16
     filler_iters: int = 3                # pose-only iterations per non-keyframe at the end
     max_stored_flows: int = 20000        # newest frames whose flow is kept for that refinement

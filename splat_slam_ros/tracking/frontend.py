@@ -109,8 +109,10 @@ class TrackerFrontend:
                 flows, fc, pred, predicted = fl, fc_p, T_p, 1.0
         # a gap of skipped frames and a flow that failed or is weak: a skipped frame between
         if (not fc.ok or self._weak_flow(fc)) and not was_lost and gap:
-            if self.on_pose_estimate is not None and not bridged:
+            if self.on_pose_estimate is not None and not bridged and \
+                    self._announced != frame.index:
                 # the bridge takes a few frames' tracking: the predicted pose goes out first
+                self._announced = frame.index
                 self.on_pose_estimate(frame.index, float(frame.timestamp),
                                       self._predict_at(frame.index).cpu().numpy())
             rest = self._bridge(gap)

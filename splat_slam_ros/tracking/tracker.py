@@ -101,6 +101,7 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
         self._gap: List[Frame] = []     # skipped frames since the last tracked one (bridges)
         self._bridged_steps: List[TrackStep] = []   # skipped frames tracked after all ...
         self.n_bridged = 0                          # ... (a bridge, TrackerFrontend._bridge)
+        self._announced = None          # the frame whose predicted pose went out before a bridge
         self.n_segments = 1             # initialisations (a new one after a long loss)
         self._anchor = self._before_loss = None   # a new segment's start; the motion at a loss
         # (index, stamp, pose) before a keyframe's local BA, or before a bridge (its prediction)
