@@ -24,7 +24,8 @@ from splat_slam_ros.evaluation.rendering import evaluate_keyframes, save_renders
 from splat_slam_ros.evaluation.run import (check_lpips_config, evaluate_lpips, evaluate_map_depth,
                                            evaluate_trajectories)
 from splat_slam_ros.io.session import remove_session
-from splat_slam_ros.io.trajectory_io import stamp_matcher, write_tum
+from splat_slam_ros.io.dataset_base import associate
+from splat_slam_ros.io.trajectory_io import STAMP_TOL, write_tum
 from splat_slam_ros.mapping.persistence import mapper_arrays
 from splat_slam_ros.report.build import write_report
 from splat_slam_ros.report.recording import WarningRecorder
@@ -206,10 +207,10 @@ def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics, co
         co = Coordinator(cfg, dataset.intrinsics, mapping=(mode == "full"))
     skip = None
     if skip_stamps is not None:
-        listed, replayed = stamp_matcher(skip_stamps), []
+        listed, replayed = np.sort(np.asarray(skip_stamps, dtype=np.float64)), []
 
         def skip(frame) -> bool:
-            if listed(float(frame.timestamp)):
+            if associate([frame.timestamp], listed, STAMP_TOL)[0] is not None:
                 replayed.append(frame.index)
                 return True
             return False

@@ -24,7 +24,7 @@ class TrajectoryFormatError(ValueError):
 FORMATS = ("tum", "kitti", "euroc")
 
 
-def _numeric_rows(path: Path, delimiter=None):
+def _numeric_rows(path: Path, delimiter=None, empty_ok: bool = False):
     rows = []
     for lineno, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
         s = line.strip()
@@ -37,6 +37,8 @@ def _numeric_rows(path: Path, delimiter=None):
             raise TrajectoryFormatError(
                 f"{path}:{lineno}: not a numeric trajectory row: {s[:80]!r}") from None
     if not rows:
+        if empty_ok:
+            return np.zeros((0, 0))
         raise TrajectoryFormatError(f"{path}: no trajectory rows found")
     widths = {len(r) for r in rows}
     if len(widths) != 1:
@@ -130,24 +132,14 @@ def read_stamps(path: str | Path) -> np.ndarray:
     p = Path(path)
     if not p.is_file():
         raise TrajectoryFormatError(f"{p}: no such file")
-    if not [ln for ln in p.read_text(errors="replace").splitlines()
-            if ln.strip() and not ln.strip().startswith("#")]:
+    rows = _numeric_rows(p, empty_ok=True)
+    if rows.size == 0:
         return np.zeros(0)
-    rows = _numeric_rows(p)
     if rows.shape[1] != 1:
         raise TrajectoryFormatError(f"{p}: expected one timestamp per line, found "
                                     f"{rows.shape[1]} columns")
     return rows[:, 0]
 
-
-def stamp_matcher(stamps):
-    """``match(t)``: whether ``t`` is within :data:`STAMP_TOL` of one of ``stamps``."""
-    st = np.sort(np.asarray(stamps, dtype=np.float64))
-
-    def match(t: float) -> bool:
-        i = int(np.searchsorted(st, t))
-        return any(abs(st[j] - t) <= STAMP_TOL for j in (i - 1, i) if 0 <= j < len(st))
-    return match
 
 
 def write_tum(path: str | Path, timestamps, poses) -> None:

@@ -108,7 +108,7 @@ class TrackerFrontend:
             if fc_p.ok:
                 flows, fc, pred, predicted = fl, fc_p, T_p, 1.0
         # a gap of skipped frames and a flow that failed or is weak: a skipped frame between
-        if (not fc.ok or self._weak_flow(fc)) and not was_lost and gap:
+        if gap and not was_lost and (not fc.ok or self._weak_flow(fc)):
             if self.on_pose_estimate is not None and not bridged and \
                     self._announced != frame.index:
                 # the bridge takes a few frames' tracking: the predicted pose goes out first
@@ -190,14 +190,15 @@ class TrackerFrontend:
         mid = len(gap) // 2
         f = gap[mid]
         n_before = self.n_bridged
-        pos = self._take_skipped(f.index)
+        pos, skipped = self._take_skipped(f.index)
         n0 = len(self.records)
         img = self.pre(f.image)
         step = None
         if not image_is_degenerate(img):
             step = self._track(f, img, self.flow.prepare(img), gap[:mid], bridged=True)
         if step is None:                    # not aligned: it stays a skipped frame
-            self._put_skipped(pos, f)
+            self.records.insert(pos, skipped)
+            self.n_skipped += 1
         else:
             self._move_record(f.index, n0, pos)
             self.n_bridged += 1

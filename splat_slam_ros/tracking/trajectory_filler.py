@@ -211,18 +211,13 @@ class TrajectoryRecorder:
                 self._gap = self._gap[::2]
         return self.predict()
 
-    def _take_skipped(self, index: int) -> int:
-        """Remove the skipped record of frame ``index`` (to be tracked): its position."""
+    def _take_skipped(self, index: int) -> Tuple[int, FrameRecord]:
+        """Remove the skipped record of frame ``index`` (to be tracked): its position and
+        the record."""
         pos = next(n for n in range(len(self.records) - 1, -1, -1)
                    if self.records[n].index == index and self.records[n].skipped)
-        del self.records[pos]
         self.n_skipped -= 1
-        return pos
-
-    def _put_skipped(self, pos: int, frame: Frame) -> None:
-        self.records.insert(pos, FrameRecord(int(frame.index), float(frame.timestamp),
-                                             skipped=True))
-        self.n_skipped += 1
+        return pos, self.records.pop(pos)
 
     def _move_record(self, index: int, start: int, pos: int) -> None:
         """The record of frame ``index`` appended at ``start`` or later goes to ``pos`` (the
