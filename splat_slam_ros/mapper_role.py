@@ -25,6 +25,23 @@ from splat_slam_ros.roles import Outbox, ack
 from splat_slam_ros.types import LOOP_SEQ_START, Intrinsics, KeyframeData, ProxyDepth, UpdateEvent
 
 
+def write_map_outputs(mapper, cfg: SlamConfig, directory: Path, progress: bool = False) -> dict:
+    """map.ply, map_mesh.ply (``mapping.mesh``), renders/ and the map's metrics of a run (the
+    in-process pipeline and the mapper node): each keyframe is rendered once for the mesh and
+    the metrics."""
+    d = Path(directory)
+    mapper.save_ply(d / "map.ply")
+    renders = mapper.keyframe_renders()
+    metrics: dict = {}
+    if cfg.mapping.mesh:
+        # Open3D takes 1.5 s to import: loaded when a mesh is written, not by every stage
+        from splat_slam_ros.mapping.mesh import map_mesh_output
+        metrics["mesh"] = map_mesh_output(mapper, d / "map_mesh.ply", progress, renders)
+    metrics.update(evaluate_keyframes(mapper, d / "renders", renders=renders))
+    metrics["map"] = mapper.stats()
+    return metrics
+
+
 class MapperRole:
     """Keyframes + proxy depths -> Gaussian map (Eq. 11), deformed by every newer depth (§3.2)."""
     name = "mapper"
@@ -95,16 +112,9 @@ class MapperRole:
         tracker writes the run's trajectories; else also trajectory_keyframes + metrics.json)."""
         d = Path(directory)
         d.mkdir(parents=True, exist_ok=True)
-        metrics: dict = {}
         if self.mapper is None:
-            return metrics
-        self.mapper.save_ply(d / "map.ply")
-        if self.cfg.mapping.mesh:
-            # Open3D takes 1.5 s to import: loaded when a mesh is written, not by every stage
-            from splat_slam_ros.mapping.mesh import map_mesh_output
-            metrics["mesh"] = map_mesh_output(self.mapper, d / "map_mesh.ply")
-        metrics.update(evaluate_keyframes(self.mapper, d / "renders"))
-        metrics["map"] = self.mapper.stats()
+            return {}
+        metrics = write_map_outputs(self.mapper, self.cfg, d)
         if not final:
             write_tum(d / "trajectory_keyframes.txt", *self.mapper.keyframe_trajectory())
         (d / ("mapper_metrics.json" if final else "metrics.json")).write_text(

@@ -20,10 +20,11 @@ import numpy as np
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.coordinator import Coordinator
 from splat_slam_ros.evaluation.map_sequence import map_sequence
-from splat_slam_ros.evaluation.rendering import evaluate_keyframes, save_renders
+from splat_slam_ros.evaluation.rendering import save_renders
 from splat_slam_ros.evaluation.run import (check_lpips_config, evaluate_lpips, evaluate_map_depth,
                                            evaluate_trajectories)
 from splat_slam_ros.io.session import remove_session
+from splat_slam_ros.mapper_role import write_map_outputs
 from splat_slam_ros.io.dataset_base import associate
 from splat_slam_ros.io.trajectory_io import STAMP_TOL, write_tum
 from splat_slam_ros.mapping.persistence import mapper_arrays
@@ -246,10 +247,7 @@ def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics, co
     result.events = len(co.updates)
     mp = co.mapper.mapper if co.mapper is not None else None
     if mp is not None:
-        mp.save_ply(out / "map.ply")
-        _mesh(mp, cfg, out, progress, metrics)
-        metrics.update(evaluate_keyframes(mp, out / "renders"))
-        metrics["map"] = mp.stats()
+        metrics.update(write_map_outputs(mp, cfg, out, progress))
     # the session a later run loads (--load-map OUT --localize): after map.ply, which it sums
     images = input_images(trk, itertools.islice(dataset, max_frames), session_ids(trk))
     save_session(trk, images, cfg, dataset.intrinsics, out,

@@ -201,6 +201,38 @@ def test_map_mesh_output_small_map_and_failures(tmp_path):
     assert not (tmp_path / "none.ply").exists()
 
 
+def test_run_outputs_share_one_render_per_keyframe(tmp_path, monkeypatch):
+    """write_map_outputs renders each keyframe once for the mesh and the metrics, with the
+    same mesh and metrics as when each renders its own."""
+    from splat_slam_ros.evaluation.rendering import evaluate_keyframes
+    from splat_slam_ros.mapper_role import write_map_outputs
+    cfg = SlamConfig()
+    cfg.mapping = MappingConfig.fast(iters_first=30, iters_per_keyframe=5, downsample_first=2)
+    mp = Mapper(cfg, K)
+    img = np.full((K.height, K.width, 3), 120, np.uint8)
+    img[:, ::8] = 230
+    for k, tx in enumerate((0.0, 0.1)):
+        mp.add_keyframe(k, img, pose(tx=tx), np.full((K.height, K.width), 2.0, np.float32),
+                        force=True)
+    own_mesh = map_mesh_output(mp, tmp_path / "own.ply")
+    own = evaluate_keyframes(mp, tmp_path / "own_renders")
+    calls = []
+    raster = mp._raster
+    monkeypatch.setattr(mp, "_raster", lambda *a, **k: calls.append(1) or raster(*a, **k))
+    out = tmp_path / "run"
+    out.mkdir()
+    m = write_map_outputs(mp, cfg, out)
+    assert len(calls) == len(mp.keyframes) == 2
+    assert m["psnr"] == own["psnr"] and m["ssim"] == own["ssim"] and m["views"] == 2
+    assert (m["mesh"]["vertices"], m["mesh"]["faces"]) == (own_mesh["vertices"],
+                                                          own_mesh["faces"])
+    assert (out / "map.ply").is_file() and (out / "map_mesh.ply").is_file()
+    for name in ("kf_00000.png", "kf_00001_depth.png"):
+        assert np.array_equal(cv2.imread(str(out / "renders" / name), cv2.IMREAD_UNCHANGED),
+                              cv2.imread(str(tmp_path / "own_renders" / name),
+                                         cv2.IMREAD_UNCHANGED))
+
+
 # -------------------------------------------------------------------- errors
 def test_mesh_file_errors_and_cli(tmp_path, capsys):
     with pytest.raises(MeshError, match="not found"):

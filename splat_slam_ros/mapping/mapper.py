@@ -20,7 +20,7 @@ state as arrays and back is persistence.py's.
 from __future__ import annotations
 
 import time
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -43,6 +43,14 @@ from splat_slam_ros.mapping.rasterizer import select_backend
 from splat_slam_ros.mapping.rasterizer.projection import LOW_PASS
 from splat_slam_ros.runtime import resolve_device
 from splat_slam_ros.types import Intrinsics
+
+
+class KeyframeRender(NamedTuple):
+    """One keyframe's render: colour (H, W, 3) without exposure, alpha-blended depth and the
+    accumulated opacity (H, W)."""
+    rgb: torch.Tensor
+    depth: torch.Tensor
+    alpha: torch.Tensor
 
 
 class Mapper:
@@ -139,12 +147,33 @@ class Mapper:
             raise MapError(f"render pose must be 4x4, got {pose.shape}")
         if len(self.map) == 0:
             return np.zeros((H, W, 3), np.uint8), np.zeros((H, W), np.float32)
-        out = self._raster(pose, intr, W, H)
+        return self.exposed(self._raster(pose, intr, W, H), kf_id, intr)
+
+    @torch.no_grad()
+    def exposed(self, out, kf_id: Optional[int] = None,
+                intr=None) -> Tuple[np.ndarray, np.ndarray]:
+        """(rgb uint8, depth float32) of a render ``out`` (its rgb and depth), through keyframe
+        ``kf_id``'s exposure when given (intrinsics ``intr``: the mapper's by default)."""
         rgb = out.rgb
         if kf_id is not None and kf_id in self.keyframes:
             rgb = self.expose(rgb, self.keyframes[kf_id], intr)
         rgb = (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
         return rgb, out.depth.float().cpu().numpy()
+
+    @torch.no_grad()
+    def keyframe_renders(self) -> Dict[int, KeyframeRender]:
+        """Every mapped keyframe rendered once at its pose (the mapper's size, no exposure):
+        the end of a run's keyframe metrics and mesh share them."""
+        renders = {}
+        for k, kf in sorted(self.keyframes.items()):
+            if len(self.map) == 0:          # as render(): an empty map renders empty
+                z = torch.zeros(self.H, self.W, device=self.device)
+                renders[k] = KeyframeRender(torch.zeros(self.H, self.W, 3, device=self.device),
+                                            z, z)
+                continue
+            out = self._raster(kf.pose)
+            renders[k] = KeyframeRender(out.rgb, out.depth, out.alpha)
+        return renders
 
     @torch.no_grad()
     def coverage(self, pose) -> float:

@@ -148,12 +148,14 @@ def fuse_frames(frames: Iterable, K, voxel_m: float = 0.0, trunc_voxels: float =
 
 # ------------------------------------------------------------ from the map
 @torch.no_grad()
-def render_keyframe_views(mapper, min_alpha: float = 0.5):
+def render_keyframe_views(mapper, min_alpha: float = 0.5, renders=None):
     """Per mapped keyframe: (rgb uint8, depth float32 with 0 where alpha < ``min_alpha``,
-    pose). Depth is the alpha-blended depth divided by alpha (the surface depth)."""
+    pose). Depth is the alpha-blended depth divided by alpha (the surface depth).
+    ``renders``: :meth:`Mapper.keyframe_renders`, rendered here when not given."""
     views = []
-    for _, kf in sorted(mapper.keyframes.items()):
-        out = mapper._raster(kf.pose)
+    renders = mapper.keyframe_renders() if renders is None else renders
+    for k, kf in sorted(mapper.keyframes.items()):
+        out = renders[k]
         a = out.alpha.float()
         d = torch.where(a > max(min_alpha, 1e-6), out.depth.float() / a.clamp_min(1e-6),
                         torch.zeros_like(a))
@@ -162,15 +164,17 @@ def render_keyframe_views(mapper, min_alpha: float = 0.5):
     return views
 
 
-def map_mesh(mapper, progress: bool = False) -> Tuple[o3d.geometry.TriangleMesh, dict]:
-    """Mesh of the Gaussian map: rendered depth + colour at every keyframe pose, TSDF fusion
-    with the ``mapping.mesh_*`` settings. Returns (mesh, info)."""
+def map_mesh(mapper, progress: bool = False,
+             renders=None) -> Tuple[o3d.geometry.TriangleMesh, dict]:
+    """Mesh of the Gaussian map: rendered depth + colour at every keyframe pose (``renders``:
+    :meth:`Mapper.keyframe_renders` when already made), TSDF fusion with the ``mapping.mesh_*``
+    settings. Returns (mesh, info)."""
     m = mapper.mcfg
     check_settings(m)
     if not mapper.keyframes or len(mapper.map) == 0:
         raise MeshError("the map is empty: no keyframes or Gaussians to mesh")
     t0 = time.perf_counter()
-    views = render_keyframe_views(mapper, m.mesh_min_alpha)
+    views = render_keyframe_views(mapper, m.mesh_min_alpha, renders)
     voxel = float(m.mesh_voxel_m) or auto_voxel([torch.from_numpy(v[1]) for v in views])
     trunc = voxel * float(m.mesh_trunc_voxels)
     mesh = fuse_views(views, (*mapper.intr, mapper.W, mapper.H), voxel, trunc,
@@ -201,9 +205,9 @@ def load_mesh(path) -> o3d.geometry.TriangleMesh:
     return mesh
 
 
-def write_map_mesh(mapper, path, progress: bool = False) -> dict:
+def write_map_mesh(mapper, path, progress: bool = False, renders=None) -> dict:
     """``map_mesh.ply`` of the map at ``path``; returns the info dict (with its file name)."""
-    mesh, info = map_mesh(mapper, progress=progress)
+    mesh, info = map_mesh(mapper, progress=progress, renders=renders)
     if info["faces"] == 0:
         raise MeshError("TSDF fusion produced no surface (check mapping.mesh_voxel_m)")
     save_mesh(path, mesh)
@@ -211,13 +215,13 @@ def write_map_mesh(mapper, path, progress: bool = False) -> dict:
     return info
 
 
-def map_mesh_output(mapper, path, progress: bool = False) -> dict:
+def map_mesh_output(mapper, path, progress: bool = False, renders=None) -> dict:
     """``write_map_mesh`` for the end of a run / the save service: a map that yields no mesh
     (e.g. nothing opaque rendered) is reported as ``{"error": ...}`` and logged, so the run's
     other outputs are still written. Invalid ``mapping.mesh_*`` settings still raise."""
     check_settings(mapper.mcfg)
     try:
-        return write_map_mesh(mapper, path, progress=progress)
+        return write_map_mesh(mapper, path, progress=progress, renders=renders)
     except MeshError as e:
         log.warning("map_mesh.ply not written: %s", e)
         return {"error": str(e)}
