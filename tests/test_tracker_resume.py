@@ -393,3 +393,26 @@ def test_checkpoint_packs_one_record_per_checkpoint_and_bounded_disk(tmp_path):
     for key, v in version.items():                      # the newest version of every item
         assert int(again.read(st, key)["v"][0]) == v
     assert set(st.names()) == set(again.size)
+
+
+def test_skipped_frames_survive_a_restart(tmp_path):
+    """A busy live tracker's skips (frames_skipped.txt, splat-slam-run --skip-frames) and
+    its skipped / bridged counts are in the checkpoint: a restart keeps the earlier ones."""
+    frames, _ = sequence()
+    cfg = small_cfg()
+    store_dir = tmp_path / "tracker"
+    a = TrackerRole(cfg, INTR, False, store=KeyframeStore(store_dir))
+    skipped = []
+    for f in frames[:31]:
+        if f.index > 12 and f.index % 5 == 0:
+            a.on_skip(f)
+            skipped.append((f.index, f.timestamp))
+        else:
+            a.on_frame(f)
+    a._checkpoint()
+    before = (list(a.tracker.skipped_at), a.tracker.n_skipped, a.tracker.n_bridged)
+    assert before[0] == skipped and before[1] + before[2] == len(skipped) > 0
+    del a
+    b = TrackerRole(cfg, INTR, False, store=KeyframeStore(store_dir))
+    assert b.resumed
+    assert (b.tracker.skipped_at, b.tracker.n_skipped, b.tracker.n_bridged) == before

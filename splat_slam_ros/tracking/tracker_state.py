@@ -273,6 +273,10 @@ class TrackerCheckpoint:
                 "trk_published": sorted(int(k) for k in trk.published),
                 "trk_initialized": bool(trk.initialized), "trk_lost_count": int(trk.lost_count),
                 "trk_n_lost": int(trk.n_lost), "trk_records": self._n_records,
+                # frames skipped (live, busy) and how many of them bridges tracked after all:
+                # frames_skipped.txt lists every skip of the run, also after a restart
+                "trk_n_skipped": int(trk.n_skipped), "trk_n_bridged": int(trk.n_bridged),
+                "trk_skipped_at": [[int(i), float(t)] for i, t in trk.skipped_at],
                 "trk_segments": int(trk.n_segments),       # a new segment's start (warm-up)
                 "trk_anchor": None if trk._anchor is None else
                 [trk._anchor[0].cpu().numpy().tolist(), float(trk._anchor[1])],
@@ -328,6 +332,9 @@ class TrackerCheckpoint:
         trk.next_kf = int(m["trk_next_kf"])
         trk.initialized = bool(m["trk_initialized"])
         trk.lost_count, trk.n_lost = int(m["trk_lost_count"]), int(m["trk_n_lost"])
+        trk.n_skipped, trk.n_bridged = (int(m.get(k, 0)) for k in ("trk_n_skipped",
+                                                                     "trk_n_bridged"))
+        trk.skipped_at = [(int(i), float(t)) for i, t in m.get("trk_skipped_at", [])]
         trk.n_segments, a = int(m.get("trk_segments", 1)), m.get("trk_anchor")
         trk._anchor = None if a is None else (
             torch.as_tensor(a[0], dtype=torch.float64, device=dev), float(a[1]))
