@@ -25,6 +25,17 @@ from splat_slam_ros.roles import Outbox, ack
 from splat_slam_ros.types import LOOP_SEQ_START, Intrinsics, KeyframeData, ProxyDepth, UpdateEvent
 
 
+def write_mesh(mapper, cfg: SlamConfig, directory: Path, metrics: dict, progress: bool = False,
+               renders=None) -> None:
+    """``map_mesh.ply`` when ``mapping.mesh`` (its info in ``metrics["mesh"]``); ``renders``:
+    :meth:`Mapper.keyframe_renders` when already made."""
+    if cfg.mapping.mesh:
+        # Open3D takes 1.5 s to import: loaded when a mesh is written, not by every stage
+        from splat_slam_ros.mapping.mesh import map_mesh_output
+        metrics["mesh"] = map_mesh_output(mapper, Path(directory) / "map_mesh.ply", progress,
+                                          renders)
+
+
 def write_map_outputs(mapper, cfg: SlamConfig, directory: Path, progress: bool = False) -> dict:
     """map.ply, map_mesh.ply (``mapping.mesh``), renders/ and the map's metrics of a run (the
     in-process pipeline and the mapper node): each keyframe is rendered once for the mesh and
@@ -33,10 +44,7 @@ def write_map_outputs(mapper, cfg: SlamConfig, directory: Path, progress: bool =
     mapper.save_ply(d / "map.ply")
     renders = mapper.keyframe_renders()
     metrics: dict = {}
-    if cfg.mapping.mesh:
-        # Open3D takes 1.5 s to import: loaded when a mesh is written, not by every stage
-        from splat_slam_ros.mapping.mesh import map_mesh_output
-        metrics["mesh"] = map_mesh_output(mapper, d / "map_mesh.ply", progress, renders)
+    write_mesh(mapper, cfg, d, metrics, progress, renders)
     metrics.update(evaluate_keyframes(mapper, d / "renders", renders=renders))
     metrics["map"] = mapper.stats()
     return metrics

@@ -24,9 +24,9 @@ from splat_slam_ros.evaluation.rendering import save_renders
 from splat_slam_ros.evaluation.run import (check_lpips_config, evaluate_lpips, evaluate_map_depth,
                                            evaluate_trajectories)
 from splat_slam_ros.io.session import remove_session
-from splat_slam_ros.mapper_role import write_map_outputs
 from splat_slam_ros.io.dataset_base import associate
 from splat_slam_ros.io.trajectory_io import STAMP_TOL, write_tum
+from splat_slam_ros.mapper_role import write_map_outputs, write_mesh
 from splat_slam_ros.mapping.persistence import mapper_arrays
 from splat_slam_ros.report.build import write_report
 from splat_slam_ros.report.recording import WarningRecorder
@@ -176,19 +176,12 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
     return result
 
 
-def _mesh(mapper, cfg, out: Path, progress: bool, metrics: dict) -> None:
-    if cfg.mapping.mesh:
-        # Open3D takes 1.5 s to import: loaded when a mesh is written (not for tracking only)
-        from splat_slam_ros.mapping.mesh import map_mesh_output
-        metrics["mesh"] = map_mesh_output(mapper, out / "map_mesh.ply", progress)
-
-
 def _run_gt_mapping(dataset, cfg, out, progress, max_frames, result, metrics) -> None:
     frames = (f for i, f in enumerate(dataset) if max_frames is None or i < max_frames)
     mapper, m = map_sequence(frames, cfg, dataset.intrinsics, use_gt_depth=True,
                              progress=progress)
     mapper.save_ply(out / "map.ply")
-    _mesh(mapper, cfg, out, progress, metrics)
+    write_mesh(mapper, cfg, out, metrics, progress)
     metrics.update(m)
     save_renders(mapper, out / "renders")
     gt = dataset.gt_trajectory()

@@ -141,7 +141,6 @@ def read_stamps(path: str | Path) -> np.ndarray:
     return rows[:, 0]
 
 
-
 def write_tum(path: str | Path, timestamps, poses) -> None:
     """Write camera-to-world poses as a TUM trajectory file (what evo reads)."""
     p = Path(path)

@@ -164,13 +164,12 @@ class Mapper:
     def keyframe_renders(self) -> Dict[int, KeyframeRender]:
         """Every mapped keyframe rendered once at its pose (the mapper's size, no exposure):
         the end of a run's keyframe metrics and mesh share them."""
+        if len(self.map) == 0:              # as render(): an empty map renders empty
+            z = torch.zeros(self.H, self.W, device=self.device)
+            empty = KeyframeRender(torch.zeros(self.H, self.W, 3, device=self.device), z, z)
+            return {k: empty for k in sorted(self.keyframes)}
         renders = {}
         for k, kf in sorted(self.keyframes.items()):
-            if len(self.map) == 0:          # as render(): an empty map renders empty
-                z = torch.zeros(self.H, self.W, device=self.device)
-                renders[k] = KeyframeRender(torch.zeros(self.H, self.W, 3, device=self.device),
-                                            z, z)
-                continue
             out = self._raster(kf.pose)
             renders[k] = KeyframeRender(out.rgb, out.depth, out.alpha)
         return renders
