@@ -453,7 +453,7 @@ def test_the_newest_keyframe_can_keep_full_resolution_steps(scene, monkeypatch):
     real = mapper_mod.Mapper._raster
 
     def spy(self, pose, intr=None, width=None, height=None, **kw):
-        if "means" in kw and kw["means"] is not None:             # a training render
+        if kw.get("attrs") is not None:             # a training render
             sizes.append(width or self.W)
         return real(self, pose, intr, width, height, **kw)
     monkeypatch.setattr(mapper_mod.Mapper, "_raster", spy)

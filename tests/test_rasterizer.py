@@ -432,3 +432,57 @@ def test_gsplat_backend_matches_reference():
     b, _ = render(cuda, "torch")
     assert rel(a.rgb.cpu(), b.rgb.cpu()) < 1e-2
     assert rel(a.depth.cpu(), b.depth.cpu()) < 1e-2
+
+
+# ------------------------------------------------------------------ view loss
+@pytest.mark.parametrize("vignetting", [True, False])
+@pytest.mark.parametrize("weights", ["mask", "float"])
+@pytest.mark.parametrize("n", [1, 2])
+def test_fused_view_loss_matches_the_torch_loss(ext, vignetting, weights, n):
+    """``optimise.fused_view_loss`` (C++, one pass each way) == ``optimise.view_loss`` (torch):
+    value and gradients w.r.t. the render, the exposure and the vignetting; full views and
+    lattice (strided) targets, bool masks and float weights, with and without vignetting."""
+    import numpy as np
+    from types import SimpleNamespace
+
+    from splat_slam_ros.config import MappingConfig
+    from splat_slam_ros.mapping.camera_model import CameraModel
+    from splat_slam_ros.mapping.keyframe_inputs import MappedKeyframe, lattice_view
+    from splat_slam_ros.mapping.optimise import fused_view_loss, lattice, view_loss
+
+    g = torch.Generator().manual_seed(3 + n)
+    cam = CameraModel(MappingConfig(vignetting=vignetting), "cpu")
+    with torch.no_grad():                  # a falloff that is clamped at the far corners
+        cam.vignette += torch.tensor([-0.6, -1.2]) if vignetting else 0.0
+    depth = torch.rand(H, W, generator=g) + 0.5
+    valid = torch.rand(H, W, generator=g) > 0.3
+    kf = MappedKeyframe(
+        kf_id=4, index=1, timestamp=0.0, pose=np.eye(4),
+        image=torch.randint(0, 256, (H, W, 3), generator=g, dtype=torch.uint8),
+        depth=torch.where(valid, depth, torch.zeros(())), valid=valid,
+        exposure=torch.tensor([0.2, -0.05], requires_grad=True),
+        weight=(torch.rand(H, W, generator=g) * valid) if weights == "float" else None)
+    intr = (0.9 * W, 0.85 * W, W / 2 - 0.3, H / 2 + 0.2)
+    h, w = H, W
+    if n > 1:
+        intr, w, h = lattice(intr, W, H, n, 1, 0)
+        kf = lattice_view(kf, n, 1, 0)
+    results = []
+    for fused in (False, True):
+        rgb = torch.rand(h, w, 3, generator=torch.Generator().manual_seed(9)).requires_grad_()
+        d = (torch.rand(h, w, generator=torch.Generator().manual_seed(8)) + 0.5).requires_grad_()
+        out = SimpleNamespace(rgb=rgb, depth=d)
+        kf.exposure.grad = None
+        cam.vignette.grad = None
+        loss = (fused_view_loss(kf, out, cam, intr, 0.9) if fused else
+                view_loss(kf, out, lambda c, k: cam.expose(c, k, intr), 0.9))
+        (3.0 * loss).backward()
+        results.append((loss.detach(), rgb.grad, d.grad, kf.exposure.grad,
+                        cam.vignette.grad if vignetting else torch.zeros(2)))
+    names = ("loss", "d rgb", "d depth", "d exposure", "d vignetting")
+    for name, a, b in zip(names, results[1], results[0]):
+        assert a.shape == b.shape, name
+        assert rel(a, b) < 1e-5, (name, rel(a, b))
+    assert results[1][2].abs().sum() > 0 and results[1][3].abs().min() > 0
+    if vignetting:
+        assert results[1][4].abs().min() > 0

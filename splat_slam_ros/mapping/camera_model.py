@@ -33,17 +33,22 @@ class CameraModel:
         return rgb * kf.exposure[0].exp() + kf.exposure[1]      # a_k C_k + b_k (Eq. 11)
 
     def vignetting(self, H: int, W: int, intr) -> torch.Tensor:
-        """(H, W, 1) radial falloff 1 + v1 r^2 + v2 r^4, r = distance from the principal
-        point / half the image diagonal (the same at any render size)."""
+        """(H, W, 1) radial falloff 1 + v1 r^2 + v2 r^4 (:meth:`r2`)."""
+        r2 = self.r2(H, W, intr)[..., None]
+        v = self.vignette
+        return (1.0 + v[0] * r2 + v[1] * r2 * r2).clamp_min(0.1)
+
+    def r2(self, H: int, W: int, intr) -> torch.Tensor:
+        """(H, W) squared distance from the principal point / half the image diagonal (the
+        same at any render size), cached per size and principal point."""
         key = (H, W, *intr[2:])
         r2 = self._r2.get(key)
         if r2 is None:
             ys = torch.arange(H, dtype=torch.float32, device=self.device)[:, None]
             xs = torch.arange(W, dtype=torch.float32, device=self.device)[None, :]
             r2 = ((xs - intr[2]) ** 2 + (ys - intr[3]) ** 2) / (0.25 * (W * W + H * H))
-            r2 = self._r2.setdefault(key, r2[..., None])
-        v = self.vignette
-        return (1.0 + v[0] * r2 + v[1] * r2 * r2).clamp_min(0.1)
+            r2 = self._r2.setdefault(key, r2.contiguous())
+        return r2
 
     def add_keyframe(self, kf: MappedKeyframe) -> None:
         """A mapped keyframe's exposure (Eq. 11 affine a, b) joins the optimiser, except for

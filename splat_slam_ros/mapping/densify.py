@@ -8,13 +8,12 @@ keyframes see (visibility pruning). It keeps the counts of what it added and rem
 """
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from typing import Tuple
 
 import torch
 
 from splat_slam_ros.geometry import quat_to_matrix
-from splat_slam_ros.mapping.keyframe_inputs import MappedKeyframe
-from splat_slam_ros.mapping.optimise import lattice_steps, viewmat
+from splat_slam_ros.mapping.optimise import lattice_steps
 
 
 class DensifyStrategy:
@@ -40,23 +39,10 @@ class DensifyStrategy:
             mp.map.reset_densify_stats()
 
     @torch.no_grad()
-    def accumulate(self, mp, kf: MappedKeyframe, radii: torch.Tensor,
-                   grad2d: Optional[torch.Tensor] = None,
-                   grad3d: Optional[torch.Tensor] = None) -> None:
-        """3DGS view-space positional gradient of one view, in NDC units (pixel x W/2).
-
-        From the projected centres' gradient when the rasterizer exposes it; otherwise from
-        the 3D mean gradient: a pixel shift (du, dv) of the centre is the camera-frame move
-        (du z / fx, dv z / fy, 0), so dL/du = (z / fx) (R_cw dL/dmu)_x."""
-        if grad2d is not None:
-            gu, gv = grad2d[:, 0], grad2d[:, 1]
-        else:
-            V = viewmat(kf.pose, mp.device)
-            R, t = V[:3, :3], V[:3, 3]
-            z = (mp.map.means.detach() @ R.T + t)[:, 2].clamp_min(1e-6)
-            g = grad3d @ R.T
-            gu = g[:, 0] * z / mp.intr[0]
-            gv = g[:, 1] * z / mp.intr[1]
+    def accumulate(self, mp, radii: torch.Tensor, grad2d: torch.Tensor) -> None:
+        """3DGS view-space positional gradient of one view (``grad2d``: the projected
+        centres' gradient, pixels), in NDC units (pixel x W/2)."""
+        gu, gv = grad2d[:, 0], grad2d[:, 1]
         gu = gu * 0.5 * mp.W
         gv = gv * 0.5 * mp.H
         seen = radii > 0

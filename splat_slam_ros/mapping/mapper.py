@@ -117,11 +117,10 @@ class Mapper:
         return self.camera.vignette
 
     # ================================================================ render
-    def _raster(self, pose, intr=None, width=None, height=None, means=None, attrs=None,
+    def _raster(self, pose, intr=None, width=None, height=None, attrs=None,
                 low_pass: float = LOW_PASS):
         return render_map(self.map, pose, intr or self.intr, width or self.W, height or self.H,
-                          self.raster.name, self.device, means=means, attrs=attrs,
-                          low_pass=low_pass)
+                          self.raster.name, self.device, attrs=attrs, low_pass=low_pass)
 
     @torch.no_grad()
     def render(self, pose, width: Optional[int] = None, height: Optional[int] = None,

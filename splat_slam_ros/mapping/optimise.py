@@ -19,6 +19,7 @@ import torch
 from splat_slam_ros.geometry import se3_inverse
 from splat_slam_ros.mapping.keyframe_inputs import MappedKeyframe, lattice_view
 from splat_slam_ros.mapping.rasterizer import rasterize
+from splat_slam_ros.mapping.rasterizer.kernel import ViewLossCpp
 from splat_slam_ros.mapping.rasterizer.projection import LOW_PASS
 
 
@@ -29,21 +30,20 @@ def viewmat(pose_c2w: np.ndarray, device) -> torch.Tensor:
 
 
 def activated(g):
-    """(unit quaternions, scales, opacities) of the map ``g``: computed once per step, shared
-    by its views (their gradients meet there, not in one copy per view)."""
-    return g.normalized_quats(), g.scales(), g.opacities()
+    """(quaternions, scales, opacities) of the map ``g``: computed once per step, shared by
+    its views (their gradients meet there, not in one copy per view). The quaternions are
+    the stored ones: every projection normalises them (its gradient is the normalisation's)."""
+    return g.params["quats"], g.scales(), g.opacities()
 
 
-def render_map(g, pose, intr, width: int, height: int, backend: str, device, means=None,
-               attrs=None, low_pass: float = LOW_PASS):
-    """Rasterise the Gaussian map ``g`` at a camera-to-world pose (``means``: other centres,
-    e.g. a per-view copy whose gradient is that view's; ``attrs``: :func:`activated` of
-    ``g``, computed here when not given; ``low_pass``: the rasterizer's screen-space filter)."""
+def render_map(g, pose, intr, width: int, height: int, backend: str, device, attrs=None,
+               low_pass: float = LOW_PASS):
+    """Rasterise the Gaussian map ``g`` at a camera-to-world pose (``attrs``: :func:`activated`
+    of ``g``, computed here when not given; ``low_pass``: the rasterizer's screen-space
+    filter)."""
     quats, scales, opacities = activated(g) if attrs is None else attrs
-    return rasterize(
-        g.means if means is None else means, quats, scales, opacities, g.colors,
-        viewmat(pose, device), intr, int(width), int(height), backend=backend,
-        low_pass=low_pass)
+    return rasterize(g.means, quats, scales, opacities, g.colors, viewmat(pose, device), intr,
+                     int(width), int(height), backend=backend, low_pass=low_pass)
 
 
 def view_loss(kf: MappedKeyframe, out, expose: Callable, lam: float) -> torch.Tensor:
@@ -56,9 +56,20 @@ def view_loss(kf: MappedKeyframe, out, expose: Callable, lam: float) -> torch.Te
     return lam * l_rgb + (1 - lam) * l_depth
 
 
-def isotropy(g) -> torch.Tensor:
-    """Eq. 11 regulariser: 1/|G| sum_i |s_i - mean(s_i)|_1 (scales, not log-scales)."""
-    s = g.scales()
+def fused_view_loss(kf: MappedKeyframe, out, camera, intr, lam: float) -> torch.Tensor:
+    """:func:`view_loss` through the camera model ``camera`` (intrinsics ``intr``) in one C++
+    pass each way (``kernel.ViewLossCpp``; CPU float32 renders): the same value and
+    gradients, without a dozen image-sized temporaries per view."""
+    h, w = out.depth.shape
+    r2 = camera.r2(h, w, intr) if camera.mcfg.vignetting else None
+    weight = kf.valid if kf.weight is None else kf.weight
+    return ViewLossCpp.apply(out.rgb, out.depth, kf.exposure, camera.vignette, kf.image,
+                             kf.depth, weight, r2, lam)
+
+
+def isotropy(s: torch.Tensor) -> torch.Tensor:
+    """Eq. 11 regulariser: 1/|G| sum_i |s_i - mean(s_i)|_1 of the scales ``s`` (N, 3; not
+    log-scales)."""
     return (s - s.mean(1, keepdim=True)).abs().sum(1).mean()
 
 
@@ -106,40 +117,38 @@ def _step(mp, views: List[int], densify: bool, subsample: int = 1,
     loss = 0.0
     tracked = []
     attrs = activated(mp.map)
+    fused = mp.raster.name == "cpp"           # CPU float32 renders: the C++ loss
     for vi, kid in enumerate(views):
         kf = mp.keyframes[kid]
         n = subsample_first if vi == 0 and subsample_first > 0 else subsample
-        mv = None
-        if densify:            # per-view copy of the means: its grad is this view's
-            mv = mp.map.means * 1.0
-            mv.retain_grad()
+        intr, w, h = mp.intr, mp.W, mp.H
         if n > 1:
             dx, dy = (int(x) for x in mp.rng.integers(n, size=2))
             intr, w, h = lattice(mp.intr, mp.W, mp.H, n, dx, dy)
             # the full image's screen-space filter: LOW_PASS full pixels^2
-            out = mp._raster(kf.pose, intr, w, h, means=mv, attrs=attrs,
-                             low_pass=LOW_PASS / n ** 2)
+            out = mp._raster(kf.pose, intr, w, h, attrs=attrs, low_pass=LOW_PASS / n ** 2)
             target = lattice_view(kf, n, dx, dy)
-            expose = lambda rgb, k, _i=intr: mp.expose(rgb, k, _i)   # noqa: E731
         else:
-            out = mp._raster(kf.pose, means=mv, attrs=attrs)
-            target, expose = kf, mp.expose
-        loss = loss + view_loss(target, out, expose, m.rgb_weight)
-        m2 = out.means2d if densify else None
-        if m2 is not None and m2.requires_grad:
+            out = mp._raster(kf.pose, attrs=attrs)
+            target = kf
+        if fused:
+            loss = loss + fused_view_loss(target, out, mp.camera, intr, m.rgb_weight)
+        else:
+            loss = loss + view_loss(target, out, lambda rgb, k, _i=intr: mp.expose(rgb, k, _i),
+                                    m.rgb_weight)
+        m2 = out.means2d if densify else None     # its grad: the densification statistic
+        if m2 is not None:
             m2.retain_grad()
-        tracked.append((kf, mv, m2, out.radii, out.visible, n))
-    loss = loss + m.isotropy_weight * isotropy(mp.map)
+        tracked.append((kf, m2, out.radii, out.visible, n))
+    loss = loss + m.isotropy_weight * isotropy(attrs[1])
     loss.backward()
     mp.last_loss = float(loss.detach())
     with torch.no_grad():
-        for kf, mv, m2, radii, visible, n in tracked:
+        for kf, m2, radii, visible, n in tracked:
             if n == 1 and kf.kf_id in mp.window.window:   # a lattice misses some
                 mp.window.set_visibility(kf.kf_id, mp.map.uid[visible], mp.seedings)
             if m2 is not None and m2.grad is not None:   # lattice pixels are n full ones
-                mp.strategy.accumulate(mp, kf, radii * n, grad2d=m2.grad / n)
-            elif mv is not None and mv.grad is not None:
-                mp.strategy.accumulate(mp, kf, radii * n, grad3d=mv.grad)
+                mp.strategy.accumulate(mp, radii * n, m2.grad / n)
     mp.map.step()
     mp.camera.step()
     mp.iteration += 1

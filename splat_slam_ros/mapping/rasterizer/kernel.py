@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import importlib.util
+import math
 import os
 import platform
 import shlex
@@ -27,7 +28,8 @@ except ImportError:  # pragma: no cover - Windows: no inter-process build lock
 
 CSRC = Path(__file__).resolve().parent / "csrc"
 SOURCES = ("raster.cpp",)              # compiled
-HASHED = ("raster.cpp", "raster_kernels.h", "project_kernels.h")  # part of the cache key
+# part of the cache key
+HASHED = ("raster.cpp", "raster_kernels.h", "project_kernels.h", "loss_kernels.h")
 _lock = threading.Lock()
 _module = None
 _failure: "RasterizerBuildError | None" = None
@@ -247,3 +249,30 @@ class ProjectCpp(torch.autograd.Function):
             means, quats, scales, viewmat, *ctx.cam, grad(g_m2d, n, 2), grad(g_con, n, 3),
             grad(g_dep, n, 0))
         return d_means, d_quats, d_scales, None, None, None, None, None, None, None, None, None
+
+
+class ViewLossCpp(torch.autograd.Function):
+    """Eq. 11's data terms of one view (``optimise.view_loss``, the reference: same
+    expressions) in one C++ pass each way (CPU, float32): differentiable w.r.t. the render's
+    rgb and depth, the keyframe's exposure (log a, b) and the vignetting (v1, v2).
+    ``weight``: float32 depth-loss weights or the bool validity mask; ``r2``: the (h, w)
+    r^2 map of the vignetting, or None without it."""
+
+    @staticmethod
+    def forward(ctx, rgb, depth, exposure, vignette, image, target_depth, weight, r2, lam):
+        log_a, b = (float(x) for x in exposure.detach())
+        v1, v2 = (float(x) for x in vignette.detach())
+        r2 = rgb.new_empty(0) if r2 is None else r2
+        args = (image, target_depth, weight, r2, v1, v2, math.exp(log_a), b, float(lam))
+        rgb, depth = rgb.contiguous(), depth.contiguous()
+        ctx.save_for_backward(rgb, depth)
+        ctx.args = args
+        return load_extension().view_loss_forward(rgb, depth, *args)
+
+    @staticmethod
+    def backward(ctx, g):
+        rgb, depth = ctx.saved_tensors
+        g_rgb, g_depth, d = load_extension().view_loss_backward(rgb, depth, *ctx.args,
+                                                                float(g))
+        d = d.to(rgb.dtype)
+        return g_rgb, g_depth, d[:2], d[2:], None, None, None, None, None

@@ -3,6 +3,7 @@
 // Gaussians (float32, contiguous, CPU) and the footprints (int32).
 #include <torch/extension.h>
 
+#include "loss_kernels.h"
 #include "project_kernels.h"
 #include "raster_kernels.h"
 
@@ -211,6 +212,79 @@ std::vector<torch::Tensor> project_bwd(torch::Tensor means, torch::Tensor quats,
   return {d_means, d_quats, d_scales};
 }
 
+// ------------------------------------------------------------------ view loss
+// The render (rgb, depth) and the keyframe's targets (image uint8 (h,w,3) with unit channel
+// stride, depth float, weights float or bool, each (h,w) possibly strided), the r^2 map
+// ((h,w) or empty: no vignetting) and the scalars as in loss_kernels.h.
+splat_loss::ViewLossArgs view_loss_args(const torch::Tensor& rgb, const torch::Tensor& depth,
+                                        const torch::Tensor& image, const torch::Tensor& tdepth,
+                                        const torch::Tensor& weight, const torch::Tensor& r2,
+                                        double v1, double v2, double a, double b, double lam) {
+  TORCH_CHECK(rgb.dim() == 3 && rgb.size(2) == 3, "rgb must be (h, w, 3)");
+  const int64_t h = rgb.size(0), w = rgb.size(1);
+  TORCH_CHECK(rgb.scalar_type() == torch::kFloat32 && rgb.is_contiguous() &&
+                  depth.scalar_type() == torch::kFloat32 && depth.is_contiguous() &&
+                  depth.numel() == h * w,
+              "rgb and depth must be contiguous float32 renders of one size");
+  TORCH_CHECK(image.dim() == 3 && image.size(0) == h && image.size(1) == w &&
+                  image.size(2) == 3 && image.stride(2) == 1 &&
+                  image.scalar_type() == torch::kUInt8,
+              "image must be uint8 (h, w, 3) with unit channel stride");
+  for (const auto* t : {&tdepth, &weight}) {
+    TORCH_CHECK(t->dim() == 2 && t->size(0) == h && t->size(1) == w, "targets must be (h, w)");
+  }
+  TORCH_CHECK(tdepth.scalar_type() == torch::kFloat32, "target depth must be float32");
+  TORCH_CHECK(weight.scalar_type() == torch::kFloat32 || weight.scalar_type() == torch::kBool,
+              "weights must be float32 or bool");
+  const bool vig = r2.numel() > 0;
+  TORCH_CHECK(!vig || (r2.scalar_type() == torch::kFloat32 && r2.is_contiguous() &&
+                       r2.numel() == h * w),
+              "r2 must be a contiguous float32 (h, w) map or empty");
+  for (const auto* t : {&rgb, &depth, &image, &tdepth, &weight, &r2}) {
+    TORCH_CHECK(t->device().is_cpu(), "view loss tensors must be on the CPU");
+  }
+  splat_loss::ViewLossArgs p;
+  p.h = h;
+  p.w = w;
+  p.rgb = rgb.data_ptr<float>();
+  p.depth = depth.data_ptr<float>();
+  p.image = {image.data_ptr<uint8_t>(), image.stride(0), image.stride(1)};
+  p.target_depth = {tdepth.data_ptr<float>(), tdepth.stride(0), tdepth.stride(1)};
+  p.weight_is_mask = weight.scalar_type() == torch::kBool;
+  p.weight = {p.weight_is_mask ? static_cast<const void*>(weight.data_ptr<bool>())
+                               : static_cast<const void*>(weight.data_ptr<float>()),
+              weight.stride(0), weight.stride(1)};
+  p.r2 = vig ? r2.data_ptr<float>() : nullptr;
+  p.v1 = float(v1);
+  p.v2 = float(v2);
+  p.a = float(a);
+  p.b = float(b);
+  p.lam = float(lam);
+  return p;
+}
+
+torch::Tensor view_loss_fwd(torch::Tensor rgb, torch::Tensor depth, torch::Tensor image,
+                            torch::Tensor tdepth, torch::Tensor weight, torch::Tensor r2,
+                            double v1, double v2, double a, double b, double lam) {
+  const auto p = view_loss_args(rgb, depth, image, tdepth, weight, r2, v1, v2, a, b, lam);
+  return torch::full({}, splat_loss::view_loss_forward(p),
+                     torch::TensorOptions().dtype(torch::kFloat32));
+}
+
+// Returns g_rgb (h,w,3), g_depth (h,w) and (d log a, d b, d v1, d v2) as float64 (4,).
+std::vector<torch::Tensor> view_loss_bwd(torch::Tensor rgb, torch::Tensor depth,
+                                         torch::Tensor image, torch::Tensor tdepth,
+                                         torch::Tensor weight, torch::Tensor r2, double v1,
+                                         double v2, double a, double b, double lam, double g) {
+  const auto p = view_loss_args(rgb, depth, image, tdepth, weight, r2, v1, v2, a, b, lam);
+  torch::Tensor g_rgb = torch::empty_like(rgb), g_depth = torch::empty_like(depth);
+  const auto d = splat_loss::view_loss_backward(p, float(g), g_rgb.data_ptr<float>(),
+                                                g_depth.data_ptr<float>());
+  torch::Tensor params = torch::tensor({d.log_a, d.b, d.v1, d.v2},
+                                       torch::TensorOptions().dtype(torch::kFloat64));
+  return {g_rgb, g_depth, params};
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -219,4 +293,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("backward", &rasterize_backward, "rasterize backward");
   m.def("project_forward", &project_fwd, "EWA projection forward");
   m.def("project_backward", &project_bwd, "EWA projection backward");
+  m.def("view_loss_forward", &view_loss_fwd, "Eq. 11 data terms of one view");
+  m.def("view_loss_backward", &view_loss_bwd, "their gradients");
 }
