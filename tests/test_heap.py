@@ -92,6 +92,33 @@ def test_bounded_heap_returns_freed_frames_to_the_os():
     assert rss["default"] < rss["1MiB"] - 40, rss       # 60 x 0.9 MB freed
 
 
+REUSE = """
+import resource, sys, torch
+from splat_slam_ros.heap import RUN_MMAP_THRESHOLD, RUN_TRIM_THRESHOLD, bound_heap
+assert (bound_heap(RUN_MMAP_THRESHOLD, trim_threshold=RUN_TRIM_THRESHOLD) if sys.argv[1] == "run"
+        else bound_heap()) is True
+x = torch.ones(1000, 1000)
+for i in range(3):                                        # warm up
+    (x * 2.0).sum()
+f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for i in range(50):            # a step's temporaries: 4 MB tensors made and freed
+    (x * 2.0).sum()
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc mallopt: Linux only")
+def test_a_runs_heap_reuses_the_steps_temporaries():
+    """splat-slam-run's allocator settings (heap.RUN_*): a freed 4 MB temporary is reused from
+    the heap; with a node's bounded heap each one is a fresh mapping whose 1 000 pages fault
+    in again."""
+    import subprocess
+    faults = {mode: int(subprocess.run([sys.executable, "-c", REUSE, mode], check=True,
+                                       capture_output=True, text=True).stdout.split()[-1])
+              for mode in ("run", "node")}
+    assert faults["node"] > 50 * 900 and faults["run"] < 50 * 100, faults
+
+
 def test_peak_rss_is_the_programs_own_not_the_parents():
     """A child started by a big process reports its own peak (the benchmarks' RSS column):
     getrusage's ru_maxrss can carry the parent's peak over across fork + exec."""

@@ -1,7 +1,8 @@
 """Rendering the Gaussian map and the mapping optimisation (§3.2, Eq. 11).
 
 Functional pieces: :func:`viewmat` / :func:`render_map` (rasterise the map at a
-camera-to-world pose), :func:`view_loss` and :func:`isotropy` (the Eq. 11 terms),
+camera-to-world pose), :func:`view_loss` and :func:`isotropy` (the Eq. 11 terms;
+:func:`fused_view_loss`: ``view_loss`` in C++, what the CPU backend's steps use),
 :func:`pick_views` (the window keyframes of one step, plus random older ones) and
 :func:`optimise`: Adam steps on the Eq. 11 loss summed over the window keyframes, each step
 followed by the densify / prune schedule of the mapper's :class:`DensifyStrategy`.
@@ -121,7 +122,7 @@ def _step(mp, views: List[int], densify: bool, subsample: int = 1,
     for vi, kid in enumerate(views):
         kf = mp.keyframes[kid]
         n = subsample_first if vi == 0 and subsample_first > 0 else subsample
-        intr, w, h = mp.intr, mp.W, mp.H
+        intr = mp.intr
         if n > 1:
             dx, dy = (int(x) for x in mp.rng.integers(n, size=2))
             intr, w, h = lattice(mp.intr, mp.W, mp.H, n, dx, dy)
