@@ -41,12 +41,16 @@ inline float weight_at(const ViewLossArgs& p, int64_t y, int64_t x) {
                           : static_cast<const float*>(p.weight.ptr)[o];
 }
 
-inline float vignette_at(const ViewLossArgs& p, int64_t i) {
+constexpr float kVignetteMin = 0.1f;   // camera_model.CameraModel.vignetting's clamp
+
+// 1 + v1 r^2 + v2 r^4 at pixel i before the clamp (1 without vignetting)
+inline float vignette_raw(const ViewLossArgs& p, int64_t i) {
   if (p.r2 == nullptr) return 1.f;
   const float r2 = p.r2[i];
-  const float v = 1.0f + p.v1 * r2 + p.v2 * r2 * r2;
-  return v < 0.1f ? 0.1f : v;
+  return 1.0f + p.v1 * r2 + p.v2 * r2 * r2;
 }
+
+inline float clamp_vignette(float v) { return v < kVignetteMin ? kVignetteMin : v; }
 
 // The loss (double; the caller rounds it to float32).
 inline double view_loss_forward(const ViewLossArgs& p) {
@@ -58,7 +62,7 @@ inline double view_loss_forward(const ViewLossArgs& p) {
     double s_rgb = 0.0, s_d = 0.0;
     for (int64_t x = 0; x < p.w; ++x) {
       const int64_t i = y * p.w + x;
-      const float V = vignette_at(p, i);
+      const float V = clamp_vignette(vignette_raw(p, i));
       for (int c = 0; c < 3; ++c) {
         const float e = (p.rgb[3 * i + c] * V) * p.a + p.b -
                         float(img[x * p.image.col + c]) / 255.0f;
@@ -96,7 +100,7 @@ inline ViewLossParamGrad view_loss_backward(const ViewLossArgs& p, float g, floa
     double d_a = 0.0, d_b = 0.0, d_v1 = 0.0, d_v2 = 0.0;
     for (int64_t x = 0; x < p.w; ++x) {
       const int64_t i = y * p.w + x;
-      const float V = vignette_at(p, i);
+      const float raw = vignette_raw(p, i), V = clamp_vignette(raw);
       float d_V = 0.f;
       for (int c = 0; c < 3; ++c) {
         const float rv = p.rgb[3 * i + c] * V;
@@ -106,12 +110,10 @@ inline ViewLossParamGrad view_loss_backward(const ViewLossArgs& p, float g, floa
         d_a += double(s) * double(rv);
         d_V += s * p.a * p.rgb[3 * i + c];
       }
-      if (p.r2 != nullptr) {
+      if (p.r2 != nullptr && raw >= kVignetteMin) {   // not clamped
         const float r2 = p.r2[i];
-        if (1.0f + p.v1 * r2 + p.v2 * r2 * r2 >= 0.1f) {   // not clamped
-          d_v1 += double(d_V) * r2;
-          d_v2 += double(d_V) * r2 * r2;
-        }
+        d_v1 += double(d_V) * r2;
+        d_v2 += double(d_V) * r2 * r2;
       }
       g_depth[i] = c_d * sgn(p.depth[i] - td[x * p.target_depth.col]) * weight_at(p, y, x);
     }
