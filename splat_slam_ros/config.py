@@ -120,6 +120,9 @@ class TrackingConfig:
     lost_min_valid: float = 0.12         # lost if fewer BA cells than this have a usable flow
     lost_rms: float = 1.0                # lost if the frame's pose fit leaves this rms (BA px)
     reloc_keyframes: int = 4             # recent keyframes tried when the last one fails
+    # the first frame after a keyframe (no earlier flow to it): DIS starts from the flow the
+    # constant-velocity pose induces, not from zero (repetitive textures alias otherwise)
+    predict_first_flow: bool = True
     # live input: up to this many frames skipped while the tracker was busy are kept (thinned
     # over a longer gap) until the next frame is tracked; when that frame's flow fails on the
     # motion since the last tracked one, or is weak (below keyframe_urgent_valid x the typical

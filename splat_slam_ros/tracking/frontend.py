@@ -62,12 +62,16 @@ class TrackerFrontend:
     def _store_flow(self, f, w):
         return f.detach().to("cpu", torch.float16), w.detach().to("cpu", torch.float16)
 
-    def _try_reference(self, ref, prep, use_last: bool = True):
+    def _try_reference(self, ref, prep, use_last: bool = True, index=None):
         # DIS is initialised with the previous frame's measured flow to the same
         # keyframe (temporal propagation; image-based, so a wrong disparity
-        # cannot corrupt it)
+        # cannot corrupt it); without one (the first frame after a keyframe), with the
+        # flow that frame ``index``'s constant-velocity pose induces
         init = self._last_flow[1] if use_last and self._last_flow is not None and \
             self._last_flow[0] == ref else None
+        if init is None and index is not None:
+            init = self._induced(self.kfs[ref].pose, self.kfs[ref].disp,
+                                 self._predict_at(index))
         f, w, fb, wb = self._flows(self.kfs[ref].prep, prep, init)
         return (f, w, fb, wb), self.motion.check(f, w)
 
@@ -97,7 +101,9 @@ class TrackerFrontend:
         was_lost = self.lost_count > 0
         pred = self.last_pose @ self.velocity
         predicted = 0.0                         # 1: the flow was started from the prediction
-        flows, fc = self._try_reference(ref, prep, not was_lost)
+        flows, fc = self._try_reference(
+            ref, prep, not was_lost,
+            frame.index if not was_lost and self.tc.predict_first_flow else None)
         if not fc.ok and not was_lost:
             # a large motion since the last tracked frame (skipped frames on live input, fast
             # motion): DIS again, pre-warped by the flow the constant-velocity pose induces
