@@ -701,6 +701,25 @@ def test_a_long_warm_up_gives_second_flows_to_its_newest_frames_only():
     assert 0 < seen[5][1] <= 5, seen
 
 
+def every_fourth_frame(render, predict_first_flow: bool):
+    """The render's first 66 frames, every fourth tracked and the others skipped with their
+    images (bridges), as a busy live tracker would; (bridged, lost, ATE cm)."""
+    from splat_slam_ros.tracking.tracker import Tracker
+    ds, frames = render
+    frames = frames[:66]
+    gt = np.stack([f.gt_pose for f in frames])
+    cfg = SlamConfig()
+    cfg.tracking.loop_closure = cfg.tracking.global_ba = False
+    cfg.tracking.predict_first_flow = predict_first_flow
+    tr = Tracker(cfg, ds.intrinsics)
+    for f in frames:
+        if tr.initialized and f.index % 4 != 0:
+            tr.skip(f.index, f.timestamp, f)
+        else:
+            tr.track(f)
+    return tr.n_bridged, tr.n_lost, ate_cm(frames, gt, *tr.trajectory_full())
+
+
 def test_a_weak_flow_after_a_gap_is_bridged_too(v102_render, monkeypatch):
     """After a gap of skipped frames, a flow that passes the check but holds only as far as
     when the view is leaving the keyframe (confident cells below keyframe_urgent_valid x
@@ -711,25 +730,10 @@ def test_a_weak_flow_after_a_gap_is_bridged_too(v102_render, monkeypatch):
     without the predicted start of the first flow after a keyframe, which mends most of these
     flows too (the next test)."""
     from splat_slam_ros.tracking import frontend
-    from splat_slam_ros.tracking.tracker import Tracker
-    ds, frames = v102_render
-    frames = frames[:66]
-    gt = np.stack([f.gt_pose for f in frames])
-
-    def run():
-        cfg = SlamConfig()
-        cfg.tracking.loop_closure = cfg.tracking.global_ba = False
-        cfg.tracking.predict_first_flow = False
-        tr = Tracker(cfg, ds.intrinsics)
-        for f in frames:
-            if tr.initialized and f.index % 4 != 0:
-                tr.skip(f.index, f.timestamp, f)
-            else:
-                tr.track(f)
-        return tr.n_bridged, tr.n_lost, ate_cm(frames, gt, *tr.trajectory_full())
-    bridged, lost, err = run()
+    bridged, lost, err = every_fourth_frame(v102_render, predict_first_flow=False)
     monkeypatch.setattr(frontend.TrackerFrontend, "_weak_flow", lambda self, fc: False)
-    bridged_without, lost_without, err_without = run()
+    bridged_without, lost_without, err_without = every_fourth_frame(
+        v102_render, predict_first_flow=False)
     assert bridged_without == 0 and bridged >= 3 and lost == 0
     assert err < 0.5 * err_without, (err, err_without)
 
@@ -779,22 +783,7 @@ def test_a_predicted_first_flow_keeps_a_gap_after_a_keyframe_on_track(v102_rende
     (a keyframe made from it corrupts the depth: about 22 cm); started from the flow the
     constant-velocity pose induces, it holds (about 1.5 cm)."""
     from splat_slam_ros.tracking import frontend
-    from splat_slam_ros.tracking.tracker import Tracker
-    ds, frames = v102_render
-    frames = frames[:66]
-    gt = np.stack([f.gt_pose for f in frames])
     monkeypatch.setattr(frontend.TrackerFrontend, "_weak_flow", lambda self, fc: False)
-
-    def run(predict):
-        cfg = SlamConfig()
-        cfg.tracking.loop_closure = cfg.tracking.global_ba = False
-        cfg.tracking.predict_first_flow = predict
-        tr = Tracker(cfg, ds.intrinsics)
-        for f in frames:
-            if tr.initialized and f.index % 4 != 0:
-                tr.skip(f.index, f.timestamp, f)
-            else:
-                tr.track(f)
-        return tr.n_lost, ate_cm(frames, gt, *tr.trajectory_full())
-    (lost, err), (lost_zero, err_zero) = run(True), run(False)
+    _, lost, err = every_fourth_frame(v102_render, predict_first_flow=True)
+    _, lost_zero, err_zero = every_fourth_frame(v102_render, predict_first_flow=False)
     assert lost == 0 and err < 0.25 * err_zero, (lost, err, lost_zero, err_zero)
