@@ -262,6 +262,10 @@ class MappingConfig:
     downsample: int = 32                 # theta
     downsample_first: int = 16           # ... for the first keyframe (empty map)
     init_opacity: float = 0.5            # opacity of new Gaussians
+    # initial scale of new Gaussians: this x the distance to their nearest seeded neighbours
+    # (MonoGS/3DGS: 1). Smaller seeds overlap less: sharper from the first step, and a step
+    # rasterizes fewer pixels per Gaussian (docs/mapping.md "Seeding scale")
+    init_scale: float = 0.7
     kf_covisibility: float = 0.90        # k_fcov
     kf_translation: float = 0.08         # k_fm
     kf_cutoff: float = 0.3               # k_fc

@@ -101,6 +101,12 @@ def test_map_init_counts_positions_colours_scales():
                                rtol=1e-5)
     assert torch.allclose(g["quats"], torch.tensor([0.0, 0, 0, 1]).expand(len(P), 4))
     assert torch.allclose(torch.sigmoid(g["opacity_logits"]), torch.tensor(0.5))
+    # mapping.init_scale: the same seeds, their scales times the factor
+    half = init_gaussians(img, depth, None, pose, (K.fx, K.fy, K.cx, K.cy), downsample=16,
+                          generator=torch.Generator().manual_seed(0), scale=0.5)
+    assert torch.equal(half["means"], g["means"])
+    np.testing.assert_allclose(half["log_scales"].exp().numpy(),
+                               0.5 * g["log_scales"].exp().numpy(), rtol=1e-6)
     # the valid mask is honoured as well as depth == 0; nothing valid -> nothing
     valid = np.zeros((H, W), bool)
     valid[:4, -4:] = True
@@ -305,6 +311,8 @@ def test_depth_weights_scale_the_depth_loss_and_follow_updates(scene):
     assert not kf.valid.any()
     with pytest.raises(MapError, match="ba_depth_weight"):
         Mapper(small_cfg(ba_depth_weight=1.5), K)
+    with pytest.raises(MapError, match="init_scale"):
+        Mapper(small_cfg(init_scale=0.0), K)
 
 
 def test_negative_focal_length_is_rejected_clearly():

@@ -33,8 +33,10 @@ def nn_scale(points: np.ndarray, k: int = N_NEIGHBOURS) -> np.ndarray:
 
 def init_gaussians(image, depth, valid, pose_c2w, intrinsics, downsample: int,
                    opacity: float = 0.5, generator: Optional[torch.Generator] = None,
-                   device="cpu", dtype=torch.float32) -> Dict[str, torch.Tensor]:
-    """New Gaussians for one keyframe from its proxy depth.
+                   device="cpu", dtype=torch.float32, scale: float = 1.0
+                   ) -> Dict[str, torch.Tensor]:
+    """New Gaussians for one keyframe from its proxy depth (``scale``: the initial scale
+    over the nearest-neighbour distance; ``mapping.init_scale``).
 
     image (H,W,3) uint8 or float in [0,1]; depth (H,W) metres, 0 = missing; valid (H,W) bool
     or None; pose_c2w 4x4; intrinsics (fx, fy, cx, cy); pixel centres at integer (u, v).
@@ -64,10 +66,12 @@ def init_gaussians(image, depth, valid, pose_c2w, intrinsics, downsample: int,
     img = img.to(torch.float64) / 255.0 if img.dtype == torch.uint8 else img.to(torch.float64)
     colors = img.reshape(-1, img.shape[-1])[idx][:, :3]
 
-    scale = torch.as_tensor(nn_scale(pts.cpu().numpy()), device=device)
+    if not scale > 0:
+        raise ValueError(f"mapping.init_scale must be > 0, got {scale}")
+    nn = torch.as_tensor(nn_scale(pts.cpu().numpy()), device=device)
     # Fallback for a lone point / duplicates: the footprint of theta pixels at that depth.
     footprint = z * np.sqrt(max(1, int(downsample))) / abs(float(intr[0]))
-    scale = torch.where(scale > 1e-7, scale, footprint)
+    scale = float(scale) * torch.where(nn > 1e-7, nn, footprint)
     M = int(idx.numel())
     f = dict(device=device, dtype=dtype)
     quats = torch.zeros(M, 4, **f)

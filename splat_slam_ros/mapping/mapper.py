@@ -73,6 +73,8 @@ class Mapper:
                            f"{m.step_subsample_newest}")
         if not 0.0 <= m.ba_depth_weight <= 1.0:
             raise MapError(f"mapping.ba_depth_weight must be in [0, 1], got {m.ba_depth_weight}")
+        if not m.init_scale > 0:
+            raise MapError(f"mapping.init_scale must be > 0, got {m.init_scale}")
         self.device = resolve_device(device or m.device, "mapping.device")
         self.K = intrinsics
         self.W, self.H = int(intrinsics.width), int(intrinsics.height)
@@ -259,7 +261,8 @@ class Mapper:
             seed = seed & uncovered(out.alpha, out.depth, depth_t, self.mcfg.seed_depth_tol)
         new = init_gaussians(img_t, depth_t, seed, pose, self.intr,
                              self.mcfg.downsample_first if empty else self.mcfg.downsample,
-                             self.mcfg.init_opacity, self.gen, self.device)
+                             self.mcfg.init_opacity, self.gen, self.device,
+                             scale=self.mcfg.init_scale)
         n_new = int(new["means"].shape[0])
         self.map.add(new["means"], new["colors"], new["log_scales"], new["quats"],
                      new["opacity_logits"], kf_id=kf_id, created=kf.index, born=self.iteration)
