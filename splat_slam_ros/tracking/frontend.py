@@ -100,11 +100,14 @@ class TrackerFrontend:
         ref = self.window[-1]
         was_lost = self.lost_count > 0
         pred = self.last_pose @ self.velocity
-        predicted = 0.0                         # 1: the flow was started from the prediction
+        # 1: the flow was started from the prediction (the first frame after a keyframe, or
+        # the retry below)
+        predicted = float(not was_lost and self.tc.predict_first_flow and (
+            self._last_flow is None or self._last_flow[0] != ref))
         flows, fc = self._try_reference(
             ref, prep, not was_lost,
             frame.index if not was_lost and self.tc.predict_first_flow else None)
-        if not fc.ok and not was_lost:
+        if not fc.ok and not was_lost and not predicted:
             # a large motion since the last tracked frame (skipped frames on live input, fast
             # motion): DIS again, pre-warped by the flow the constant-velocity pose induces
             T_p = self._predict_at(frame.index)
