@@ -63,17 +63,19 @@ class TrackerFrontend:
         return f.detach().to("cpu", torch.float16), w.detach().to("cpu", torch.float16)
 
     def _try_reference(self, ref, prep, use_last: bool = True, index=None):
-        # DIS is initialised with the previous frame's measured flow to the same
-        # keyframe (temporal propagation; image-based, so a wrong disparity
-        # cannot corrupt it); without one (the first frame after a keyframe), with the
-        # flow that frame ``index``'s constant-velocity pose induces
+        """Flows keyframe ``ref`` <-> the frame, their check, and whether DIS started from
+        the predicted motion. DIS starts from the previous frame's measured flow to the same
+        keyframe (temporal propagation; image-based, so a wrong disparity cannot corrupt it);
+        without one (the first frame after a keyframe), from the flow that frame ``index``'s
+        constant-velocity pose induces (``index`` None: from zero)."""
         init = self._last_flow[1] if use_last and self._last_flow is not None and \
             self._last_flow[0] == ref else None
-        if init is None and index is not None:
+        predicted = init is None and index is not None
+        if predicted:
             init = self._induced(self.kfs[ref].pose, self.kfs[ref].disp,
                                  self._predict_at(index))
         f, w, fb, wb = self._flows(self.kfs[ref].prep, prep, init)
-        return (f, w, fb, wb), self.motion.check(f, w)
+        return (f, w, fb, wb), self.motion.check(f, w), predicted
 
     def _fit_pose(self, ref, f, w, inits):
         """Pose-only fit of the frame against the flow ref -> frame; best of ``inits``."""
@@ -100,13 +102,12 @@ class TrackerFrontend:
         ref = self.window[-1]
         was_lost = self.lost_count > 0
         pred = self.last_pose @ self.velocity
-        # 1: the flow was started from the prediction (the first frame after a keyframe, or
-        # the retry below)
-        predicted = float(not was_lost and self.tc.predict_first_flow and (
-            self._last_flow is None or self._last_flow[0] != ref))
-        flows, fc = self._try_reference(
+        # predicted, 1: the flow was started from the prediction (the first frame after a
+        # keyframe, or the retry below)
+        flows, fc, predicted = self._try_reference(
             ref, prep, not was_lost,
             frame.index if not was_lost and self.tc.predict_first_flow else None)
+        predicted = float(predicted)
         if not fc.ok and not was_lost and not predicted:
             # a large motion since the last tracked frame (skipped frames on live input, fast
             # motion): DIS again, pre-warped by the flow the constant-velocity pose induces
@@ -133,7 +134,7 @@ class TrackerFrontend:
             self._last_flow = None
             # relocalise against the other recent keyframes
             for k in reversed(self.window[-1 - tc.reloc_keyframes:-1]):
-                flows_k, fc_k = self._try_reference(k, prep, False)
+                flows_k, fc_k, _ = self._try_reference(k, prep, False)
                 if fc_k.ok:
                     ref, flows, fc = k, flows_k, fc_k
                     break
