@@ -10,13 +10,29 @@ are in flight is *skipped*, not dropped: its constant-velocity pose is published
 the final trajectory places it between its tracked neighbours (``Tracker.skip``); when the
 stream ends, its last frame, if skipped, is tracked (``track_last``), so no skipped frame lies
 after the last tracked one. Only when ``node.max_backlog`` jobs already wait for the worker
-is a frame dropped. Pose latency (arrival at this node -> pose published) is kept per frame.
+is a frame dropped. Pose latency (arrival at this node -> pose published) is kept per frame,
+and the arrival (epoch s) of the newest ARRIVALS_KEPT frames: the map lag of a keyframe
+counts from its frame's arrival (``spread``, the launcher's ``map_lag_s``).
 """
 from __future__ import annotations
 
 import threading
 import time
-from typing import Callable, Dict, List, Optional, Tuple
+from collections import OrderedDict
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
+
+ARRIVALS_KEPT = 1024        # frames whose arrival a keyframe made later still looks up
+
+
+def spread(values: Sequence[float], ndigits: int = 2) -> Dict[str, float]:
+    """p50 / p95 / max of ``values`` and their count (``frames``; {} when there are none)."""
+    import numpy as np
+    if not len(values):
+        return {}
+    a = np.asarray(values, dtype=float)
+    return {"p50": round(float(np.percentile(a, 50)), ndigits),
+            "p95": round(float(np.percentile(a, 95)), ndigits),
+            "max": round(float(a.max()), ndigits), "frames": int(a.size)}
 
 
 class CameraInput:
@@ -38,6 +54,7 @@ class CameraInput:
         self.count_lock = threading.Lock()        # queued: executor += / worker -=
         self.arrived: Dict[int, float] = {}       # frame index -> arrival (monotonic s)
         self.latency_ms: List[float] = []         # arrival -> pose published, per posed frame
+        self.arrival_epoch: "OrderedDict[int, float]" = OrderedDict()  # newest ARRIVALS_KEPT
         self.last_ns: Optional[int] = None        # newest frame stamp taken (replays: older)
         self.last_skipped = None                  # (message, index) of the newest skipped frame
         # a replayed frame is recognised by its stamp on the player's reliable input (a live
@@ -95,6 +112,9 @@ class CameraInput:
         index = self.n_frames
         self.n_frames += 1
         self.arrived[index] = time.monotonic()
+        self.arrival_epoch[index] = time.time()
+        if len(self.arrival_epoch) > ARRIVALS_KEPT:
+            self.arrival_epoch.popitem(last=False)
         with self.count_lock:
             busy = mq > 0 and self.queued >= mq   # realtime: mq frames in flight already
             if not busy:
@@ -124,13 +144,7 @@ class CameraInput:
 
     def latency_stats(self) -> Dict[str, float]:
         """Pose latency (arrival -> pose published) over the posed frames, in ms."""
-        import numpy as np
-        if not self.latency_ms:
-            return {}
-        a = np.asarray(self.latency_ms)
-        return {"p50": round(float(np.percentile(a, 50)), 2),
-                "p95": round(float(np.percentile(a, 95)), 2),
-                "max": round(float(a.max()), 2), "frames": int(a.size)}
+        return spread(self.latency_ms)
 
     # ------------------------------------------------------------ worker thread
     def _ack(self, index: int, stamp, kf_id: Optional[int]) -> None:

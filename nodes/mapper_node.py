@@ -37,6 +37,7 @@ from .map_requests import answer_save, load_request, loaded_by_tracker, reply
 from .map_services import MapServices
 from .node_common import TOPICS, SplatNode, run_node
 
+MAX_QUEUED = 32           # live: queued jobs beyond which any input cuts the mapping steps
 RESYNC_S = 2.0            # how often a mapper waiting on the final digest checks for lost depth
 
 
@@ -82,10 +83,15 @@ class MapperNode(SplatNode):
                           f"mapped keyframes, {len(self.role.offered)} consumed")
         elif self.opts["load_map"]:
             self._load_map(str(self.opts["load_map"]))
-        self.route(self.role, keyframes=True, updates=True, proxy_depth=True, after=self._after)
-        # live input (mapping.time_budget): input that waits cuts the optimisation steps, and
-        # background steps run while none waits (mapping.background_steps): the map keeps pace
-        self.role.input_waiting = lambda: self.worker.pending() > 0
+        self.mapped_at: dict = {}      # kf id -> when it was mapped (epoch s; the map lag)
+        # live input (mapping.time_budget): a keyframe's newer proxy depth replaces the one
+        # still queued (each revision in turn kept the queue seconds behind the stream)
+        live = bool(self.cfg.mapping.time_budget)
+        self.route(self.role, keyframes=True, updates=True, proxy_depth=True, after=self._after,
+                   newest_depth=live)
+        # ... input that waits cuts the optimisation steps (_input_waiting), and background
+        # steps run while none waits (mapping.background_steps): the map keeps pace
+        self.role.input_waiting = self._input_waiting
         self.worker.idle = (self.role.wants_background, self.role.background)
         self.subscribe(PoseStamped, TOPICS["render_request"], Q.pose_qos(),
                        lambda m, raw: self.worker.submit(self._view, m), "render request")
@@ -99,6 +105,19 @@ class MapperNode(SplatNode):
         self.node.create_timer(RESYNC_S, self._resync_tick,
                                clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.publish_event("ready")
+
+    def _input_waiting(self) -> bool:
+        """Live input that cuts a keyframe's or the background's optimisation steps: any
+        queued job but the newer depth of a keyframe already consumed (a deformation, applied
+        after the steps, which ``mapping.keep_up`` bounds) or a pose-graph update (a counter
+        here); any job once more than MAX_QUEUED wait."""
+        pending = self.worker.pending()
+        if pending > MAX_QUEUED:
+            return True
+        with self._waiting_lock:
+            waiting = list(self.depth_waiting)      # keyframes whose newer depth waits
+            cheap = self.waiting["updates"]
+        return pending > cheap + sum(1 for k in waiting if k in self.role.offered)
 
     def _load_map(self, run_dir: str) -> None:
         """Extend runs (node.load_map): the map the session in ``run_dir`` saved, restored
@@ -187,6 +206,7 @@ class MapperNode(SplatNode):
     def _after(self, out) -> None:
         for st in out.mapped:
             if st.get("mapped"):
+                self.mapped_at[int(st["kf_id"])] = time.time()
                 self.log.info(f"keyframe {st['kf_id']} mapped ({st.get('reason')}): "
                               f"{st.get('gaussians')} Gaussians, {st.get('last_ms', 0):.0f} ms")
                 if st["n_mapped"] % max(1, int(self.cfg.mapping.render_every)) == 0:
@@ -215,7 +235,8 @@ class MapperNode(SplatNode):
                 self._publish_renders(kf.pose, kf.timestamp)
                 self._publish_points(kf.timestamp)
         self.log.info(f"saved outputs ({time.perf_counter() - t0:.1f} s)")
-        self.publish_event("saved", metrics=metrics)
+        self.publish_event("saved", metrics=metrics, keyframe_mapped={
+            str(k): round(t, 4) for k, t in sorted(self.mapped_at.items())})
 
     def _status(self) -> None:
         m = self.MapperStatus()

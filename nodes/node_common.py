@@ -170,6 +170,7 @@ class SplatNode:
         # protocol messages queued on the worker, per channel (route)
         self.waiting: Dict[str, int] = {"updates": 0, "keyframes": 0, "proxy_depth": 0}
         self._waiting_lock = threading.Lock()
+        self.depth_waiting = NewestWaiting()       # route(newest_depth=True): by kf_id
 
     # ------------------------------------------------------------ helpers
     @property
@@ -254,12 +255,15 @@ class SplatNode:
     def route(self, role, keyframes: bool = False, updates: bool = False,
               proxy_depth: bool = False, after: Optional[Callable] = None,
               on_update: Optional[Callable] = None,
-              on_keyframe: Optional[Callable] = None) -> None:
+              on_keyframe: Optional[Callable] = None, newest_depth: bool = False) -> None:
         """Subscribe the protocol channels to ``role``'s handlers (on the worker thread) and
         the ``finalized`` graph events to ``role.on_final``; each Outbox is emitted, then
         ``after(out)`` runs (node-specific outputs). ``on_update`` / ``on_keyframe`` replace
         ``role.on_update`` (``self.waiting["updates"]``: updates queued behind this one) /
-        ``role.on_keyframe``."""
+        ``role.on_keyframe``. ``newest_depth``: a ProxyDepth that arrives while an older
+        revision of its keyframe still waits replaces that one in its place in the queue
+        (``self.depth_waiting``, :class:`NewestWaiting`), so a consumer behind the stream
+        applies each keyframe's newest depth once, not every revision in turn."""
         from splat_slam_msgs.msg import Keyframe, PoseGraphUpdate, ProxyDepth
 
         from splat_slam_ros.config import ConfigError
@@ -301,9 +305,24 @@ class SplatNode:
         if keyframes:
             sub(Keyframe, "keyframes", Q.keyframe_qos(), on_keyframe or role.on_keyframe,
                 lambda m: msg_to_keyframe(check_keyframe(m)))
-        if proxy_depth:
-            sub(ProxyDepth, "proxy_depth", Q.proxy_depth_qos(), role.on_proxy_depth,
-                lambda m: msg_to_proxy_depth(check_proxy_depth(m)))
+        depth_in = lambda m: msg_to_proxy_depth(check_proxy_depth(m))  # noqa: E731
+        if proxy_depth and newest_depth:
+            def enqueue_newest(m, raw):
+                with self._waiting_lock:
+                    if not self.depth_waiting.offer(int(m.kf_id), m, int(m.revision)):
+                        return                  # queued already: the newer one in its place
+                    self.waiting["proxy_depth"] += 1
+                self.worker.submit(handle_newest, int(m.kf_id))
+
+            def handle_newest(k):
+                with self._waiting_lock:
+                    m = self.depth_waiting.take(k)
+                    self.waiting["proxy_depth"] -= 1
+                handle(role.on_proxy_depth, depth_in, m)
+            self.subscribe(ProxyDepth, TOPICS["proxy_depth"], Q.proxy_depth_qos(),
+                           enqueue_newest, "ProxyDepth")
+        elif proxy_depth:
+            sub(ProxyDepth, "proxy_depth", Q.proxy_depth_qos(), role.on_proxy_depth, depth_in)
         self.on_events(lambda d: d.get("event") == "finalized" and self.worker.submit(
             handle, lambda info: role.on_final(str(info.get("node")), info), lambda d: d, d))
 
@@ -353,6 +372,32 @@ class SplatNode:
                 pass
             rclpy.try_shutdown()
         return rc
+
+
+class NewestWaiting:
+    """Messages waiting on a worker, the newest one per key: a message whose key already
+    waits replaces the waiting one when it is newer (``order``: a revision) and is not queued
+    again; the job queued for the first takes whichever is newest when it runs. The caller
+    holds a lock around both calls (the executor offers, the worker takes)."""
+
+    def __init__(self):
+        self.items: Dict[int, Tuple[int, Any]] = {}
+
+    def offer(self, key: int, msg: Any, order: int) -> bool:
+        """Keep ``msg`` for ``key``; True when nothing waited for ``key`` (queue a job)."""
+        old = self.items.get(key)
+        if old is None or order > old[0]:
+            self.items[key] = (order, msg)
+        return old is None
+
+    def take(self, key: int) -> Any:
+        return self.items.pop(key)[1]
+
+    def __iter__(self):
+        return iter(list(self.items))
+
+    def __len__(self) -> int:
+        return len(self.items)
 
 
 class Worker:

@@ -63,6 +63,7 @@ class TrackerNode(SplatNode):
         self.role = None                    # splat_slam_ros.roles.TrackerRole, on the first frame
         self.localize = bool(self.opts["localize"])
         self.kf_images: dict = {}           # kf id -> published image (the session's keyframes)
+        self.kf_arrival: dict = {}          # kf id -> its frame's arrival here (epoch s)
         self.eos = self.saved = False
         self.stamps: List[float] = []
         self.poses: List = []
@@ -175,7 +176,7 @@ class TrackerNode(SplatNode):
         except TrackingError as e:
             return self.camera.drop(frame.index, f"{e}")
         self.emit(out)                            # local BA first, then the new keyframe(s)
-        self.kf_images.update((kd.kf_id, kd.image) for kd in out.keyframes)
+        self._keep_keyframes(out)
         stamp = frame.timestamp
         if getattr(trk, "n_relocalisations", 0) > relocs:     # in a loaded map (node.load_map)
             self._relocalised(frame.index, trk, step.pose)
@@ -261,8 +262,17 @@ class TrackerNode(SplatNode):
         out.final = dict(out.final or {}, keyframes=self._keyframes(), frames=c.n_frames,
                          dropped=c.n_dropped)
         self.emit(out)
-        self.kf_images.update((kd.kf_id, kd.image) for kd in out.keyframes)
+        self._keep_keyframes(out)
         self._maybe_save()
+
+    def _keep_keyframes(self, out) -> None:
+        """The published keyframes' images (the session's keyframes) and their frames'
+        arrival (the launcher's map lag: arrival -> mapped)."""
+        for kd in out.keyframes:
+            self.kf_images[kd.kf_id] = kd.image
+            t = self.camera.arrival_epoch.get(int(kd.frame_index))
+            if t is not None:
+                self.kf_arrival[int(kd.kf_id)] = t
 
     def _skipped(self) -> int:
         """Frames skipped and never tracked: those tracked after all as bridges count as
@@ -293,6 +303,8 @@ class TrackerNode(SplatNode):
                            lost=trk.n_lost if trk is not None else 0,
                            posed=posed, latency_ms=self.camera.latency_stats(),
                            keyframes=self._keyframes(),
+                           keyframe_arrival={str(k): round(t, 4)
+                                             for k, t in sorted(self.kf_arrival.items())},
                            timings={k: round(float(v), 3) for k, v in
                                     (trk.timings.items() if trk is not None else [])})
 

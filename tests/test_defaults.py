@@ -321,7 +321,7 @@ def test_launcher_keeps_the_mapper_at_pace_on_realtime_input(tmp_path, monkeypat
         assert getattr(lock.cfg.mapping, key) == getattr(MappingConfig(), key) != value
     mine = planned("--bag", str(tmp_path / "b.mcap"), "--mode", "realtime",
                    "--set", "mapping.final_refine_s=30")
-    assert mine.cfg.mapping.final_refine_s == 30 and mine.cfg.mapping.budget_s_first == 4.0
+    assert mine.cfg.mapping.final_refine_s == 30 and mine.cfg.mapping.budget_s_first == 1.5
 
 
 

@@ -336,6 +336,10 @@ def test_live_topics_ctrl_c_finalises(tiny_bag, tmp_path):
     assert 0 < lat["frames"] <= m["frames_received"], m
     assert 0 <= lat["p50"] <= lat["p95"] <= lat["max"] < 120_000, lat
     assert m["map"]["budget"] == "time"              # live input: wall-clock budgets
+    # map lag (a keyframe's frame arrives at the tracker -> mapped) of the mapped keyframes
+    lag = m["map_lag_s"]
+    assert 0 < lag["keyframes"] <= m["map"]["keyframes"] <= m["keyframes"], (lag, m["map"])
+    assert 0 < lag["p50"] <= lag["p95"] <= lag["max"] < m["wall_total_s"], (lag, m["wall_total_s"])
 
 
 def _children(pid: int):

@@ -65,12 +65,13 @@ NODE_MODULES = {
 }
 RESUMABLE = ("tracker", "depth", "loop_closure", "mapper", "player")
 REALTIME_KEEP_UP = 0.8      # mapping.keep_up on realtime input unless the config sets one
-# realtime input, unless the config sets them: the first keyframe's and the final
+# realtime input, unless the config sets them: the first keyframe's (1.5 s: keyframes
+# queue behind it; 4 s gave the same PSNR and twice the map lag) and the final
 # refinement's wall seconds, the steps of a keyframe while input waits, and steps on a 1/2
 # pixel lattice (half the cost; docs/mapping.md "Lattice steps"), so the map keeps pace and is
 # done soon after the stream (background steps refine it while the mapper has
 # time; docs/live-camera.md "What the graph does on live input")
-REALTIME_MAPPING = {"budget_s_first": 4.0, "min_iters_per_keyframe": 1, "final_refine_s": 8.0,
+REALTIME_MAPPING = {"budget_s_first": 1.5, "min_iters_per_keyframe": 1, "final_refine_s": 8.0,
                     "final_deadline_s": 8.0, "step_subsample": 2, "refine_subsample": 2}
 # niced on realtime input; not the depth node: the mapper waits for its proxy depth, and niced
 # too it finalised about 5 s after the stream, leaving the mapper's refinement no time

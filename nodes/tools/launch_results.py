@@ -34,6 +34,10 @@ def write_metrics(L, end_wall: float) -> dict:
     m.update(frame_counts(trk.get("frames"), trk.get("dropped"), trk.get("posed"),
                           trk.get("skipped"), trk.get("lost")))
     m["pose_latency_ms"] = trk.get("latency_ms") or {}
+    lag = map_lag(trk.get("keyframe_arrival"),
+                  (L.has_event("mapper", "saved") or {}).get("keyframe_mapped"))
+    if lag:
+        m["map_lag_s"] = lag
     if L.t_eos is not None and L.t_mapped is not None:
         m["map_done_after_stream_s"] = round(L.t_mapped - L.t_eos, 3)
     m["keyframes"] = trk.get("keyframes", 0)
@@ -51,6 +55,20 @@ def write_metrics(L, end_wall: float) -> dict:
         evaluate_lpips(L.out_dir, L.cfg, m)      # lpips (null without a backbone)
     _write_json(L.out_dir / "metrics.json", m)
     return m
+
+
+def map_lag(arrival, mapped) -> dict:
+    """Map lag (s) per keyframe: its frame's arrival at the tracker -> its Gaussians in the
+    map (the mapper mapped it), p50 / p95 / max over the keyframes both nodes reported
+    (``frames``: how many); {} when there are none (a run without mapping)."""
+    from ..camera_input import spread
+    if not isinstance(arrival, dict) or not isinstance(mapped, dict):
+        return {}
+    lags = [float(mapped[k]) - float(arrival[k]) for k in arrival if k in mapped]
+    out = spread(lags, 3)
+    if out:
+        out["keyframes"] = out.pop("frames")
+    return out
 
 
 def evaluate(L, m: dict) -> None:
@@ -126,6 +144,10 @@ def summary(L, m: dict) -> None:
     if lat:
         L.say(f"pose latency p50 {lat['p50']:.0f} ms, p95 {lat['p95']:.0f} ms, "
               f"max {lat['max']:.0f} ms")
+    lag = m.get("map_lag_s") or {}
+    if lag:
+        L.say(f"map lag (keyframe's frame arrived -> mapped) p50 {lag['p50']:.1f} s, p95 "
+              f"{lag['p95']:.1f} s, max {lag['max']:.1f} s over {lag['keyframes']} keyframes")
     for k in SUMMARY_METRICS:
         if isinstance(m.get(k), (int, float)):
             L.say(f"{k} {m[k]:.4f}")
