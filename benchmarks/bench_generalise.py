@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Generalisation benchmark: tracking on scenes and motions not tuned on, DSO beside us.
+"""Generalisation benchmark: tracking on scenes and motions not tuned on, peers beside us.
 
 The suite renders 640x480 sequences with ``splat-slam-synth`` along every real trajectory in
 ``../shared/data/trajectories`` (TUM hand-held fr1/xyz and fr2/desk, EuRoC V1_02 drone,
@@ -9,7 +9,7 @@ repetitive, thin, deep), with procedural or photo textures (the real photos of
 ``../shared/data``. Sequences are split into a **tuning** set (what defaults may be chosen
 on) and a **check** set with other seeds, starts, scenes and motions that no parameter is
 chosen on; the benchmark prints both and a summary of the check set against the targets
-(100 % of frames posed, ATE and frames/s against DSO's where DSO ran, peak RSS).
+(100 % of frames posed, ATE and frames/s against a peer's where it ran, peak RSS).
 
 Each tracking run is ``bench_tracking.py``'s child: its own process, default configuration,
 tracking + loop closure + global BA (``--tracking-only`` of the product), frames/s = input
@@ -21,9 +21,15 @@ DSO (https://github.com/JakobEngel/dso, GPL-3.0) is never vendored: pass ``--dso
 built ``dso_dataset``) or ``--dso-source DIR`` (a checkout: built with CMake into a scratch
 folder under ``--data-dir``). It runs monocular, without photometric calibration
 (``mode=1``), headless, on the same PNGs; its ``result.txt`` is read as a TUM trajectory.
+ORB-SLAM3 (``--orbslam3``; monocular, GPL-3.0) runs from the ``pyorbslam3`` wheel on PyPI in
+a scratch environment under ``--data-dir``, on the same PNGs; ``orb_peer.py`` says how, and
+why its vocabulary is trained here unless ``--orb-vocab ORBvoc.txt`` is given. A peer is
+measured like our runs: its whole process (start-up included), peak RSS, Sim(3) ATE over
+the frames it posed.
 
     .venv/bin/python benchmarks/bench_generalise.py [--split tuning|check|all]
-        [--cases a,b] [--full] [--dso BIN | --dso-source DIR] [--set KEY=JSON ...]
+        [--cases a,b] [--full] [--dso BIN | --dso-source DIR] [--orbslam3
+        [--orb-vocab FILE]] [--set KEY=JSON ...]
         [--data-dir DIR] [--out benchmarks/results/generalise.json]
 
 Rendering a missing sequence takes about 1 s per frame (cached under ``--data-dir``).
@@ -44,6 +50,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_tracking as bt                       # noqa: E402  (the tracking child, _save)
+import orb_peer                                   # noqa: E402  (ORB-SLAM3 beside us)
 
 REPO = bt.REPO
 SHARED = REPO.parent / "shared" / "data"
@@ -76,6 +83,9 @@ SUITE = {
                               105),
     "c_euroc_v101_real": dict(split="check", real="euroc_v1_01_first95", full=False),
 }
+# peers beside us (never vendored): result key -> name, and how to run it
+PEERS = {"dso": "DSO", "orbslam3": "ORB-SLAM3"}
+PEER_FLAGS = {"dso": "--dso BIN or --dso-source DIR", "orbslam3": "--orbslam3"}
 # the issue's targets on the check set
 TARGETS = dict(posed_frac=1.0, peak_rss_mb=200.0, full_fps=1.24, full_kf_per_s=6.0)
 
@@ -128,25 +138,31 @@ def build_dso(source: Path, data_dir: Path) -> Path:
     return binary
 
 
-def dso_inputs(seq_dir: Path, work: Path):
-    """DSO's input for a sequence: images/ (symlinks, in order), times.txt, camera.txt
-    (pinhole, already undistorted: our renders have none; the real EuRoC clip is given
-    DSO's RadTan line). Returns (images, camera, frame stamps, ground truth)."""
+def frame_inputs(seq_dir: Path, peer: str = "DSO"):
+    """A sequence's image files and stamps in order, its intrinsics and ground truth (what
+    a peer runs on: the same PNGs as ours)."""
     sys.path.insert(0, str(REPO))
     from splat_slam_ros.io.datasets import open_dataset
     ds = open_dataset(seq_dir)
     ds.load_depth = False
     entries = getattr(ds, "_entries", None)
     if entries is None:
-        sys.exit(f"error: {seq_dir}: DSO needs a folder of image files")
-    paths, stamps = [e.image for e in entries], [e.timestamp for e in entries]
+        sys.exit(f"error: {seq_dir}: {peer} needs a folder of image files")
+    return ([e.image for e in entries], [e.timestamp for e in entries], ds.intrinsics,
+            ds.gt_trajectory())
+
+
+def dso_inputs(seq_dir: Path, work: Path):
+    """DSO's input for a sequence: images/ (symlinks, in order), times.txt, camera.txt
+    (pinhole, already undistorted: our renders have none; the real EuRoC clip is given
+    DSO's RadTan line). Returns (images, camera, frame stamps, ground truth)."""
+    paths, stamps, K, (gt_ts, gt) = frame_inputs(seq_dir)
     img = work / "images"
     img.mkdir(parents=True, exist_ok=True)
     with open(work / "times.txt", "w") as fh:
         for i, (p, t) in enumerate(zip(paths, stamps)):
             os.symlink(Path(p).resolve(), img / f"{i:06d}.png")
             fh.write(f"{i:06d} {t:.6f}\n")
-    K = ds.intrinsics
     W, H = K.width, K.height
     if K.has_distortion and K.distortion_model == "plumb_bob":
         first = (f"RadTan {K.fx / W} {K.fy / H} {(K.cx + 0.5) / W} {(K.cy + 0.5) / H} "
@@ -156,7 +172,6 @@ def dso_inputs(seq_dir: Path, work: Path):
     else:
         first = f"Pinhole {K.fx / W} {K.fy / H} {(K.cx + 0.5) / W} {(K.cy + 0.5) / H} 0"
     (work / "camera.txt").write_text(f"{first}\n{W} {H}\ncrop\n{W} {H}\n")
-    gt_ts, gt = ds.gt_trajectory()
     return img, work / "camera.txt", stamps, (gt_ts, gt)
 
 
@@ -169,32 +184,83 @@ def read_dso_result(path: Path):
     return read_trajectory(path, "tum")
 
 
-def run_dso(binary: Path, seq_dir: Path) -> dict:
+def run_measured(cmd, work: Path, log=subprocess.DEVNULL):
+    """A peer's process: exit status, wall seconds (start-up included) and peak RSS (MB,
+    its VmHWM polled every 0.2 s)."""
+    from splat_slam_ros.heap import proc_memory_mb
+    t0 = time.perf_counter()
+    p = subprocess.Popen(cmd, cwd=work, stdout=log, stderr=subprocess.STDOUT
+                         if log is not subprocess.DEVNULL else subprocess.DEVNULL)
+    hwm = 0.0
+    while p.poll() is None:
+        hwm = max(hwm, proc_memory_mb(p.pid).get("VmHWM", 0.0))
+        time.sleep(0.2)
+    return p.returncode, time.perf_counter() - t0, hwm
+
+
+def peer_result(rc, wall, hwm, load0, stamps, ts, P, gt_ts, gt) -> dict:
+    """A peer's row: posed frames, frames/s, peak RSS and its ATE (Sim(3), every frame it
+    posed; None under 3)."""
     from splat_slam_ros.evaluation.inputs import MetricError
     from splat_slam_ros.evaluation.trajectory import ate
-    from splat_slam_ros.heap import proc_memory_mb
+    r = dict(rc=rc, wall_s=wall, fps=len(stamps) / wall, posed=len(ts), frames=len(stamps),
+             peak_rss_mb=hwm, load_before=load0)
+    try:
+        r["ate_full_cm"] = ate(gt_ts, gt, ts, P)["rmse_cm"] if len(ts) >= 3 else None
+    except MetricError as e:
+        r["ate_full_cm"], r["error"] = None, str(e)
+    return r
+
+
+def run_dso(binary: Path, seq_dir: Path) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         img, cam, stamps, (gt_ts, gt) = dso_inputs(seq_dir, work)
         cmd = [str(binary), f"files={img}", f"calib={cam}", "mode=1", "preset=0", "nogui=1",
                "nolog=1", "quiet=1", "nomt=0"]
         load0 = os.getloadavg()[0]
-        t0 = time.perf_counter()
-        p = subprocess.Popen(cmd, cwd=work, stdout=subprocess.DEVNULL,
-                             stderr=subprocess.DEVNULL)
-        hwm = 0.0
-        while p.poll() is None:
-            hwm = max(hwm, proc_memory_mb(p.pid).get("VmHWM", 0.0))
-            time.sleep(0.2)
-        wall = time.perf_counter() - t0
+        rc, wall, hwm = run_measured(cmd, work)
         ts, P = read_dso_result(work / "result.txt")
-    r = dict(rc=p.returncode, wall_s=wall, fps=len(stamps) / wall, posed=len(ts),
-             frames=len(stamps), peak_rss_mb=hwm, load_before=load0)
-    try:
-        r["ate_full_cm"] = ate(gt_ts, gt, ts, P)["rmse_cm"] if len(ts) >= 3 else None
-    except MetricError as e:
-        r["ate_full_cm"], r["error"] = None, str(e)
-    return r
+    return peer_result(rc, wall, hwm, load0, stamps, ts, P, gt_ts, gt)
+
+
+# ------------------------------------------------------------------ ORB-SLAM3
+def orbslam3_vocabulary(data_dir: Path, given) -> Path:
+    """ORB-SLAM3's vocabulary: ``--orb-vocab FILE`` (its own ORBvoc.txt), else one trained
+    once from the real photos of ../shared/data (orb_peer.train_vocabulary), cached."""
+    if given:
+        if not Path(given).is_file():
+            sys.exit(f"error: ORB vocabulary not found: {given}")
+        return Path(given)
+    out = data_dir / f"orbslam3_vocab_k{orb_peer.VOCAB_K}_L{orb_peer.VOCAB_L}.txt"
+    if not out.is_file():
+        imgs = [p for pat in PHOTO_SOURCES for p in sorted(SHARED.glob(pat))]
+        if not imgs:
+            sys.exit(f"error: no photos under {SHARED} to train an ORB vocabulary from "
+                     "(pass --orb-vocab ORBvoc.txt)")
+        words = orb_peer.train_vocabulary(orb_peer.orb_descriptors(imgs), out)
+        print(f"trained an ORB vocabulary of {words} words on {len(imgs)} photos: {out}")
+    return out
+
+
+def run_orbslam3(py: Path, vocab: Path, seq_dir: Path) -> dict:
+    """ORB-SLAM3 monocular on the sequence's frames (``py``: the scratch environment's
+    python, orb_peer.peer_env), measured as DSO is: the whole child process."""
+    paths, stamps, K, (gt_ts, gt) = frame_inputs(seq_dir, "ORB-SLAM3")
+    fps = 1.0 / float(np.median(np.diff(stamps))) if len(stamps) > 1 else 30.0
+    dist = list(K.distortion)[:4] if K.has_distortion else [0.0] * 4
+    if K.has_distortion and K.distortion_model != "plumb_bob":
+        sys.exit(f"error: {seq_dir}: {K.distortion_model} distortion is not passed to "
+                 "ORB-SLAM3")
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        job = orb_peer.write_job(work, vocab, orb_peer.settings_yaml(
+            K.fx, K.fy, K.cx, K.cy, K.width, K.height, round(fps, 3), dist), paths, stamps)
+        load0 = os.getloadavg()[0]
+        with open(work / "peer.log", "w") as log:
+            rc, wall, hwm = run_measured([str(py), orb_peer.__file__, str(job)], work, log)
+        ts, P = orb_peer.read_trajectory(work / "trajectory.txt")
+    return peer_result(rc, wall, hwm, load0, stamps, ts, P, gt_ts, gt)
 
 
 # ------------------------------------------------------------------ full run
@@ -226,18 +292,24 @@ def fmt(v, spec=".3f"):
 
 
 def table(results: dict) -> None:
+    peers = [p for p in PEERS if any(r.get(p) for r in results.values())] or ["dso"]
     print("\n| case | split | posed | kf | kf/s | ATE full (cm) | ATE kf | scale drift | "
-          "frames/s | RSS (MB) | load | DSO ATE | DSO posed | DSO frames/s | DSO RSS |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "frames/s | RSS (MB) | load | " + " | ".join(
+              f"{PEERS[p]} ATE | {PEERS[p]} posed | {PEERS[p]} frames/s | {PEERS[p]} RSS"
+              for p in peers) + " |")
+    print("|---" * (11 + 4 * len(peers)) + "|")
     for name, r in results.items():
-        d = r.get("dso") or {}
         lost = f" ({r['lost']} lost)" if r["lost"] else ""
+        cols = []
+        for p in peers:
+            d = r.get(p) or {}
+            cols.append(f"{fmt(d.get('ate_full_cm'))} | "
+                        f"{d.get('posed', '-')}{'/' + str(d['frames']) if d else ''} | "
+                        f"{fmt(d.get('fps'), '.1f')} | {fmt(d.get('peak_rss_mb'), '.0f')}")
         print(f"| {name} | {r['split']} | {r['posed']}/{r['frames']}{lost} | {r['keyframes']} | "
               f"{r['kf_per_s']:.1f} | {fmt(r['ate_full_cm'])} | {fmt(r['ate_kf_cm'])} | "
               f"{fmt(r['scale_drift'])} | {r['fps']:.1f} | {r['peak_rss_mb']:.0f} | "
-              f"{r['load_before']:.1f} | {fmt(d.get('ate_full_cm'))} | "
-              f"{d.get('posed', '-')}{'/' + str(d['frames']) if d else ''} | "
-              f"{fmt(d.get('fps'), '.1f')} | {fmt(d.get('peak_rss_mb'), '.0f')} |")
+              f"{r['load_before']:.1f} | " + " | ".join(cols) + " |")
     full = {n: r["full"] for n, r in results.items() if r.get("full")}
     for n, f in full.items():
         print(f"\nfull default run, {n}: {f['fps']:.2f} frames/s (target >= "
@@ -258,21 +330,25 @@ def check_summary(results: dict) -> dict:
          "median_ate_full_cm": float(np.median([r["ate_full_cm"] for r in scored]))
          if scored else None,
          "max_scale_drift": max((r["scale_drift"] for r in scored), default=None)}
-    dso = {n: r for n, r in chk.items() if (r.get("dso") or {}).get("ate_full_cm") is not None
-           and r["ate_full_cm"] is not None}
-    if dso:
-        s["dso_tracked"] = len(dso)
-        s["ate_le_dso"] = sum(r["ate_full_cm"] <= r["dso"]["ate_full_cm"] for r in dso.values())
-        s["fps_ge_dso"] = sum(r["fps"] >= r["dso"]["fps"] for r in dso.values())
-        s["ate_ratio_to_dso"] = {n: r["ate_full_cm"] / max(r["dso"]["ate_full_cm"], 1e-9)
-                                 for n, r in dso.items()}
+    for p in PEERS:     # a peer "tracks" a sequence when it posed enough frames for an ATE
+        ran = {n: r for n, r in chk.items() if (r.get(p) or {}).get("ate_full_cm") is not None
+               and r["ate_full_cm"] is not None}
+        if ran:
+            s[f"{p}_tracked"] = len(ran)
+            s[f"ate_le_{p}"] = sum(r["ate_full_cm"] <= r[p]["ate_full_cm"]
+                                   for r in ran.values())
+            s[f"fps_ge_{p}"] = sum(r["fps"] >= r[p]["fps"] for r in ran.values())
+            s[f"posed_ge_{p}"] = sum(r["posed"] >= r[p]["posed"] for r in ran.values())
+            s[f"ate_ratio_to_{p}"] = {n: r["ate_full_cm"] / max(r[p]["ate_full_cm"], 1e-9)
+                                      for n, r in ran.items()}
     print("\ncheck set: " + ", ".join(f"{k} {v if not isinstance(v, float) else round(v, 3)}"
-                                      for k, v in s.items() if k != "ate_ratio_to_dso"))
-    if "ate_ratio_to_dso" in s:
-        print("ATE / DSO's: " + ", ".join(f"{n} {v:.2f}" for n, v in
-                                          s["ate_ratio_to_dso"].items()))
-    else:
-        print("DSO: not run (pass --dso BIN or --dso-source DIR)")
+                                      for k, v in s.items() if not k.startswith("ate_ratio")))
+    for p, label in PEERS.items():
+        if f"ate_ratio_to_{p}" in s:
+            print(f"ATE / {label}'s: " + ", ".join(f"{n} {v:.2f}" for n, v in
+                                                  s[f"ate_ratio_to_{p}"].items()))
+        else:
+            print(f"{label}: not run (pass {PEER_FLAGS[p]})")
     return s
 
 
@@ -284,6 +360,11 @@ def main(argv=None) -> int:
                     help="also the whole default pipeline on the cases marked full")
     ap.add_argument("--dso", help="a built DSO dso_dataset binary")
     ap.add_argument("--dso-source", help="a DSO source checkout, built into --data-dir")
+    ap.add_argument("--orbslam3", action="store_true",
+                    help="ORB-SLAM3 monocular beside us (pip wheel pyorbslam3 in a scratch "
+                         "environment under --data-dir)")
+    ap.add_argument("--orb-vocab", help="ORB-SLAM3's ORBvoc.txt (default: a vocabulary "
+                                        "trained on ../shared/data's photos)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=JSON",
                     help="config override for every run of ours")
     ap.add_argument("--data-dir", default=str(REPO / "benchmarks" / "results" / "data"))
@@ -311,6 +392,9 @@ def main(argv=None) -> int:
     if dso is not None and not dso.is_file():
         print(f"error: DSO binary not found: {dso}", file=sys.stderr)
         return 2
+    orb = None
+    if a.orbslam3 or a.orb_vocab:
+        orb = (orb_peer.peer_env(data_dir), orbslam3_vocabulary(data_dir, a.orb_vocab))
     results = {}
     for name in names:
         c = SUITE[name]
@@ -320,6 +404,8 @@ def main(argv=None) -> int:
         r["split"] = c["split"]
         if dso is not None:
             r["dso"] = run_dso(dso, sdir)
+        if orb is not None:
+            r["orbslam3"] = run_orbslam3(*orb, sdir)
         if a.full and c.get("full"):
             r["full"] = run_full(sdir, data_dir / f"full_{name}", a.set)
         results[name] = r
@@ -328,6 +414,11 @@ def main(argv=None) -> int:
               f"{r['keyframes']} kf ({r['kf_per_s']:.1f}/s), scale drift "
               f"{fmt(r['scale_drift'])}, {r['fps']:.1f} frames/s, {r['peak_rss_mb']:.0f} MB, "
               f"load {r['load_before']:.1f}", flush=True)
+        for p, label in PEERS.items():
+            if r.get(p):
+                d = r[p]
+                print(f"   {label}: ATE {fmt(d['ate_full_cm'])} cm, {d['posed']}/{d['frames']} "
+                      f"posed, {d['fps']:.1f} frames/s, {d['peak_rss_mb']:.0f} MB", flush=True)
         bt._save(Path(a.out), {name: r})
     table(results)
     summary = check_summary(results)

@@ -1,5 +1,6 @@
-"""The generalisation benchmark's DSO adapter and suite definition (no DSO here: a stand-in
-executable that reads DSO's inputs and writes DSO's result file)."""
+"""The generalisation benchmark's peers and suite definition: the DSO and ORB-SLAM3 adapters
+(stand-in executables that read a peer's inputs and write its result file; the real peers are
+on-demand) and the ORB vocabulary that ORB-SLAM3 reads."""
 import subprocess
 import sys
 import textwrap
@@ -11,6 +12,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
 import bench_generalise as bg                    # noqa: E402
+import orb_peer as op                            # noqa: E402
 sys.path.remove(str(REPO / "benchmarks"))
 
 from splat_slam_ros.io.trajectory_io import read_trajectory   # noqa: E402
@@ -105,3 +107,98 @@ def test_unknown_case_and_bad_override_exit_2(capsys):
     assert "unknown case" in capsys.readouterr().err
     assert bg.main(["--cases", "c_euroc_v101_real", "--set", "tracking.nope=1"]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ ORB-SLAM3 beside us
+FAKE_ORB_PYTHON = textwrap.dedent('''\
+    #!{python}
+    # Stands in for the scratch environment's python running orb_peer.py JOB: checks the
+    # job and its settings, then "tracks" every frame but the first three by writing the
+    # ground truth as ORB-SLAM3's EuRoC trajectory (stamps in ns).
+    import json, sys
+    from pathlib import Path
+    assert sys.argv[1].endswith("orb_peer.py"), sys.argv
+    job = json.loads(Path(sys.argv[2]).read_text())
+    st = Path(job["settings"]).read_text()
+    assert st.startswith("%YAML:1.0") and "Camera.fx: " in st and "Camera.RGB: 1" in st, st
+    assert Path(job["vocab"]).is_file() and len(job["images"]) == len(job["stamps"])
+    seq = Path(job["images"][0]).resolve().parent.parent
+    gt = {{}}
+    for line in (seq / "groundtruth.txt").read_text().splitlines():
+        if line and not line.startswith("#"):
+            v = line.split()
+            gt[round(float(v[0]), 4)] = v[1:]
+    with open(job["out"], "w") as fh:
+        for t in job["stamps"][3:]:
+            fh.write(f"{{int(round(t * 1e9))}} " + " ".join(gt[round(t, 4)]) + "\\n")
+''')
+
+
+def test_orbslam3_adapter_runs_the_peer_on_the_same_frames_and_scores_its_result(small_seq,
+                                                                                   tmp_path):
+    fake = tmp_path / "python"
+    fake.write_text(FAKE_ORB_PYTHON.format(python=sys.executable))
+    fake.chmod(0o755)
+    vocab = tmp_path / "voc.txt"
+    vocab.write_text("10 5 0 0\n0 1 " + " ".join(["0"] * 32) + " 0.0")
+    r = bg.run_orbslam3(fake, vocab, small_seq)
+    assert r["rc"] == 0 and r["frames"] == 12 and r["posed"] == 9
+    assert r["ate_full_cm"] == pytest.approx(0.0, abs=1e-3)      # its poses were exact
+    assert r["fps"] > 0 and r["peak_rss_mb"] >= 0
+
+
+def test_an_orbslam3_that_fails_counts_no_posed_frames(small_seq, tmp_path):
+    fake = tmp_path / "python"
+    fake.write_text(f"#!{sys.executable}\nimport sys\nsys.exit(3)\n")
+    fake.chmod(0o755)
+    r = bg.run_orbslam3(fake, tmp_path / "voc.txt", small_seq)
+    assert r["rc"] == 3 and r["posed"] == 0 and r["ate_full_cm"] is None
+
+
+def _parse_dbow2(path: Path):
+    head, *rows = path.read_text().split("\n")
+    k, L, scoring, weighting = map(int, head.split())
+    nodes = [tuple(r.split()) for r in rows]
+    return (k, L, scoring, weighting), nodes
+
+
+def test_trained_vocabulary_is_dbow2_text_that_orbslam3_reads(tmp_path):
+    rng = np.random.default_rng(0)
+    # three "images": descriptors around three distinct bit patterns, 300 each
+    centres = rng.integers(0, 256, size=(3, 32), dtype=np.uint8)
+    descs = []
+    for c in centres:
+        flips = rng.random((300, 256)) < 0.05
+        bits = np.unpackbits(np.repeat(c[None], 300, 0), axis=1) ^ flips
+        descs.append(np.packbits(bits.astype(np.uint8), axis=1))
+    out = tmp_path / "voc.txt"
+    words = op.train_vocabulary(descs, out, k=4, L=3)
+    (k, L, scoring, weighting), nodes = _parse_dbow2(out)
+    assert (k, L, scoring, weighting) == (4, 3, 0, 0)       # L1 scoring, TF-IDF
+    assert not out.read_text().endswith("\n")               # DBoW2 reads lines to the end
+    children = {}
+    leaves = 0
+    for nid, row in enumerate(nodes, start=1):
+        assert len(row) == 2 + 32 + 1
+        parent, leaf = int(row[0]), int(row[1])
+        assert parent < nid and all(0 <= int(b) <= 255 for b in row[2:34])
+        children[parent] = children.get(parent, 0) + 1
+        weight = float(row[34])
+        leaves += leaf
+        assert weight >= 0 and (leaf or weight == 0)
+    assert leaves == words and 3 <= words <= k ** L
+    assert max(children.values()) <= k
+    # a word seen in every image weighs log(3/3) = 0; the words here are each in one image
+    assert max(float(r[34]) for r in nodes if r[1] == "1") == pytest.approx(np.log(3))
+
+
+def test_orbslam3_settings_name_the_camera_and_distortion():
+    st = op.settings_yaml(500.0, 501.0, 320.0, 240.0, 640, 480, 20.0, [0.1, -0.2, 0.01, 0.02])
+    import yaml
+    y = yaml.safe_load(st.replace("%YAML:1.0\n", ""))
+    assert (y["Camera.fx"], y["Camera.fy"], y["Camera.cx"], y["Camera.cy"]) == \
+        (500.0, 501.0, 320.0, 240.0)
+    assert (y["Camera.k1"], y["Camera.k2"], y["Camera.p1"], y["Camera.p2"]) == \
+        (0.1, -0.2, 0.01, 0.02)
+    assert y["Camera.width"] == 640 and y["Camera.fps"] == 20.0
+    assert y["ORBextractor.nFeatures"] == op.N_FEATURES
