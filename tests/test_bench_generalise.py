@@ -51,23 +51,33 @@ FAKE_DSO = textwrap.dedent('''\
 ''')
 
 
-def test_dso_adapter_runs_the_binary_on_the_same_frames_and_scores_its_result(small_seq,
-                                                                               tmp_path):
-    fake = tmp_path / "dso_dataset"
-    fake.write_text(FAKE_DSO.format(python=sys.executable))
+def run_peer(peer: str, script: str, seq: Path, tmp_path: Path) -> dict:
+    """``peer``'s adapter on ``seq`` with ``script`` standing in for its executable (DSO's
+    dso_dataset, or the python of ORB-SLAM3's scratch environment)."""
+    fake = tmp_path / ("dso_dataset" if peer == "dso" else "python")
+    fake.write_text(script)
     fake.chmod(0o755)
-    r = bg.run_dso(fake, small_seq)
+    if peer == "dso":
+        return bg.run_dso(fake, seq)
+    vocab = tmp_path / "voc.txt"
+    vocab.write_text("10 5 0 0\n0 1 " + " ".join(["0"] * 32) + " 0.0")
+    return bg.run_orbslam3(fake, vocab, seq)
+
+
+@pytest.mark.parametrize("peer", ["dso", "orbslam3"])
+def test_a_peer_runs_on_the_same_frames_and_is_scored_on_what_it_posed(peer, small_seq,
+                                                                       tmp_path):
+    stand_in = FAKE_DSO if peer == "dso" else FAKE_ORB_PYTHON
+    r = run_peer(peer, stand_in.format(python=sys.executable), small_seq, tmp_path)
     assert r["rc"] == 0 and r["frames"] == 12 and r["posed"] == 9
     assert r["ate_full_cm"] == pytest.approx(0.0, abs=1e-3)      # its poses were exact
     assert r["fps"] > 0 and r["peak_rss_mb"] >= 0
 
 
-def test_dso_that_writes_nothing_counts_no_posed_frames(small_seq, tmp_path):
-    fake = tmp_path / "dso_dataset"
-    fake.write_text(f"#!{sys.executable}\nimport sys\nsys.exit(1)\n")
-    fake.chmod(0o755)
-    r = bg.run_dso(fake, small_seq)
-    assert r["rc"] == 1 and r["posed"] == 0 and r["ate_full_cm"] is None
+@pytest.mark.parametrize("peer", ["dso", "orbslam3"])
+def test_a_peer_that_fails_counts_no_posed_frames(peer, small_seq, tmp_path):
+    r = run_peer(peer, f"#!{sys.executable}\nimport sys\nsys.exit(3)\n", small_seq, tmp_path)
+    assert r["rc"] == 3 and r["posed"] == 0 and r["ate_full_cm"] is None
 
 
 def test_camera_file_is_dso_pinhole_in_relative_units(small_seq, tmp_path):
@@ -132,27 +142,6 @@ FAKE_ORB_PYTHON = textwrap.dedent('''\
         for t in job["stamps"][3:]:
             fh.write(f"{{int(round(t * 1e9))}} " + " ".join(gt[round(t, 4)]) + "\\n")
 ''')
-
-
-def test_orbslam3_adapter_runs_the_peer_on_the_same_frames_and_scores_its_result(small_seq,
-                                                                                   tmp_path):
-    fake = tmp_path / "python"
-    fake.write_text(FAKE_ORB_PYTHON.format(python=sys.executable))
-    fake.chmod(0o755)
-    vocab = tmp_path / "voc.txt"
-    vocab.write_text("10 5 0 0\n0 1 " + " ".join(["0"] * 32) + " 0.0")
-    r = bg.run_orbslam3(fake, vocab, small_seq)
-    assert r["rc"] == 0 and r["frames"] == 12 and r["posed"] == 9
-    assert r["ate_full_cm"] == pytest.approx(0.0, abs=1e-3)      # its poses were exact
-    assert r["fps"] > 0 and r["peak_rss_mb"] >= 0
-
-
-def test_an_orbslam3_that_fails_counts_no_posed_frames(small_seq, tmp_path):
-    fake = tmp_path / "python"
-    fake.write_text(f"#!{sys.executable}\nimport sys\nsys.exit(3)\n")
-    fake.chmod(0o755)
-    r = bg.run_orbslam3(fake, tmp_path / "voc.txt", small_seq)
-    assert r["rc"] == 3 and r["posed"] == 0 and r["ate_full_cm"] is None
 
 
 def _parse_dbow2(path: Path):
