@@ -19,7 +19,6 @@ import numpy as np
 
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.coordinator import Coordinator
-from splat_slam_ros.evaluation.map_sequence import map_sequence
 from splat_slam_ros.evaluation.rendering import save_renders
 from splat_slam_ros.evaluation.run import (check_lpips_config, evaluate_lpips, evaluate_map_depth,
                                            evaluate_trajectories)
@@ -28,7 +27,6 @@ from splat_slam_ros.io.dataset_base import associate
 from splat_slam_ros.io.trajectory_io import STAMP_TOL, write_tum
 from splat_slam_ros.mapper_role import write_map_outputs, write_mesh
 from splat_slam_ros.mapping.persistence import mapper_arrays
-from splat_slam_ros.report.build import write_report
 from splat_slam_ros.report.recording import WarningRecorder
 from splat_slam_ros.tracking.relocalise import input_images, save_session, session_ids
 
@@ -169,6 +167,8 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
         evaluate_lpips(out, cfg, metrics)                # lpips (null without a backbone)
     metrics["warnings"] = warnings.close()
     _write_json(out / "metrics.json", metrics)
+    # imported here (matplotlib): tracking does not wait for it, nor holds it in memory
+    from splat_slam_ros.report.build import write_report
     write_report(out, cfg)                               # report.html, report.png, config.yaml
     if "error" in metrics:
         raise NotInitializedError(metrics["error"])
@@ -177,6 +177,7 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
 
 
 def _run_gt_mapping(dataset, cfg, out, progress, max_frames, result, metrics) -> None:
+    from splat_slam_ros.evaluation.map_sequence import map_sequence   # the mapper, scipy
     frames = (f for i, f in enumerate(dataset) if max_frames is None or i < max_frames)
     mapper, m = map_sequence(frames, cfg, dataset.intrinsics, use_gt_depth=True,
                              progress=progress)

@@ -114,7 +114,8 @@ def test_in_process_run_writes_lpips_to_metrics_json(tmp_path, lpips_files, monk
     missing backbone stops the run before it starts (the CLI: ``error:``, status 2)."""
     net, path = lpips_files
     monkeypatch.setattr(pipeline, "_run_gt_mapping", _fake_gt_mapping())
-    monkeypatch.setattr(pipeline, "write_report", lambda out, cfg: None)
+    from splat_slam_ros.report import build
+    monkeypatch.setattr(build, "write_report", lambda out, cfg: None)
     ds = SimpleNamespace(name="fake")
     out = tmp_path / "off"
     pipeline.run(ds, SlamConfig(), out, mode="gt_mapping", progress=False)

@@ -1,0 +1,51 @@
+"""A command imports the stages it runs: ``splat-slam-run --tracking-only`` never loads the
+mapper, scipy's spatial module or Open3D (90 MB of memory and a second of start-up), and a
+user mistake is still one ``error:`` line, whatever module raised it."""
+import json
+import subprocess
+import sys
+
+import pytest
+
+HEAVY = ["splat_slam_ros.mapping.mapper", "splat_slam_ros.mapping.mesh", "open3d",
+         "scipy.spatial"]
+
+PROBE = """
+import json, sys
+from splat_slam_ros.cli.run import main
+rc = main(sys.argv[1:])
+print(json.dumps({{"rc": rc, "loaded": [m for m in {heavy!r} if m in sys.modules]}}))
+"""
+
+
+@pytest.fixture(scope="module")
+def small_seq(tmp_path_factory):
+    out = tmp_path_factory.mktemp("imports") / "seq"
+    subprocess.run([sys.executable, "-m", "splat_slam_synth.cli", "--frames", "30",
+                    "--size", "128x96", "--out", str(out), "--quiet"], check=True,
+                   capture_output=True, timeout=300)
+    return out
+
+
+def _probe(*args):
+    r = subprocess.run([sys.executable, "-c", PROBE.format(heavy=HEAVY), *map(str, args)],
+                       capture_output=True, text=True, timeout=600)
+    lines = [ln for ln in r.stdout.splitlines() if ln.startswith("{")]
+    assert lines, r.stdout[-2000:] + r.stderr[-2000:]
+    return json.loads(lines[-1]), r.stderr
+
+
+def test_a_tracking_only_run_loads_neither_the_mapper_scipy_nor_open3d(small_seq, tmp_path):
+    res, err = _probe(small_seq, "--out", tmp_path / "trk", "--tracking-only", "--no-progress")
+    assert res["rc"] in (0, 3), err[-2000:]           # 3: too little motion to initialise
+    assert (tmp_path / "trk" / "metrics.json").is_file()
+    assert res["loaded"] == [], res
+
+
+def test_a_user_mistake_is_one_error_line_from_a_module_loaded_on_demand(small_seq, tmp_path):
+    # a mapping setting the mapper rejects (MapError, raised in a module the command
+    # imported only for the full run)
+    res, err = _probe(small_seq, "--out", tmp_path / "full", "--no-progress", "--set",
+                      "mapping.init_scale=0")
+    assert res["rc"] == 2 and "mapping.init_scale must be > 0" in err, err[-2000:]
+    assert "Traceback" not in err
