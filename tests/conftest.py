@@ -1,4 +1,6 @@
 """Shared pytest fixtures."""
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -25,3 +27,12 @@ def file_error(tmp_path):
         with pytest.raises(error, match=pattern):
             reader(p)
     return check
+
+
+def synth_sequence(out: Path, frames: int, size: str) -> Path:
+    """A small ``splat-slam-synth`` sequence (TUM layout, default scene and motion) in
+    ``out``."""
+    subprocess.run([sys.executable, "-m", "splat_slam_synth.cli", "--frames", str(frames),
+                    "--size", size, "--out", str(out), "--quiet"], check=True,
+                   capture_output=True, timeout=300)
+    return out

@@ -1,7 +1,6 @@
 """The generalisation benchmark's peers and suite definition: the DSO and ORB-SLAM3 adapters
 (stand-in executables that read a peer's inputs and write its result file; the real peers are
 on-demand) and the ORB vocabulary that ORB-SLAM3 reads."""
-import subprocess
 import sys
 import textwrap
 from pathlib import Path
@@ -15,16 +14,13 @@ import bench_generalise as bg                    # noqa: E402
 import orb_peer as op                            # noqa: E402
 sys.path.remove(str(REPO / "benchmarks"))
 
+from conftest import synth_sequence                                # noqa: E402
 from splat_slam_ros.io.trajectory_io import read_trajectory   # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def small_seq(tmp_path_factory):
-    out = tmp_path_factory.mktemp("gen") / "seq"
-    subprocess.run([sys.executable, "-m", "splat_slam_synth.cli", "--frames", "12",
-                    "--size", "96x72", "--out", str(out), "--quiet"], check=True,
-                   capture_output=True, timeout=120)
-    return out
+    return synth_sequence(tmp_path_factory.mktemp("gen") / "seq", 12, "96x72")
 
 
 FAKE_DSO = textwrap.dedent('''\

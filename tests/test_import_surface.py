@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import pytest
+from conftest import synth_sequence
 
 HEAVY = ["splat_slam_ros.mapping.mapper", "splat_slam_ros.mapping.mesh", "open3d",
          "scipy.spatial"]
@@ -20,11 +21,7 @@ print(json.dumps({{"rc": rc, "loaded": [m for m in {heavy!r} if m in sys.modules
 
 @pytest.fixture(scope="module")
 def small_seq(tmp_path_factory):
-    out = tmp_path_factory.mktemp("imports") / "seq"
-    subprocess.run([sys.executable, "-m", "splat_slam_synth.cli", "--frames", "30",
-                    "--size", "128x96", "--out", str(out), "--quiet"], check=True,
-                   capture_output=True, timeout=300)
-    return out
+    return synth_sequence(tmp_path_factory.mktemp("imports") / "seq", 30, "128x96")
 
 
 def _probe(*args):
