@@ -7,7 +7,6 @@ trajectory_full.txt, trajectory_keyframes.txt, map.ply, renders/ and metrics.jso
 """
 from __future__ import annotations
 
-import itertools
 import json
 import logging
 import time
@@ -243,7 +242,8 @@ def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics, co
     if mp is not None:
         metrics.update(write_map_outputs(mp, cfg, out, progress))
     # the session a later run loads (--load-map OUT --localize): after map.ply, which it sums
-    images = input_images(trk, itertools.islice(dataset, max_frames), session_ids(trk))
+    ids = session_ids(trk)
+    images = input_images(trk, dataset.frames_at(trk.kfs[k].frame_index for k in ids), ids)
     save_session(trk, images, cfg, dataset.intrinsics, out,
                  None if mp is None else (*mapper_arrays(mp), mp.K),
                  co.loop.loop if co.loop is not None else None)

@@ -10,7 +10,7 @@ import re
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
-from typing import Iterator, List, Optional, Sequence, Tuple
+from typing import Iterable, Iterator, List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -304,6 +304,23 @@ class Dataset:
     def __iter__(self) -> Iterator[Frame]:
         return self.iter_frames()
 
+    def frames_at(self, indices: Iterable[int]) -> Iterator[Frame]:
+        """The frames whose ``Frame.index`` is in ``indices``, in order, without depth: a
+        stream decodes its frames in turn up to the last one asked for; a folder of files
+        (:class:`FileDataset`) reads just these."""
+        want = {int(i) for i in indices}
+        if not want:
+            return
+        depth, self.load_depth = self.load_depth, False
+        try:
+            for f in self.iter_frames():
+                if f.index in want:
+                    yield f
+                if f.index >= max(want):
+                    break
+        finally:
+            self.load_depth = depth
+
     def close(self) -> None:
         """Release open files (bags); file datasets hold none."""
 
@@ -411,10 +428,15 @@ class FileDataset(Dataset):
         return (np.array([e.timestamp for e in sel], dtype=np.float64),
                 np.stack([e.gt_pose for e in sel]).astype(np.float64))
 
-    def iter_frames(self, keep_mono: Optional[bool] = None) -> Iterator[Frame]:
+    def iter_frames(self, keep_mono: Optional[bool] = None,
+                    only: Optional[Iterable[int]] = None) -> Iterator[Frame]:
+        """Every frame in order (``only``: just those indices, the others not read)."""
         keep = self.keep_mono if keep_mono is None else keep_mono
         K = self.intrinsics
-        for i, e in enumerate(self._entries):
+        picked = range(len(self._entries)) if only is None else sorted(
+            {int(i) for i in only if 0 <= int(i) < len(self._entries)})
+        for i in picked:
+            e = self._entries[i]
             img = read_image(e.image, keep)
             self._check_size(img, e.image)
             depth = None
@@ -425,6 +447,16 @@ class FileDataset(Dataset):
                         intrinsics=copy_intrinsics(K),
                         gt_pose=None if e.gt_pose is None else e.gt_pose.copy(),
                         gt_depth=depth)
+
+    def frames_at(self, indices: Iterable[int]) -> Iterator[Frame]:
+        """The frames of ``indices``, in order, without depth: only their image files are
+        read."""
+        want = [int(i) for i in indices]
+        depth, self.load_depth = self.load_depth, False
+        try:
+            yield from self.iter_frames(only=want)
+        finally:
+            self.load_depth = depth
 
 
 class VideoDataset(Dataset):
