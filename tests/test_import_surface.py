@@ -46,3 +46,11 @@ def test_a_user_mistake_is_one_error_line_from_a_module_loaded_on_demand(small_s
                       "mapping.init_scale=0")
     assert res["rc"] == 2 and "mapping.init_scale must be > 0" in err, err[-2000:]
     assert "Traceback" not in err
+
+
+def test_every_user_error_type_names_an_exception_class():
+    import importlib
+
+    from splat_slam_ros.cli.common import USER_ERROR_TYPES
+    for module, name in USER_ERROR_TYPES:
+        assert issubclass(getattr(importlib.import_module(module), name), Exception), name

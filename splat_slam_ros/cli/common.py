@@ -31,35 +31,15 @@ USER_ERROR_TYPES: Tuple[Tuple[str, str], ...] = (
 
 
 def user_errors() -> Tuple[Type[BaseException], ...]:
-    """All project exception types that signal a user mistake (imports their modules)."""
-    import splat_slam_ros.depth.proxy_depth  # noqa: F401  (every module of USER_ERROR_TYPES)
-    import splat_slam_ros.evaluation.inputs  # noqa: F401
-    import splat_slam_ros.io.dataset_base  # noqa: F401
-    import splat_slam_ros.io.keyframe_store  # noqa: F401
-    import splat_slam_ros.io.sensor_codec  # noqa: F401
-    import splat_slam_ros.io.session  # noqa: F401
-    import splat_slam_ros.io.trajectory_io  # noqa: F401
-    import splat_slam_ros.mapping.mapper  # noqa: F401
-    import splat_slam_ros.mapping.mesh  # noqa: F401
-    import splat_slam_ros.mapping.ply_io  # noqa: F401
-    import splat_slam_ros.mapping.rasterizer  # noqa: F401
-    import splat_slam_ros.runtime  # noqa: F401
-    import splat_slam_ros.tracking.flow_frontend  # noqa: F401
-    import splat_slam_ros.tracking.mono_depth  # noqa: F401
-    import splat_slam_ros.tracking.tracker  # noqa: F401
-    import splat_slam_ros.types  # noqa: F401
-    return tuple(getattr(sys.modules[m], n) for m, n in USER_ERROR_TYPES) + \
-        (FileNotFoundError,)
+    """The project exception types that signal a user mistake, of the modules imported so
+    far (an exception can only come from one of these; none is imported here)."""
+    return tuple(getattr(sys.modules[m], n) for m, n in USER_ERROR_TYPES
+                 if m in sys.modules) + (FileNotFoundError,)
 
 
 def is_user_error(e: BaseException, extra: Tuple[Type[BaseException], ...] = ()) -> bool:
-    """Whether ``e`` is one of :func:`user_errors` (looked up among the modules already
-    imported: none is imported for the check) or of ``extra``."""
-    for m, n in USER_ERROR_TYPES:
-        mod = sys.modules.get(m)
-        if mod is not None and isinstance(e, getattr(mod, n)):
-            return True
-    return isinstance(e, (FileNotFoundError,) + tuple(extra))
+    """Whether ``e`` is one of :func:`user_errors` or of ``extra``."""
+    return isinstance(e, user_errors() + tuple(extra))
 
 
 def run_main(body: Callable[[], int], extra_errors: Tuple[Type[BaseException], ...] = ()) -> int:
