@@ -308,18 +308,22 @@ class Dataset:
         """The frames whose ``Frame.index`` is in ``indices``, in order, without depth: a
         stream decodes its frames in turn up to the last one asked for; a folder of files
         (:class:`FileDataset`) reads just these."""
-        want = {int(i) for i in indices}
+        want = sorted({int(i) for i in indices})
         if not want:
             return
         depth, self.load_depth = self.load_depth, False
         try:
-            for f in self.iter_frames():
-                if f.index in want:
-                    yield f
-                if f.index >= max(want):
-                    break
+            yield from self._frames_of(want)
         finally:
             self.load_depth = depth
+
+    def _frames_of(self, want: List[int]) -> Iterator[Frame]:
+        """:meth:`frames_at`'s frames (``want``: sorted indices): decoded in turn."""
+        for f in self.iter_frames():
+            if f.index in want:
+                yield f
+            if f.index >= want[-1]:
+                break
 
     def close(self) -> None:
         """Release open files (bags); file datasets hold none."""
@@ -428,35 +432,29 @@ class FileDataset(Dataset):
         return (np.array([e.timestamp for e in sel], dtype=np.float64),
                 np.stack([e.gt_pose for e in sel]).astype(np.float64))
 
-    def iter_frames(self, keep_mono: Optional[bool] = None,
-                    only: Optional[Iterable[int]] = None) -> Iterator[Frame]:
-        """Every frame in order (``only``: just those indices, the others not read)."""
+    def iter_frames(self, keep_mono: Optional[bool] = None) -> Iterator[Frame]:
         keep = self.keep_mono if keep_mono is None else keep_mono
-        K = self.intrinsics
-        picked = range(len(self._entries)) if only is None else sorted(
-            {int(i) for i in only if 0 <= int(i) < len(self._entries)})
-        for i in picked:
-            e = self._entries[i]
-            img = read_image(e.image, keep)
-            self._check_size(img, e.image)
-            depth = None
-            if e.depth is not None and self.load_depth:
-                depth = read_depth(e.depth, self.depth_scale, (K.width, K.height),
-                                   self._resize_depth)
-            yield Frame(index=i, timestamp=float(e.timestamp), image=img,
-                        intrinsics=copy_intrinsics(K),
-                        gt_pose=None if e.gt_pose is None else e.gt_pose.copy(),
-                        gt_depth=depth)
+        for i in range(len(self._entries)):
+            yield self._read(i, keep)
 
-    def frames_at(self, indices: Iterable[int]) -> Iterator[Frame]:
-        """The frames of ``indices``, in order, without depth: only their image files are
-        read."""
-        want = [int(i) for i in indices]
-        depth, self.load_depth = self.load_depth, False
-        try:
-            yield from self.iter_frames(only=want)
-        finally:
-            self.load_depth = depth
+    def _frames_of(self, want: List[int]) -> Iterator[Frame]:
+        """Only the image files of ``want`` are read."""
+        for i in want:
+            if 0 <= i < len(self._entries):
+                yield self._read(i, self.keep_mono)
+
+    def _read(self, i: int, keep_mono: bool) -> Frame:
+        e = self._entries[i]
+        K = self.intrinsics
+        img = read_image(e.image, keep_mono)
+        self._check_size(img, e.image)
+        depth = None
+        if e.depth is not None and self.load_depth:
+            depth = read_depth(e.depth, self.depth_scale, (K.width, K.height),
+                               self._resize_depth)
+        return Frame(index=i, timestamp=float(e.timestamp), image=img,
+                     intrinsics=copy_intrinsics(K),
+                     gt_pose=None if e.gt_pose is None else e.gt_pose.copy(), gt_depth=depth)
 
 
 class VideoDataset(Dataset):
