@@ -17,16 +17,19 @@ from test_tracker import INTR, ate_cm, make_sequence, small_cfg
 
 
 def test_rate_bound_defers_candidates_unless_the_view_leaves_the_keyframe():
-    mf = MotionFilter(4.0, max_rate=5.0, urgent_flow=2.0, urgent_valid=0.7)
+    mf = MotionFilter(4.0, max_rate=5.0, min_interval=0.125, urgent_flow=2.0, urgent_valid=0.7)
     flow = torch.zeros(6, 8, 2)
     mf.check(flow, torch.ones(6, 8, 2))               # typical confident fraction: 1.0
     enough = FlowCheck(mean_flow=5.0, valid_frac=0.9, ok=True)
     assert not mf.is_candidate(FlowCheck(3.9, 0.9, True), since_kf=10.0)   # too little flow
-    assert mf.is_candidate(enough, since_kf=0.2)          # 1 / 5 Hz: the bound allows one
-    assert not mf.is_candidate(enough, since_kf=0.19)     # too soon after the last keyframe
-    assert mf.is_candidate(enough, since_kf=None)         # warm-up: no bound
-    assert mf.is_candidate(FlowCheck(8.0, 0.9, True), since_kf=0.05)   # 2 x the threshold
-    assert mf.is_candidate(FlowCheck(5.0, 0.69, True), since_kf=0.05)  # cells leaving
+    assert mf.is_candidate(enough, since_kf=0.2, recent=4)     # 4 in the last second: one more
+    assert not mf.is_candidate(enough, since_kf=0.2, recent=5)  # 5 per second at most
+    assert mf.is_candidate(enough, since_kf=0.125)             # the shortest gap allowed
+    assert not mf.is_candidate(enough, since_kf=0.12)          # too soon after the last one
+    assert mf.is_candidate(enough, since_kf=None)              # warm-up: no bound
+    # the view leaving the last keyframe makes a candidate whatever the bound says
+    assert mf.is_candidate(FlowCheck(8.0, 0.9, True), since_kf=0.05, recent=9)   # 2 x thresh
+    assert mf.is_candidate(FlowCheck(5.0, 0.69, True), since_kf=0.05, recent=9)  # cells leaving
     # confident cells falling: the reference is refreshed even below the flow threshold ...
     assert mf.is_candidate(FlowCheck(1.0, 0.69, True), since_kf=0.05)
     assert not mf.is_candidate(FlowCheck(1.0, 0.71, True), since_kf=0.05)
@@ -34,7 +37,7 @@ def test_rate_bound_defers_candidates_unless_the_view_leaves_the_keyframe():
     assert not mf.is_candidate(FlowCheck(1.0, 0.69, True), since_kf=None)
     assert not mf.is_candidate(FlowCheck(8.0, 0.9, False), since_kf=1.0)   # lost: never
     unbounded = MotionFilter(4.0, max_rate=0.0, urgent_valid=0.0)
-    assert unbounded.is_candidate(enough, since_kf=0.0)
+    assert unbounded.is_candidate(enough, since_kf=0.0, recent=100)
     assert not unbounded.is_candidate(FlowCheck(1.0, 0.01, True), since_kf=1.0)
 
 
@@ -71,19 +74,28 @@ def test_fast_drone_sweep_makes_a_few_keyframes_per_second_and_keeps_its_scale(f
         cfg = SlamConfig()
         cfg.tracking.loop_closure = cfg.tracking.global_ba = False
         cfg.tracking.max_keyframe_rate = rate
+        cfg.tracking.min_keyframe_interval = cfg.tracking.min_keyframe_interval if rate else 0.0
         tr = _track(frames, ds.intrinsics, cfg)
         ts, P = tr.trajectory_full()
         assert len(ts) == len(frames) and tr.n_lost == 0
         counts[rate] = len(tr.keyframe_ids())
+        if rate:
+            kf_stamps = tr.trajectory_keyframes()[0]
         errs[rate] = ate_cm(frames, gt, ts, P)
         if rate:
             # scale consistency: every 1-s segment's Sim(3) scale within 8 % of the whole's
             seg = segment_scales(gts, gt, ts, P, seconds=1.0)
             assert len(seg["ratios"]) >= 3 and seg["drift"] < 1.08, seg
-    # at most 6 per second, plus the warm-up's and those made as the view left the last one
-    assert counts[6.0] <= 6.0 * duration + 5, counts
+    # at most 6 in any second of input, plus those made as the view left the last one (a
+    # burst of two here) and the last frame's (the end of input)
+    assert counts[6.0] <= 6.0 * duration + 4, counts
+    kf_t = np.asarray(kf_stamps)
+    per_s = [int(((kf_t >= t) & (kf_t < t + 1.0 - 1e-3)).sum()) for t in kf_t]
+    assert max(per_s) <= 6 + 2 and np.median(per_s) <= 6, (per_s, kf_t - kf_t[0])
     assert counts[0.0] >= 1.3 * counts[6.0], counts          # the bound is what holds it
-    assert errs[6.0] < 1.0 and errs[6.0] <= 1.2 * errs[0.0], errs
+    # the bound may cost some accuracy on this fast segment (0.85 -> 0.96 cm measured); what
+    # fails here is drift or a lost scale, not a keyframe less
+    assert errs[6.0] < 1.5 and errs[6.0] <= 1.5 * errs[0.0], errs
 
 
 def test_slow_pan_still_makes_keyframes_for_parallax():

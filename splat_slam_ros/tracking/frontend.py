@@ -37,6 +37,7 @@ class TrackerFrontend:
         tc = self.tc
         return MotionFilter(tc.motion_filter_thresh * self.px_scale,
                             min_valid_frac=tc.lost_min_valid, max_rate=tc.max_keyframe_rate,
+                            min_interval=tc.min_keyframe_interval,
                             urgent_flow=tc.keyframe_urgent_flow,
                             urgent_valid=tc.keyframe_urgent_valid)
 
@@ -157,7 +158,8 @@ class TrackerFrontend:
         info = {"mean_flow": fc.mean_flow, "valid": fc.valid_frac, "pose_rms": pinfo.rms,
                 "predicted": predicted}
         since_kf = float(frame.timestamp) - self.kfs[ref].timestamp
-        if self.motion.is_candidate(fc, since_kf) and ref == self.window[-1]:
+        if self.motion.is_candidate(fc, since_kf, self._recent_keyframes(frame)) and \
+                ref == self.window[-1]:
             # a keyframe's pose before its local BA (not a bridged frame's: its pose was
             # published when it arrived, and a robot reads the newest frame's)
             if self.on_pose_estimate is not None and not bridged:
@@ -181,6 +183,17 @@ class TrackerFrontend:
             return predict_pose(b.pose, se3_inverse(a.pose) @ b.pose,
                                 (a.frame_index, b.frame_index), index)
         return predict_pose(self.last_pose, self.velocity, self._spacing, index)
+
+    def _recent_keyframes(self, frame) -> int:
+        """Keyframes of the window in the second of input before ``frame`` (the rate
+        bound's count)."""
+        t = float(frame.timestamp)
+        return sum(t - self.kfs[k].timestamp < 1.0 - 1e-3 for k in self.window)
+
+    def _rate_bound_holds(self, frame) -> bool:
+        """The warm-up's rate bound: ``tracking.max_keyframe_rate`` keyframes in the last
+        second already (no shortest interval and no view-leaving exception there)."""
+        return 0 < self.motion.max_rate <= self._recent_keyframes(frame)
 
     def _weak_flow(self, fc) -> bool:
         """A flow that passed the check but holds only as far as when the view is leaving the

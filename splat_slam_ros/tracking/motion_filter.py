@@ -1,9 +1,10 @@
 """Motion filter and keyframe selection by mean optical-flow magnitude (paper Sec. 3.1).
 
 A frame becomes a keyframe candidate when the mean flow from the last keyframe
-exceeds ``tracking.motion_filter_thresh`` and the last keyframe is at least
-``1 / tracking.max_keyframe_rate`` seconds of stream time old (fast motion: a few keyframes
-per second, not one per frame). A frame whose view is leaving the last keyframe (mean flow
+exceeds ``tracking.motion_filter_thresh``, fewer than ``tracking.max_keyframe_rate``
+keyframes lie in the last second of stream time and the last one is at least
+``tracking.min_keyframe_interval`` old (fast motion: a few keyframes per second, not one
+per frame). A frame whose view is leaving the last keyframe (mean flow
 above ``keyframe_urgent_flow`` x the threshold, or the confident cells down to
 ``keyframe_urgent_valid`` x their typical fraction) is a candidate at once, the latter even
 below the threshold (the reference is renewed before the flow to it fails; not in the
@@ -76,10 +77,11 @@ class MotionFilter:
     """Decides keyframe candidates and tracking loss from a flow (last keyframe -> frame)."""
 
     def __init__(self, thresh: float, min_valid_frac: float = 0.12, rel_valid_frac: float = 0.35,
-                 cell_weight: float = 0.2, max_rate: float = 0.0, urgent_flow: float = 2.0,
-                 urgent_valid: float = 0.7):
+                 cell_weight: float = 0.2, max_rate: float = 0.0, min_interval: float = 0.0,
+                 urgent_flow: float = 2.0, urgent_valid: float = 0.7):
         self.thresh = float(thresh)
-        self.min_interval = 1.0 / max_rate if max_rate > 0 else 0.0   # stream seconds
+        self.max_rate = float(max_rate)             # keyframes in any second (0 = no bound)
+        self.min_interval = float(min_interval)     # stream seconds
         self.urgent_flow = float(urgent_flow) * self.thresh
         self.urgent_valid = float(urgent_valid)
         self.min_valid_frac = min_valid_frac
@@ -107,10 +109,11 @@ class MotionFilter:
         """Running mean of the confident-cell fraction over good frames (0 before the first)."""
         return 0.0 if self._typical is None else float(self._typical)
 
-    def is_candidate(self, fc: FlowCheck, since_kf: Optional[float] = None) -> bool:
+    def is_candidate(self, fc: FlowCheck, since_kf: Optional[float] = None,
+                     recent: int = 0) -> bool:
         """Keyframe candidate: enough flow, and (``since_kf``: stream seconds since the last
-        keyframe; None = no rate bound, the warm-up) the rate bound allows one or the view is
-        leaving the last keyframe."""
+        keyframe, ``recent``: keyframes in the last second; since_kf None = no rate bound,
+        the warm-up) the rate bound allows one or the view is leaving the last keyframe."""
         if not fc.ok:
             return False
         leaving = fc.mean_flow >= self.urgent_flow or \
@@ -119,7 +122,9 @@ class MotionFilter:
             return True
         if fc.mean_flow < self.thresh:
             return False
-        return since_kf is None or since_kf >= self.min_interval
+        if since_kf is None:
+            return True
+        return since_kf >= self.min_interval and not (0 < self.max_rate <= recent)
 
 
 def predict_pose(last_pose: torch.Tensor, velocity: torch.Tensor, spacing, index: int):
