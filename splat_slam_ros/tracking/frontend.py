@@ -164,7 +164,8 @@ class TrackerFrontend:
             # published when it arrived, and a robot reads the newest frame's)
             if self.on_pose_estimate is not None and not bridged:
                 self.on_pose_estimate(frame.index, float(frame.timestamp), T.cpu().numpy())
-            return self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, info)
+            return self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, info,
+                                      budgeted=not self.motion.leaving(fc))
         self._set_pose(T, frame.index)
         sf, sw = self._store_flow(f, w)
         rec = self._record(frame, ref_kf=ref, rel_pose=(se3_inverse(T_ref) @ T).cpu().numpy(),
@@ -185,15 +186,12 @@ class TrackerFrontend:
         return predict_pose(self.last_pose, self.velocity, self._spacing, index)
 
     def _recent_keyframes(self, frame) -> int:
-        """Keyframes of the window in the second of input before ``frame`` (the rate
-        bound's count)."""
+        """Keyframes of the window that the motion threshold made in the second of input
+        before ``frame`` (the rate bound's count; the warm-up's and those made as the view
+        left the last keyframe are not counted)."""
         t = float(frame.timestamp)
-        return sum(t - self.kfs[k].timestamp < 1.0 - 1e-3 for k in self.window)
-
-    def _rate_bound_holds(self, frame) -> bool:
-        """The warm-up's rate bound: ``tracking.max_keyframe_rate`` keyframes in the last
-        second already (no shortest interval and no view-leaving exception there)."""
-        return 0 < self.motion.max_rate <= self._recent_keyframes(frame)
+        return sum(self.kfs[k].budgeted and t - self.kfs[k].timestamp < 1.0 - 1e-3
+                   for k in self.window)
 
     def _weak_flow(self, fc) -> bool:
         """A flow that passed the check but holds only as far as when the view is leaving the
@@ -236,12 +234,13 @@ class TrackerFrontend:
         self.last_pose = T.clone()
 
     def _new_keyframe(self, frame, img, prep, ref, T, f, w, fb, wb, info,
-                      force: bool = False) -> TrackStep:
+                      force: bool = False, budgeted: bool = False) -> TrackStep:
         tc = self.tc
         before = self._snapshot(self.window)
         kid = self._add_keyframe(frame, img, prep, T, disparity_through_flow(
             self.kfs[ref].disp, self.grid, fb, wb, self.intr, self.kfs[ref].pose, T))
         self.kfs[kid].conf = wb.mean(-1)
+        self.kfs[kid].budgeted = budgeted
         self.graph.add(ref, kid, f, w)
         self.graph.add(kid, ref, fb, wb)
         self._add_radius_edges(kid)

@@ -58,7 +58,7 @@ class TrackerInitialisation:
         self.lost_count = 0
         self._last_flow = (ref, f)
         info = {"mean_flow": fc.mean_flow, "valid": fc.valid_frac}
-        if not self.motion.is_candidate(fc) or self._rate_bound_holds(frame):
+        if not self.motion.is_candidate(fc):
             sf, sw = self._store_flow(f, w)
             self._add_pending(self._record(frame, ref_kf=ref, flow=sf, weight=sw), frame, img,
                               prep)

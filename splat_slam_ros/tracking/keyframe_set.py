@@ -27,6 +27,7 @@ class KeyframeState:
     prep: Any = None                     # flow front end's prepared image (None once dropped)
     image: Optional[np.ndarray] = None   # full-size RGB, kept until published (None after)
     conf: Optional[torch.Tensor] = None  # (h, w) flow confidence of the keyframe's edges
+    budgeted: bool = False               # made by the motion threshold: counts in the rate bound
 
 
 class KeyframeSet:

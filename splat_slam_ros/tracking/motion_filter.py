@@ -1,10 +1,10 @@
 """Motion filter and keyframe selection by mean optical-flow magnitude (paper Sec. 3.1).
 
 A frame becomes a keyframe candidate when the mean flow from the last keyframe
-exceeds ``tracking.motion_filter_thresh``, fewer than ``tracking.max_keyframe_rate``
-keyframes lie in the last second of stream time and the last one is at least
-``tracking.min_keyframe_interval`` old (fast motion: a few keyframes per second, not one
-per frame). A frame whose view is leaving the last keyframe (mean flow
+exceeds ``tracking.motion_filter_thresh``, the threshold made fewer than
+``tracking.max_keyframe_rate`` keyframes in the last second of stream time and the last one
+is at least ``tracking.min_keyframe_interval`` old (fast motion: a few keyframes per second,
+not one per frame). A frame whose view is leaving the last keyframe (mean flow
 above ``keyframe_urgent_flow`` x the threshold, or the confident cells down to
 ``keyframe_urgent_valid`` x their typical fraction) is a candidate at once, the latter even
 below the threshold (the reference is renewed before the flow to it fails; not in the
@@ -109,16 +109,22 @@ class MotionFilter:
         """Running mean of the confident-cell fraction over good frames (0 before the first)."""
         return 0.0 if self._typical is None else float(self._typical)
 
+    def leaving(self, fc: FlowCheck) -> bool:
+        """The view is leaving the last keyframe: mean flow above ``keyframe_urgent_flow`` x
+        the threshold, or the confident cells down to ``keyframe_urgent_valid`` x their
+        typical fraction."""
+        return fc.mean_flow >= self.urgent_flow or \
+            fc.valid_frac < self.urgent_valid * self.typical_valid_frac
+
     def is_candidate(self, fc: FlowCheck, since_kf: Optional[float] = None,
                      recent: int = 0) -> bool:
         """Keyframe candidate: enough flow, and (``since_kf``: stream seconds since the last
-        keyframe, ``recent``: keyframes in the last second; since_kf None = no rate bound,
-        the warm-up) the rate bound allows one or the view is leaving the last keyframe."""
+        keyframe, ``recent``: keyframes the threshold made in the last second; since_kf
+        None = no rate bound, the warm-up) the rate bound allows one or the view is leaving
+        the last keyframe."""
         if not fc.ok:
             return False
-        leaving = fc.mean_flow >= self.urgent_flow or \
-            fc.valid_frac < self.urgent_valid * self.typical_valid_frac
-        if since_kf is not None and leaving:
+        if since_kf is not None and self.leaving(fc):
             return True
         if fc.mean_flow < self.thresh:
             return False
