@@ -73,6 +73,10 @@ SUITE = {
     "t_fr1xyz_lowtex": seq("tuning", FR1, 0, 150, 30, "low_texture", "realistic", "proc", 13),
     "t_kitti_deep": seq("tuning", KITTI, 0, 100, 20, "deep", "realistic", "proc", 14),
     "t_v102_thin_harsh": seq("tuning", V102, 0, 150, 20, "thin", "harsh", "photo", 15),
+    # fast drone motion, 5 s each along V1_02 (the keyframe rate bound was chosen on these)
+    **{f"t_v102_fast{start}": seq("tuning", V102, start, 100, 20, "room", "realistic",
+                                  "photo" if start % 20 else "proc", seed)
+       for start, seed in ((20, 11), (30, 12), (40, 13), (50, 14), (60, 15), (70, 16))},
     # check set: other seeds, starts, scenes, rates; no parameter is chosen on these
     "c_fr2desk_tiled_harsh": seq("check", FR2, 60, 150, 30, "tiled", "harsh", "proc", 101),
     "c_v102_room_photo": seq("check", V102, 8, 200, 20, "room", "realistic", "photo", 102,
