@@ -66,7 +66,6 @@ def _track(frames, intr, cfg):
 
 def test_fast_drone_sweep_makes_a_few_keyframes_per_second_and_keeps_its_scale(fast_sweep):
     ds, frames = fast_sweep
-    duration = frames[-1].timestamp - frames[0].timestamp
     gt = np.stack([f.gt_pose for f in frames])
     gts = np.array([f.timestamp for f in frames])
     counts, errs = {}, {}
