@@ -220,7 +220,8 @@ def _child(job_file: str) -> int:
     for p, t in zip(job["images"], job["stamps"]):
         img = cv2.imread(p, cv2.IMREAD_COLOR)
         r = slam.track_monocular(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), t)
-        states[str(r.state).split(".")[-1]] = states.get(str(r.state).split(".")[-1], 0) + 1
+        state = str(r.state).split(".")[-1]
+        states[state] = states.get(state, 0) + 1
     slam.shutdown()
     slam.save_trajectory_euroc(job["out"])
     print(json.dumps({"states": states}), flush=True)

@@ -29,10 +29,23 @@ def file_error(tmp_path):
     return check
 
 
-def synth_sequence(out: Path, frames: int, size: str) -> Path:
-    """A small ``splat-slam-synth`` sequence (TUM layout, default scene and motion) in
-    ``out``."""
+def synth_sequence(out: Path, frames: int, size: str, *extra: str) -> Path:
+    """A small ``splat-slam-synth`` sequence (TUM layout; default scene and motion unless
+    ``extra`` CLI arguments say otherwise) in ``out``."""
     subprocess.run([sys.executable, "-m", "splat_slam_synth.cli", "--frames", str(frames),
-                    "--size", size, "--out", str(out), "--quiet"], check=True,
+                    "--size", size, "--out", str(out), "--quiet", *extra], check=True,
                    capture_output=True, timeout=300)
     return out
+
+
+def v102_render(out: Path, start: float):
+    """80 frames of a realistic 320x240 render along EuRoC V1_02 drone motion at 20 Hz from
+    ``start`` s of its trajectory: (dataset, frames); the test skips without the trajectory."""
+    from splat_slam_ros.io.datasets import open_dataset
+    traj = SHARED_DATA / "trajectories" / "V102_groundtruth.csv"
+    if not traj.is_file():
+        pytest.skip(f"{traj} not found (only present in the dev/CI setup)")
+    synth_sequence(out, 80, "320x240", "--trajectory", str(traj), "--fps", "20",
+                   "--start", str(start), "--realism", "realistic")
+    ds = open_dataset(out)
+    return ds, list(ds)

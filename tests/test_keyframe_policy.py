@@ -1,18 +1,15 @@
 """Keyframe policy (rate bound in keyframes per second of input, with the view-leaving
 exception) and scale consistency across fast motion."""
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 import torch
 
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.evaluation.trajectory import segment_scales
-from splat_slam_ros.io.datasets import open_dataset
 from splat_slam_ros.tracking.motion_filter import FlowCheck, MotionFilter
 from splat_slam_ros.tracking.tracker import Tracker
 
+from conftest import v102_render
 from test_tracker import INTR, ate_cm, make_sequence, small_cfg
 
 
@@ -42,18 +39,9 @@ def test_rate_bound_defers_candidates_unless_the_view_leaves_the_keyframe():
 
 
 @pytest.fixture(scope="module")
-def fast_sweep(shared_data, tmp_path_factory):
+def fast_sweep(tmp_path_factory):
     """4 s of EuRoC V1_02 drone motion at 20 Hz (its fast part), realistic 320x240 render."""
-    traj = shared_data / "trajectories" / "V102_groundtruth.csv"
-    if not traj.is_file():
-        pytest.skip(f"{traj} not found")
-    out = tmp_path_factory.mktemp("kf") / "v102"
-    subprocess.run([sys.executable, "-m", "splat_slam_synth.cli", "--trajectory", str(traj),
-                    "--frames", "80", "--size", "320x240", "--fps", "20", "--start", "8",
-                    "--out", str(out), "--realism", "realistic", "--quiet"],
-                   check=True, capture_output=True, timeout=300)
-    ds = open_dataset(out)
-    return ds, list(ds)
+    return v102_render(tmp_path_factory.mktemp("kf") / "v102", start=8)
 
 
 def _track(frames, intr, cfg):
@@ -73,7 +61,8 @@ def test_fast_drone_sweep_makes_a_few_keyframes_per_second_and_keeps_its_scale(f
         cfg = SlamConfig()
         cfg.tracking.loop_closure = cfg.tracking.global_ba = False
         cfg.tracking.max_keyframe_rate = rate
-        cfg.tracking.min_keyframe_interval = cfg.tracking.min_keyframe_interval if rate else 0.0
+        if not rate:                                # no bound at all
+            cfg.tracking.min_keyframe_interval = 0.0
         tr = _track(frames, ds.intrinsics, cfg)
         ts, P = tr.trajectory_full()
         assert len(ts) == len(frames) and tr.n_lost == 0

@@ -557,19 +557,8 @@ def test_the_last_frame_skipped_is_tracked_at_the_end_of_input():
 @pytest.fixture(scope="module")
 def v102_render(tmp_path_factory):
     """80 frames of a realistic 320x240 render along EuRoC V1_02 drone motion at 20 Hz."""
-    from conftest import SHARED_DATA
-    traj = SHARED_DATA / "trajectories" / "V102_groundtruth.csv"
-    if not traj.is_file():
-        pytest.skip(f"{traj} not found (only present in the dev/CI setup)")
-    import subprocess
-    import sys
-    out = tmp_path_factory.mktemp("v102") / "render"
-    subprocess.run([sys.executable, "-m", "splat_slam_synth.cli", "--trajectory", str(traj),
-                    "--frames", "80", "--size", "320x240", "--fps", "20", "--start", "6",
-                    "--out", str(out), "--realism", "realistic", "--quiet"],
-                   check=True, capture_output=True, timeout=300)
-    ds = open_dataset(out)
-    return ds, list(ds)
+    from conftest import v102_render as render
+    return render(tmp_path_factory.mktemp("v102") / "render", start=6)
 
 
 def test_a_gap_of_skipped_frames_is_bridged_by_the_predicted_flow(v102_render):
