@@ -90,13 +90,13 @@ class TrackingConfig:
     # means the same viewing-angle change at any image size.
     motion_filter_thresh: float = 4.0    # keyframe candidate if mean flow to the last keyframe above
     keyframe_thresh: float = 4.0         # tau: candidate dropped if its BA-induced flow stays below
-    # keyframe rate bound: on fast motion a candidate waits until the motion threshold made
-    # fewer than max_keyframe_rate keyframes in the last second of input and the last keyframe
-    # is min_keyframe_interval old, unless the view is leaving it (below: those keyframes,
-    # like the warm-up's, are not counted)
-    max_keyframe_rate: float = 6.0       # threshold keyframes in any second of input (0 = no bound)
+    # keyframe rate bound: on fast motion a candidate waits until fewer than max_keyframe_rate
+    # keyframes were made in the last second of input (the warm-up's not counted) and the last
+    # keyframe is min_keyframe_interval old; fast motion (keyframe_urgent_flow) passes the
+    # budget, not the interval, and a view that is leaving (keyframe_urgent_valid) passes both
+    max_keyframe_rate: float = 6.0       # keyframes in any second of input (0 = no bound)
     min_keyframe_interval: float = 0.125 # stream seconds between keyframes at least (0 = none)
-    keyframe_urgent_flow: float = 2.0    # leaving: mean flow above this x motion_filter_thresh
+    keyframe_urgent_flow: float = 2.0    # fast: mean flow above this x motion_filter_thresh
     # leaving: confident flow cells below this x their typical fraction (a candidate then even
     # below motion_filter_thresh: the reference is refreshed before the flow fails; 0 = off)
     keyframe_urgent_valid: float = 0.7

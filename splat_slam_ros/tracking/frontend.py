@@ -158,14 +158,14 @@ class TrackerFrontend:
         info = {"mean_flow": fc.mean_flow, "valid": fc.valid_frac, "pose_rms": pinfo.rms,
                 "predicted": predicted}
         since_kf = float(frame.timestamp) - self.kfs[ref].timestamp
-        if self.motion.is_candidate(fc, since_kf, self._recent_keyframes(frame)) and \
-                ref == self.window[-1]:
+        cause = self.motion.candidate(fc, since_kf, self._recent_keyframes(frame))
+        if cause is not None and ref == self.window[-1]:
             # a keyframe's pose before its local BA (not a bridged frame's: its pose was
             # published when it arrived, and a robot reads the newest frame's)
             if self.on_pose_estimate is not None and not bridged:
                 self.on_pose_estimate(frame.index, float(frame.timestamp), T.cpu().numpy())
             return self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, info,
-                                      budgeted=not self.motion.leaving(fc))
+                                      cause=cause)
         self._set_pose(T, frame.index)
         sf, sw = self._store_flow(f, w)
         rec = self._record(frame, ref_kf=ref, rel_pose=(se3_inverse(T_ref) @ T).cpu().numpy(),
@@ -186,11 +186,10 @@ class TrackerFrontend:
         return predict_pose(self.last_pose, self.velocity, self._spacing, index)
 
     def _recent_keyframes(self, frame) -> int:
-        """Keyframes of the window that the motion threshold made in the second of input
-        before ``frame`` (the rate bound's count; the warm-up's and those made as the view
-        left the last keyframe are not counted)."""
+        """Keyframes of the window made in the second of input before ``frame`` (the rate
+        bound's count; the warm-up's are not counted)."""
         t = float(frame.timestamp)
-        return sum(self.kfs[k].budgeted and t - self.kfs[k].timestamp < 1.0 - 1e-3
+        return sum(self.kfs[k].cause != "warmup" and t - self.kfs[k].timestamp < 1.0 - 1e-3
                    for k in self.window)
 
     def _weak_flow(self, fc) -> bool:
@@ -234,13 +233,13 @@ class TrackerFrontend:
         self.last_pose = T.clone()
 
     def _new_keyframe(self, frame, img, prep, ref, T, f, w, fb, wb, info,
-                      force: bool = False, budgeted: bool = False) -> TrackStep:
+                      cause: str, force: bool = False) -> TrackStep:
         tc = self.tc
         before = self._snapshot(self.window)
         kid = self._add_keyframe(frame, img, prep, T, disparity_through_flow(
             self.kfs[ref].disp, self.grid, fb, wb, self.intr, self.kfs[ref].pose, T))
         self.kfs[kid].conf = wb.mean(-1)
-        self.kfs[kid].budgeted = budgeted
+        self.kfs[kid].cause = cause
         self.graph.add(ref, kid, f, w)
         self.graph.add(kid, ref, fb, wb)
         self._add_radius_edges(kid)

@@ -27,7 +27,9 @@ class KeyframeState:
     prep: Any = None                     # flow front end's prepared image (None once dropped)
     image: Optional[np.ndarray] = None   # full-size RGB, kept until published (None after)
     conf: Optional[torch.Tensor] = None  # (h, w) flow confidence of the keyframe's edges
-    budgeted: bool = False               # made by the motion threshold: counts in the rate bound
+    # why it was made: warmup | threshold | fast | losing (MotionFilter.candidate) | final (the
+    # last frame's, at the end of the input); all but the warm-up's count in the rate bound
+    cause: str = "warmup"
 
 
 class KeyframeSet:

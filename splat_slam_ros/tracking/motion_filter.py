@@ -1,17 +1,17 @@
 """Motion filter and keyframe selection by mean optical-flow magnitude (paper Sec. 3.1).
 
 A frame becomes a keyframe candidate when the mean flow from the last keyframe
-exceeds ``tracking.motion_filter_thresh``, the threshold made fewer than
-``tracking.max_keyframe_rate`` keyframes in the last second of stream time and the last one
-is at least ``tracking.min_keyframe_interval`` old (fast motion: a few keyframes per second,
-not one per frame). A frame whose view is leaving the last keyframe (mean flow
-above ``keyframe_urgent_flow`` x the threshold, or the confident cells down to
-``keyframe_urgent_valid`` x their typical fraction) is a candidate at once, the latter even
-below the threshold (the reference is renewed before the flow to it fails; not in the
-warm-up, whose keyframes need parallax). After the local BA a candidate whose
-flow *induced by the optimised poses and disparities* stays below the keyframe
-threshold tau (``tracking.keyframe_thresh``) is dropped again. Both thresholds
-are given in *reference* BA-grid pixels - those of the reference's setting (a
+exceeds ``tracking.motion_filter_thresh``, fewer than ``tracking.max_keyframe_rate``
+keyframes were made in the last second of stream time (the warm-up's not counted) and the
+last one is at least ``tracking.min_keyframe_interval`` old (fast motion: a few keyframes
+per second, not one per frame). Two candidates pass the rate budget: a frame whose mean flow
+is above ``keyframe_urgent_flow`` x the threshold ("fast", once the interval has passed) and
+one whose confident cells fell to ``keyframe_urgent_valid`` x their typical fraction
+("losing", at once and even below the threshold: the reference is renewed before the flow to
+it fails; not in the warm-up, whose keyframes need parallax). Both count in the budget. After
+the local BA a candidate whose flow *induced by the optimised poses and disparities* stays
+below the keyframe threshold tau (``tracking.keyframe_thresh``) is dropped again. Both
+thresholds are given in *reference* BA-grid pixels - those of the reference's setting (a
 640x480 TUM camera, fx = 525, at 1/8: a BA focal length of 65.625 px) - and
 scaled by the actual BA focal length (:func:`flow_scale`), so the same value
 selects the same viewing-angle change at 320x240, 640x480 or 1200x680.
@@ -109,28 +109,37 @@ class MotionFilter:
         """Running mean of the confident-cell fraction over good frames (0 before the first)."""
         return 0.0 if self._typical is None else float(self._typical)
 
-    def leaving(self, fc: FlowCheck) -> bool:
-        """The view is leaving the last keyframe: mean flow above ``keyframe_urgent_flow`` x
-        the threshold, or the confident cells down to ``keyframe_urgent_valid`` x their
-        typical fraction."""
-        return fc.mean_flow >= self.urgent_flow or \
-            fc.valid_frac < self.urgent_valid * self.typical_valid_frac
+    def losing(self, fc: FlowCheck) -> bool:
+        """The view is leaving the last keyframe: the confident cells down to
+        ``keyframe_urgent_valid`` x their typical fraction."""
+        return fc.valid_frac < self.urgent_valid * self.typical_valid_frac
+
+    def candidate(self, fc: FlowCheck, since_kf: Optional[float] = None,
+                  recent: int = 0) -> Optional[str]:
+        """Why the frame is a keyframe candidate, or None. ``since_kf``: stream seconds since
+        the last keyframe (None: the warm-up, no rate bound); ``recent``: keyframes of the
+        budget in the last second. ``"losing"``: the confident cells are dropping (at once,
+        even below the threshold); ``"fast"``: mean flow above ``keyframe_urgent_flow`` x the
+        threshold (past the rate budget, not the interval); ``"threshold"``: enough flow and
+        the rate bound allows one; ``"warmup"``: enough flow, no bound."""
+        if not fc.ok:
+            return None
+        if since_kf is not None and self.losing(fc):
+            return "losing"
+        if fc.mean_flow < self.thresh:
+            return None
+        if since_kf is None:
+            return "warmup"
+        if since_kf < self.min_interval:
+            return None
+        if fc.mean_flow >= self.urgent_flow:
+            return "fast"
+        return None if 0 < self.max_rate <= recent else "threshold"
 
     def is_candidate(self, fc: FlowCheck, since_kf: Optional[float] = None,
                      recent: int = 0) -> bool:
-        """Keyframe candidate: enough flow, and (``since_kf``: stream seconds since the last
-        keyframe, ``recent``: keyframes the threshold made in the last second; since_kf
-        None = no rate bound, the warm-up) the rate bound allows one or the view is leaving
-        the last keyframe."""
-        if not fc.ok:
-            return False
-        if since_kf is not None and self.leaving(fc):
-            return True
-        if fc.mean_flow < self.thresh:
-            return False
-        if since_kf is None:
-            return True
-        return since_kf >= self.min_interval and not (0 < self.max_rate <= recent)
+        """:meth:`candidate` is not None."""
+        return self.candidate(fc, since_kf, recent) is not None
 
 
 def predict_pose(last_pose: torch.Tensor, velocity: torch.Tensor, spacing, index: int):

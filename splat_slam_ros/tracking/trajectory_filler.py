@@ -297,7 +297,8 @@ class TrajectoryRecorder:
         if not fc.ok or fc.mean_flow < 0.5 * self.motion.thresh:
             return []
         self._pending = [(r, p) for r, p in self._pending if r.index != frame.index]
-        step = self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, {}, force=True)
+        step = self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, {}, force=True,
+                                  cause="final")
         self.final_keyframes.extend(step.keyframes)
         return list(step.events)
 
