@@ -208,8 +208,9 @@ def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics, co
                 replayed.append(frame.index)
                 return True
             return False
-    result.frames = co.run(dataset, progress=progress, total=len(dataset), max_frames=max_frames,
-                           skip=skip)
+    # without the dataset's depth: only the evaluation reads it, for the keyframes
+    result.frames = co.run(dataset.iter_frames(depth=False), progress=progress,
+                           total=len(dataset), max_frames=max_frames, skip=skip)
     if skip is not None:
         metrics["skips_replayed"] = len(replayed)
         if len(replayed) < len(skip_stamps):

@@ -49,3 +49,12 @@ def v102_render(out: Path, start: float):
                    "--start", str(start), "--realism", "realistic")
     ds = open_dataset(out)
     return ds, list(ds)
+
+
+class FrameList(list):
+    """Frames (``timestamp``, ``gt_depth``) standing in for a dataset where the evaluation
+    reads the keyframes' frames by timestamp (``Dataset.frames_at_stamps``)."""
+
+    def frames_at_stamps(self, stamps, depth=True):
+        want = {round(float(t), 4) for t in stamps}
+        return [f for f in self if round(float(f.timestamp), 4) in want]

@@ -109,6 +109,13 @@ def test_round_trip_tum(tmp_path):
     assert b.format == "bag" and b.name == "seq" and b.source_format == "tum"
     assert b.has_gt_pose and b.has_gt_depth
     np.testing.assert_allclose(b.gt_trajectory()[1], ds.gt_trajectory()[1], atol=1e-12)
+    # a bag's frames without depth (a run tracks without it), and by timestamp with it
+    assert all(f.gt_depth is None for f in b.iter_frames(depth=False))
+    ts = [f.timestamp for f in ds]
+    got = list(b.frames_at_stamps([ts[3], ts[1]]))
+    assert [f.index for f in got] == [1, 3] and all(f.gt_depth is not None for f in got)
+    np.testing.assert_allclose(got[1].gt_depth, next(ds.frames_at([3], depth=True)).gt_depth,
+                               atol=1e-3)
 
 
 def test_round_trip_euroc_mono8_and_distortion(tmp_path):

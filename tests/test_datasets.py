@@ -514,21 +514,32 @@ def test_image_datasets_do_not_load_the_bag_readers():
 
 
 def test_frames_at_reads_only_the_frames_asked_for(tmp_path, monkeypatch):
-    """The session's keyframe images are read again after a run: a folder reads just those
-    files (a 200-frame tracking-only run spent 2.3 s decoding every frame again), a video
-    decodes up to the last one; neither reads depth, both keep the dataset's depth setting."""
+    """The session's keyframe images and the evaluation's keyframe depths are read again
+    after a run: a folder reads just those files (a 200-frame tracking-only run spent 2.3 s
+    decoding every frame again), a video decodes up to the last one. Depth only when asked
+    for: a run tracks without it (a 200-frame run decoded 200 depth PNGs for nothing)."""
     root, stamps, _ = make_tum(tmp_path / "tum", n=6)
     ds = open_dataset(root)
     import splat_slam_ros.io.dataset_base as base
-    read = []
-    real = base.read_image
+    read, depths = [], []
+    real, real_depth = base.read_image, base.read_depth
     monkeypatch.setattr(base, "read_image", lambda p, keep: read.append(p) or real(p, keep))
+    monkeypatch.setattr(base, "read_depth", lambda p, *a: depths.append(p) or real_depth(p, *a))
     fr = list(ds.frames_at([4, 1, 4]))
     assert [f.index for f in fr] == [1, 4] and len(read) == 2
-    assert all(f.gt_depth is None for f in fr) and ds.load_depth
-    np.testing.assert_array_equal(fr[1].image, list(ds)[4].image)
-    assert list(ds)[4].gt_depth is not None                  # depth still read by a run
+    assert all(f.gt_depth is None for f in fr) and not depths
+    every = list(ds)
+    np.testing.assert_array_equal(fr[1].image, every[4].image)
+    assert every[4].gt_depth is not None and len(depths) == 6      # depth by default
+    assert all(f.gt_depth is None for f in ds.iter_frames(depth=False)) and len(depths) == 6
     assert list(ds.frames_at([])) == []
+    # by timestamp (rounded to 0.1 ms), with depth: just those files
+    ts = [f.timestamp for f in ds.iter_frames(depth=False)]
+    read.clear(), depths.clear()
+    got = list(ds.frames_at_stamps([ts[5] + 2e-5, ts[2], 123.0]))
+    assert [f.index for f in got] == [2, 5] and len(read) == len(depths) == 2
+    assert all(f.gt_depth is not None for f in got)
+    assert list(ds.frames_at_stamps([])) == []
     p = tmp_path / "clip.avi"
     frames = make_video(p, fourcc="FFV1")
     k = _yaml(tmp_path, "k.yaml", fx=30.0, fy=30.0, cx=15.5, cy=11.5, width=W, height=H)

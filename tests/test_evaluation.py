@@ -24,6 +24,7 @@ from splat_slam_ros.evaluation import trajectory as evt
 from splat_slam_ros.cli.eval import main as eval_main
 from splat_slam_ros.geometry import apply_sim3_to_poses, so3_exp
 from splat_slam_ros.io.trajectory_io import read_trajectory, write_tum
+from conftest import FrameList
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 # the tests build TorchScript backbones themselves; torch 2.13 flags torch.jit as deprecated
@@ -641,7 +642,7 @@ def test_map_depth_l1_compares_in_the_keyframes_camera(tmp_path, monkeypatch):
     poses[:, 1, 3] = [0.0, 0.0, 0.05, 0.05]
     frames = [SimpleNamespace(timestamp=t, gt_depth=plane_depth(und[..., 0], P[0, 3])
                               .astype(np.float32)) for t, P in zip(ts, poses)]
-    class Data(list):
+    class Data(FrameList):
         intrinsics, has_gt_depth = K, True
 
         def gt_trajectory(self):
@@ -687,7 +688,7 @@ def test_map_depth_l1_is_split_into_depth_edges_and_surfaces(tmp_path, monkeypat
     ds_frames = [SimpleNamespace(timestamp=t, gt_depth=np.tile(step, (K.height, 1)))
                  for t in ts]
 
-    class Data(list):
+    class Data(FrameList):
         intrinsics, has_gt_depth = K, True
 
         def gt_trajectory(self):

@@ -20,6 +20,7 @@ from splat_slam_ros.tracking.flow_frontend import mapping_preprocessor
 from splat_slam_ros.types import Intrinsics
 from test_evaluation import lpips_files  # noqa: F401 (the tiny backbone fixture)
 from test_evaluation import _manual_lpips as _lpips_formula
+from conftest import FrameList
 
 
 # ------------------------------------------------------------------------------ LPIPS
@@ -279,7 +280,7 @@ def test_depth_edge_band_of_a_room_with_boxes(W, H):
     assert not evd.depth_edge_band(np.where(ids == 0, depth, 0), 0).numpy()[ids == 0].any()
 
 
-class _Data(list):
+class _Data(FrameList):
     """A dataset of frames with ground-truth depth at identity-ish poses (Sim(3) scale 1)."""
     has_gt_depth = True
 

@@ -73,7 +73,7 @@ def evaluate_map_depth(dataset, out: Path, cfg: SlamConfig, metrics: dict) -> No
     want = {round(float(t), 4): T for t, T in zip(ts, P)}
     band_px = int(cfg.tracking.ba_downsample)           # one BA cell
     errs, split = [], np.zeros((2, 2))                  # [band, surface] x [sum cm, pixels]
-    for f in dataset:
+    for f in dataset.frames_at_stamps(want):          # the keyframes' frames only
         T = want.get(round(float(f.timestamp), 4))
         if T is None or f.gt_depth is None:
             continue

@@ -322,12 +322,12 @@ class BagDataset(Dataset):
             return None
         return (np.array([r[0] for r in rows]), np.stack([r[1] for r in rows]))
 
-    def iter_frames(self, keep_mono: Optional[bool] = None) -> Iterator[Frame]:
+    def iter_frames(self, keep_mono: Optional[bool] = None, depth: bool = True) -> Iterator[Frame]:
         keep = self.keep_mono if keep_mono is None else keep_mono
         wanted = set(self._sel)
         last = self._sel[-1] if len(self._sel) else -1
         tp = self.topics
-        topics = [tp["image"]] + ([tp["depth"]] if self._has_depth else [])
+        topics = [tp["image"]] + ([tp["depth"]] if self._has_depth and depth else [])
         group_t, group = None, []
         k = -1        # ordinal of the image message
         out = 0

@@ -278,14 +278,15 @@ class Dataset:
         self.intrinsics = intrinsics
         self.keep_mono = keep_mono
         self.depth_scale: Optional[float] = None
-        self.load_depth = True     # False: frames without gt_depth (tracking only)
         self.notes: List[str] = list(notes or [])
 
     # subclasses implement these
     def __len__(self) -> int:
         raise NotImplementedError
 
-    def iter_frames(self, keep_mono: Optional[bool] = None) -> Iterator[Frame]:
+    def iter_frames(self, keep_mono: Optional[bool] = None, depth: bool = True) -> Iterator[Frame]:
+        """The frames in order; ``depth`` False: without ``gt_depth`` (not read or decoded:
+        tracking needs none)."""
         raise NotImplementedError
 
     @property
@@ -304,22 +305,36 @@ class Dataset:
     def __iter__(self) -> Iterator[Frame]:
         return self.iter_frames()
 
-    def frames_at(self, indices: Iterable[int]) -> Iterator[Frame]:
-        """The frames whose ``Frame.index`` is in ``indices``, in order, without depth: a
-        stream decodes its frames in turn up to the last one asked for; a folder of files
-        (:class:`FileDataset`) reads just these."""
+    def frames_at(self, indices: Iterable[int], depth: bool = False) -> Iterator[Frame]:
+        """The frames whose ``Frame.index`` is in ``indices``, in order (with ``gt_depth`` when
+        ``depth``): a stream decodes its frames in turn up to the last one asked for; a folder
+        of files (:class:`FileDataset`) reads just these."""
         want = sorted({int(i) for i in indices})
+        if want:
+            yield from self._frames_of(want, depth)
+
+    def frames_at_stamps(self, stamps: Iterable[float], depth: bool = True) -> Iterator[Frame]:
+        """The frames whose timestamp, rounded to 0.1 ms, is one of ``stamps`` (rounded
+        alike), in order: a folder of files reads just these, a stream decodes them in turn."""
+        want = {round(float(t), 4) for t in stamps}
         if not want:
             return
-        depth, self.load_depth = self.load_depth, False
-        try:
-            yield from self._frames_of(want)
-        finally:
-            self.load_depth = depth
+        known = self._stamps()
+        if known is not None:
+            yield from self.frames_at((i for i, t in enumerate(known) if round(t, 4) in want),
+                                      depth)
+            return
+        for f in self.iter_frames(depth=depth):
+            if round(float(f.timestamp), 4) in want:
+                yield f
 
-    def _frames_of(self, want: List[int]) -> Iterator[Frame]:
+    def _stamps(self) -> Optional[List[float]]:
+        """Every frame's timestamp without decoding any, or None when that needs decoding."""
+        return None
+
+    def _frames_of(self, want: List[int], depth: bool) -> Iterator[Frame]:
         """:meth:`frames_at`'s frames (``want``: sorted indices): decoded in turn."""
-        for f in self.iter_frames():
+        for f in self.iter_frames(depth=depth):
             if f.index in want:
                 yield f
             if f.index >= want[-1]:
@@ -432,24 +447,27 @@ class FileDataset(Dataset):
         return (np.array([e.timestamp for e in sel], dtype=np.float64),
                 np.stack([e.gt_pose for e in sel]).astype(np.float64))
 
-    def iter_frames(self, keep_mono: Optional[bool] = None) -> Iterator[Frame]:
+    def iter_frames(self, keep_mono: Optional[bool] = None, depth: bool = True) -> Iterator[Frame]:
         keep = self.keep_mono if keep_mono is None else keep_mono
         for i in range(len(self._entries)):
-            yield self._read(i, keep)
+            yield self._read(i, keep, depth)
 
-    def _frames_of(self, want: List[int]) -> Iterator[Frame]:
+    def _stamps(self) -> List[float]:
+        return [float(e.timestamp) for e in self._entries]
+
+    def _frames_of(self, want: List[int], depth: bool) -> Iterator[Frame]:
         """Only the image files of ``want`` are read."""
         for i in want:
             if 0 <= i < len(self._entries):
-                yield self._read(i, self.keep_mono)
+                yield self._read(i, self.keep_mono, depth)
 
-    def _read(self, i: int, keep_mono: bool) -> Frame:
+    def _read(self, i: int, keep_mono: bool, with_depth: bool = True) -> Frame:
         e = self._entries[i]
         K = self.intrinsics
         img = read_image(e.image, keep_mono)
         self._check_size(img, e.image)
         depth = None
-        if e.depth is not None and self.load_depth:
+        if e.depth is not None and with_depth:
             depth = read_depth(e.depth, self.depth_scale, (K.width, K.height),
                                self._resize_depth)
         return Frame(index=i, timestamp=float(e.timestamp), image=img,
@@ -496,8 +514,8 @@ class VideoDataset(Dataset):
     def gt_trajectory(self):
         return None
 
-    def iter_frames(self, keep_mono: Optional[bool] = None) -> Iterator[Frame]:
-        keep = self.keep_mono if keep_mono is None else keep_mono
+    def iter_frames(self, keep_mono: Optional[bool] = None, depth: bool = True) -> Iterator[Frame]:
+        keep = self.keep_mono if keep_mono is None else keep_mono     # a video has no depth
         cap = self._open()
         fps = self.fps or self.video_fps or DEFAULT_FPS
         src, out, last_t = 0, 0, -1.0

@@ -160,8 +160,8 @@ class FromFrame:
     def __len__(self) -> int:
         return len(self._ds) - self.start
 
-    def iter_frames(self, keep_mono: Optional[bool] = None):
-        for i, f in enumerate(self._ds.iter_frames(keep_mono)):
+    def iter_frames(self, keep_mono: Optional[bool] = None, depth: bool = True):
+        for i, f in enumerate(self._ds.iter_frames(keep_mono, depth)):
             if i >= self.start:
                 if self._first_stamp is None:
                     self._first_stamp = float(f.timestamp)
@@ -178,7 +178,7 @@ class FromFrame:
         if gt is None:
             return None
         if self._first_stamp is None:
-            for _ in self:
+            for _ in self.iter_frames(depth=False):
                 break
         keep = gt[0] >= self._first_stamp - 1e-6
         return gt[0][keep], gt[1][keep]
