@@ -91,9 +91,10 @@ class TrackingConfig:
     motion_filter_thresh: float = 4.0    # keyframe candidate if mean flow to the last keyframe above
     keyframe_thresh: float = 4.0         # tau: candidate dropped if its BA-induced flow stays below
     # keyframe rate bound: on fast motion a candidate waits until fewer than max_keyframe_rate
-    # keyframes were made in the last second of input (the warm-up's not counted) and the last
-    # keyframe is min_keyframe_interval old; fast motion (keyframe_urgent_flow) passes the
-    # budget, not the interval, and a view that is leaving (keyframe_urgent_valid) passes both
+    # keyframes were made in the last second of input and the last keyframe is
+    # min_keyframe_interval old; fast motion (keyframe_urgent_flow) passes the budget, not the
+    # interval, and is not counted (nor is the warm-up); a view that is leaving
+    # (keyframe_urgent_valid) passes both
     max_keyframe_rate: float = 6.0       # keyframes in any second of input (0 = no bound)
     min_keyframe_interval: float = 0.125 # stream seconds between keyframes at least (0 = none)
     keyframe_urgent_flow: float = 2.0    # fast: mean flow above this x motion_filter_thresh

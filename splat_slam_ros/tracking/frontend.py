@@ -187,9 +187,9 @@ class TrackerFrontend:
 
     def _recent_keyframes(self, frame) -> int:
         """Keyframes of the window made in the second of input before ``frame`` (the rate
-        bound's count; the warm-up's are not counted)."""
+        bound's count; the warm-up's and the fast ones are not counted)."""
         t = float(frame.timestamp)
-        return sum(self.kfs[k].cause != "warmup" and t - self.kfs[k].timestamp < 1.0 - 1e-3
+        return sum(self.kfs[k].cause not in ("warmup", "fast") and t - self.kfs[k].timestamp < 1.0 - 1e-3
                    for k in self.window)
 
     def _weak_flow(self, fc) -> bool:

@@ -28,7 +28,7 @@ class KeyframeState:
     image: Optional[np.ndarray] = None   # full-size RGB, kept until published (None after)
     conf: Optional[torch.Tensor] = None  # (h, w) flow confidence of the keyframe's edges
     # why it was made: warmup | threshold | fast | losing (MotionFilter.candidate) | final (the
-    # last frame's, at the end of the input); all but the warm-up's count in the rate bound
+    # last frame's, at the end of the input); all but warmup and fast count in the rate bound
     cause: str = "warmup"
 
 

@@ -2,13 +2,14 @@
 
 A frame becomes a keyframe candidate when the mean flow from the last keyframe
 exceeds ``tracking.motion_filter_thresh``, fewer than ``tracking.max_keyframe_rate``
-keyframes were made in the last second of stream time (the warm-up's not counted) and the
-last one is at least ``tracking.min_keyframe_interval`` old (fast motion: a few keyframes
-per second, not one per frame). Two candidates pass the rate budget: a frame whose mean flow
-is above ``keyframe_urgent_flow`` x the threshold ("fast", once the interval has passed) and
-one whose confident cells fell to ``keyframe_urgent_valid`` x their typical fraction
+keyframes were made in the last second of stream time and the last one is at least
+``tracking.min_keyframe_interval`` old (fast motion: a few keyframes per second, not one per
+frame). Two candidates pass the rate budget: a frame whose mean flow is above
+``keyframe_urgent_flow`` x the threshold ("fast", once the interval has passed; not counted)
+and one whose confident cells fell to ``keyframe_urgent_valid`` x their typical fraction
 ("losing", at once and even below the threshold: the reference is renewed before the flow to
-it fails; not in the warm-up, whose keyframes need parallax). Both count in the budget. After
+it fails; not in the warm-up, whose keyframes need parallax; counted). The warm-up's
+keyframes are not counted. After
 the local BA a candidate whose flow *induced by the optimised poses and disparities* stays
 below the keyframe threshold tau (``tracking.keyframe_thresh``) is dropped again. Both
 thresholds are given in *reference* BA-grid pixels - those of the reference's setting (a
