@@ -51,6 +51,7 @@ def test_tracker_resumes_from_its_checkpoint_like_an_uninterrupted_run(tmp_path,
                      poses=a.tracker.kfs[k0].pose.cpu().numpy()[None].copy(), disparities=None)
     a.on_update(ev)
     a_records = list(a.tracker.records)
+    a_causes = {k: a.tracker.kfs[k].cause for k in a.tracker.kfs}
     del a                                              # "kill -9": nothing else is written
 
     two_sided = {r.index: r.ref2_kf for r in a_records if r.ref2_kf is not None}
@@ -63,6 +64,10 @@ def test_tracker_resumes_from_its_checkpoint_like_an_uninterrupted_run(tmp_path,
     stamp = b.resume_stamp
     assert stamp is not None and stamp <= frames[30].timestamp
     assert b.tracker.next_kf == max(kfs) + 1 and set(b.tracker.published) == set(kfs)
+    # why each keyframe was made survives (the rate bound counts by it)
+    causes = {k: a_causes[k] for k in b.tracker.kfs if k in a_causes}
+    assert causes and all(b.tracker.kfs[k].cause == c for k, c in causes.items())
+    assert {"warmup", "threshold"} <= set(a_causes.values()), a_causes
     assert TrackerRole.stored_intrinsics(KeyframeStore(store_dir)).fx == INTR.fx
     again = b.resume_outbox()                          # sent again, consumers skip by id / seq
     assert again.keyframes and {k.kf_id for k in again.keyframes} <= set(kfs)

@@ -24,6 +24,7 @@ from splat_slam_ros.geometry import (disparity_through_flow, orthonormalize, se3
 from splat_slam_ros.imaging import image_is_degenerate
 from splat_slam_ros.tracking.dense_ba import induced_flow_distance, pose_only_refine, reproject
 from splat_slam_ros.tracking.flow_frontend import predict_both
+from splat_slam_ros.tracking.keyframe_set import BUDGET_CAUSES
 from splat_slam_ros.tracking.motion_filter import MotionFilter, predict_pose
 from splat_slam_ros.types import TrackStep
 
@@ -189,7 +190,7 @@ class TrackerFrontend:
         """Keyframes of the window made in the second of input before ``frame`` (the rate
         bound's count; the warm-up's and the fast ones are not counted)."""
         t = float(frame.timestamp)
-        return sum(self.kfs[k].cause not in ("warmup", "fast") and t - self.kfs[k].timestamp < 1.0 - 1e-3
+        return sum(self.kfs[k].cause in BUDGET_CAUSES and t - self.kfs[k].timestamp < 1.0 - 1e-3
                    for k in self.window)
 
     def _weak_flow(self, fc) -> bool:

@@ -18,6 +18,13 @@ from splat_slam_ros.geometry import se3_inverse, se3_log
 from splat_slam_ros.types import UpdateEvent
 
 
+# why a keyframe was made (KeyframeState.cause): the warm-up's, the motion threshold's, fast
+# motion's and a view leaving the last keyframe's (MotionFilter.candidate), the last frame's at
+# the end of the input, or loaded from a saved session
+KEYFRAME_CAUSES = ("warmup", "threshold", "fast", "losing", "final", "loaded")
+BUDGET_CAUSES = ("threshold", "losing")     # counted in tracking.max_keyframe_rate
+
+
 @dataclass
 class KeyframeState:
     pose: torch.Tensor                   # (4, 4) float64 camera-to-world
@@ -27,9 +34,7 @@ class KeyframeState:
     prep: Any = None                     # flow front end's prepared image (None once dropped)
     image: Optional[np.ndarray] = None   # full-size RGB, kept until published (None after)
     conf: Optional[torch.Tensor] = None  # (h, w) flow confidence of the keyframe's edges
-    # why it was made: warmup | threshold | fast | losing (MotionFilter.candidate) | final (the
-    # last frame's, at the end of the input); all but warmup and fast count in the rate bound
-    cause: str = "warmup"
+    cause: str = "warmup"                # one of KEYFRAME_CAUSES
 
 
 class KeyframeSet:

@@ -131,7 +131,7 @@ def add_session_keyframes(trk: Tracker, session: Session,
             torch.as_tensor(s.poses[n], dtype=torch.float64, device=trk.device),
             torch.as_tensor(s.disparities[n], dtype=torch.float32, device=trk.device),
             int(s.frame_indices[n]), float(s.timestamps[n]),
-            prep=trk.flow.prepare(s.images[n])))
+            prep=trk.flow.prepare(s.images[n]), cause="loaded"))
     return ids, s.descriptors.astype(np.float32)
 
 

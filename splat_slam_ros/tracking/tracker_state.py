@@ -37,7 +37,7 @@ import torch
 
 from splat_slam_ros.imaging import flow_input
 from splat_slam_ros.io.keyframe_store import KeyframeStore
-from splat_slam_ros.tracking.keyframe_set import KeyframeState
+from splat_slam_ros.tracking.keyframe_set import KEYFRAME_CAUSES, KeyframeState
 from splat_slam_ros.tracking.trajectory_filler import FrameRecord
 from splat_slam_ros.types import Intrinsics, KeyframeData
 
@@ -118,7 +118,13 @@ def _records_from(a: Dict[str, np.ndarray]) -> List[FrameRecord]:
 def _disp_arrays(ks: KeyframeState) -> Dict[str, np.ndarray]:
     return {"disp": ks.disp.cpu().numpy(),
             "conf": (ks.conf if ks.conf is not None else torch.ones_like(ks.disp)).cpu().numpy(),
-            "info": np.array([ks.frame_index, ks.timestamp])}
+            "info": np.array([ks.frame_index, ks.timestamp, KEYFRAME_CAUSES.index(ks.cause)])}
+
+
+def _cause(info: np.ndarray) -> str:
+    """A restored keyframe's cause (a checkpoint of an earlier version has none: counted in
+    the rate bound, as most keyframes are)."""
+    return KEYFRAME_CAUSES[int(info[2])] if len(info) > 2 else "threshold"
 
 
 def _edge_arrays(val) -> Dict[str, np.ndarray]:
@@ -310,7 +316,8 @@ class TrackerCheckpoint:
                 torch.as_tensor(s["poses"][n], dtype=torch.float64, device=dev),
                 torch.as_tensor(r["disp"], dtype=torch.float32, device=dev),
                 int(r["info"][0]), float(r["info"][1]), prep=prep,
-                conf=torch.as_tensor(r["conf"], dtype=torch.float32, device=dev)))
+                conf=torch.as_tensor(r["conf"], dtype=torch.float32, device=dev),
+                cause=_cause(r["info"])))
             self._disp_saved[k] = ks.disp
         for key, (age, kind) in m.get("trk_edges", {}).items():
             i, j = (int(x) for x in key.split("_"))
