@@ -56,5 +56,6 @@ class FrameList(list):
     reads the keyframes' frames by timestamp (``Dataset.frames_at_stamps``)."""
 
     def frames_at_stamps(self, stamps, depth=True):
-        want = {round(float(t), 4) for t in stamps}
-        return [f for f in self if round(float(f.timestamp), 4) in want]
+        from splat_slam_ros.io.dataset_base import stamp_key
+        want = {stamp_key(t) for t in stamps}
+        return [f for f in self if stamp_key(f.timestamp) in want]

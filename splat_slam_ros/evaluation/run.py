@@ -16,6 +16,7 @@ from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.evaluation.depth import depth_edge_band, depth_l1_cm
 from splat_slam_ros.evaluation.inputs import MetricError
 from splat_slam_ros.evaluation.perceptual import check_lpips, lpips, release_lpips
+from splat_slam_ros.io.dataset_base import stamp_key
 from splat_slam_ros.evaluation.trajectory import ate
 from splat_slam_ros.io.trajectory_io import read_trajectory, write_tum
 
@@ -70,11 +71,11 @@ def evaluate_map_depth(dataset, out: Path, cfg: SlamConfig, metrics: dict) -> No
     from splat_slam_ros.tracking.flow_frontend import mapping_preprocessor
     pre = mapping_preprocessor(cfg, dataset.intrinsics)     # the keyframes' camera
     mp = Mapper.load_ply(ply, cfg, pre.intrinsics)
-    want = {round(float(t), 4): T for t, T in zip(ts, P)}
+    want = {stamp_key(t): T for t, T in zip(ts, P)}
     band_px = int(cfg.tracking.ba_downsample)           # one BA cell
     errs, split = [], np.zeros((2, 2))                  # [band, surface] x [sum cm, pixels]
     for f in dataset.frames_at_stamps(want):          # the keyframes' frames only
-        T = want.get(round(float(f.timestamp), 4))
+        T = want.get(stamp_key(f.timestamp))
         if T is None or f.gt_depth is None:
             continue
         gd = pre.depth(f.gt_depth)

@@ -58,6 +58,12 @@ def quantize_stamp(t: float) -> float:
     return ns_to_stamp(stamp_to_ns(t))
 
 
+def stamp_key(t: float) -> float:
+    """A timestamp rounded to 0.1 ms: how a frame is matched to its line of a trajectory
+    file (written to the microsecond)."""
+    return round(float(t), 4)
+
+
 def natural_key(name: str):
     """Sort key that orders 'img2' before 'img10'."""
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
@@ -314,18 +320,18 @@ class Dataset:
             yield from self._frames_of(want, depth)
 
     def frames_at_stamps(self, stamps: Iterable[float], depth: bool = True) -> Iterator[Frame]:
-        """The frames whose timestamp, rounded to 0.1 ms, is one of ``stamps`` (rounded
-        alike), in order: a folder of files reads just these, a stream decodes them in turn."""
-        want = {round(float(t), 4) for t in stamps}
+        """The frames whose :func:`stamp_key` is one of ``stamps``' (the 0.1 ms they round
+        to), in order: a folder of files reads just these, a stream decodes them in turn."""
+        want = {stamp_key(t) for t in stamps}
         if not want:
             return
         known = self._stamps()
         if known is not None:
-            yield from self.frames_at((i for i, t in enumerate(known) if round(t, 4) in want),
+            yield from self.frames_at((i for i, t in enumerate(known) if stamp_key(t) in want),
                                       depth)
             return
         for f in self.iter_frames(depth=depth):
-            if round(float(f.timestamp), 4) in want:
+            if stamp_key(f.timestamp) in want:
                 yield f
 
     def _stamps(self) -> Optional[List[float]]:
