@@ -41,8 +41,9 @@ sys.path.insert(0, str(REPO))
 from splat_slam_ros.config import SlamConfig  # noqa: E402
 from splat_slam_ros.io.datasets import open_dataset  # noqa: E402
 from splat_slam_ros.tracking.mono_depth import MonoDepthModel  # noqa: E402
-from splat_slam_ros.depth.proxy_depth import (ProxyDepthEstimator, compose_proxy_depth,  # noqa: E402
-                                        upsample_disparity)
+from splat_slam_ros.depth.compose import compose_proxy_depth, disp_to_depth  # noqa: E402
+from splat_slam_ros.depth.proxy_depth import ProxyDepthEstimator  # noqa: E402
+from splat_slam_ros.depth.upsample import upsample_disparity  # noqa: E402
 from splat_slam_ros.tracking.multiview import multiview_filter  # noqa: E402
 from splat_slam_ros.types import KeyframeData  # noqa: E402
 
@@ -169,10 +170,10 @@ def run_sequence(name, traj, args, workdir, variants):
 
 def raw_result(kf, cfg, intr):
     """No multi-view filter: every BA pixel with a disparity, upsampled the same way."""
-    from splat_slam_ros.depth.proxy_depth import ProxyDepthResult, _disp_to_depth
+    from splat_slam_ros.depth.proxy_depth import ProxyDepthResult
     d = torch.from_numpy(kf.disparity)
     up, ok = upsample_disparity(d, d > 0, (intr.height, intr.width), cfg.depth.upsample_disc)
-    depth, source, _, _ = compose_proxy_depth(_disp_to_depth(up), ok)
+    depth, source, _, _ = compose_proxy_depth(disp_to_depth(up), ok)
     return ProxyDepthResult(kf.kf_id, depth, source, kf.pose, 0)
 
 

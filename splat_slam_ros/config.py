@@ -201,6 +201,12 @@ class DepthConfig:
     fill_holes_from_ba: bool = True      # no mono model: multi-view holes take the BA depth
     device: str = "auto"                 # "cpu", "cuda" or "auto" (torch part of proxy depth)
     mv_neighbors: int = 8                # other keyframes used by Eq. 6 (nearest by kf id)
+    # a local BA update recomputes a keyframe's proxy depth (and that of the keyframes using
+    # it as a view) only when, since it was computed, the camera moved more than this x its
+    # median depth (rotation as angle x median depth) or its disparity more than this
+    # (median relative change); smaller moves send the new pose with the same depth. Loop
+    # closure, global BA and final updates always recompute (0 = every change recomputes)
+    update_tol: float = 0.01
     upsample_disc: float = 0.1           # upsampling: a 2x2 BA cell spanning more than this
                                          # (relative disparity) is interpolated only if
                                          # continuous with its neighbours, else nearest

@@ -29,7 +29,8 @@ from typing import Callable, Dict, List, Optional, Tuple
 import torch
 
 from splat_slam_ros.config import SlamConfig
-from splat_slam_ros.depth.proxy_depth import ProxyDepthEstimator, ProxyDepthResult
+from splat_slam_ros.depth.proxy_depth import (ProxyDepthEstimator, ProxyDepthResult,
+                                              check_settings as check_depth_settings)
 from splat_slam_ros.io.keyframe_store import KeyframeStore
 from splat_slam_ros.tracking.loop_closure import LoopCloser
 from splat_slam_ros.tracking.tracker import Tracker
@@ -372,6 +373,7 @@ class DepthRole:
     update_sources = ("tracker", "loop")
 
     def __init__(self, cfg: SlamConfig, loop_closure: bool, store: Optional[KeyframeStore] = None):
+        check_depth_settings(cfg.depth)               # the estimator comes with the first keyframe
         self.cfg = cfg
         self.wait_loop = bool(loop_closure)
         self.est: Optional[ProxyDepthEstimator] = None

@@ -7,7 +7,8 @@ import torch
 from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.depth.dense_depth import (FlowCache, dense_depth, fuse_views,
                                               select_views, triangulate_flow)
-from splat_slam_ros.depth.proxy_depth import SOURCE_MULTIVIEW, ProxyDepthEstimator
+from splat_slam_ros.depth.compose import SOURCE_MULTIVIEW
+from splat_slam_ros.depth.proxy_depth import ProxyDepthEstimator
 from splat_slam_ros.geometry import so3_exp
 from splat_slam_ros.types import Intrinsics, KeyframeData, UpdateEvent
 

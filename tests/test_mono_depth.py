@@ -202,7 +202,8 @@ def test_unsupported_suffix(tmp_path):
 def test_proxy_depth_estimator_runs_the_configured_model(models):
     """depth.mono_model -> ProxyDepthEstimator loads the ONNX file and fills holes with it."""
     from splat_slam_ros.config import SlamConfig
-    from splat_slam_ros.depth.proxy_depth import SOURCE_MONO, ProxyDepthEstimator
+    from splat_slam_ros.depth.compose import SOURCE_MONO
+    from splat_slam_ros.depth.proxy_depth import ProxyDepthEstimator
     from splat_slam_ros.types import Intrinsics, KeyframeData
     p = models["dynamic"]
     write_sidecar(p, output="depth", resize="dynamic", size_multiple=8)

@@ -4,16 +4,17 @@ import numpy as np
 import pytest
 import torch
 
-from splat_slam_ros.config import SlamConfig
+from splat_slam_ros.config import ConfigError, SlamConfig
 from splat_slam_ros.geometry import so3_exp
 from splat_slam_ros.tracking.mono_depth import MonoDepthModel
-from splat_slam_ros.depth.proxy_depth import (SOURCE_BA, SOURCE_EMPTY, SOURCE_MONO,
-                                        SOURCE_MULTIVIEW,
-                                        ProxyDepthEstimator, compose_proxy_depth,
-                                        fill_small_holes, fit_scale_shift)
+from splat_slam_ros.depth.compose import (SOURCE_BA, SOURCE_EMPTY, SOURCE_MONO,
+                                          SOURCE_MULTIVIEW, compose_proxy_depth,
+                                          fill_small_holes, fit_scale_shift)
+from splat_slam_ros.depth.proxy_depth import ProxyDepthEstimator
 from splat_slam_ros.tracking.multiview import (all_pairs, consistency_count, multiview_filter,
                                                parallax_pairs)
 from splat_slam_ros.depth.upsample import corner_preference, upsample_disparity
+from splat_slam_ros.roles import DepthRole
 from splat_slam_ros.types import TRACKER_SEQ_START, Intrinsics, KeyframeData, UpdateEvent
 
 # ----------------------------------------------------------------- the scene
@@ -406,6 +407,62 @@ def test_apply_update_returns_exactly_the_affected_keyframes():
     assert (new.source[40:120, 40:160][~mv(new)] == SOURCE_BA).all()   # ... the BA fills it
     # unknown keyframes are ignored
     assert est.apply_update(UpdateEvent(10, "final", [42], np.eye(4)[None])) == []
+
+
+def test_small_moves_send_the_new_pose_with_the_same_depth():
+    """depth.update_tol: a local BA update that moves a keyframe less than the tolerance
+    since its proxy depth was computed (camera by that fraction of its median depth,
+    disparity by that median relative change) sends the new pose with the same depth and
+    recomputes nothing; moves that add up past it recompute the keyframe and its viewers, as
+    the loop closer's updates always do; 0 recomputes every change."""
+    est, poses, depth, _ = run_estimator(10, mv_neighbors=2)
+    est.take_refreshed()
+    n0 = est.timings["n"]
+    tol = est.dc.update_tol
+    assert tol > 0                                      # on by default
+    med = float(np.median(depth[5][depth[5] > 0]))
+    before = est.get(5)
+    step = np.eye(4)
+    step[:3, 3] = [0.3 * tol * med, 0.0, 0.0]           # 0.3 x the tolerance
+    p = poses[5] @ step
+    pairs = est.apply_update(UpdateEvent(8, "local_ba", [5], p[None]))
+    assert est.timings["n"] == n0 and [new.kf_id for _, new in pairs] == [5]
+    old, new = pairs[0]
+    assert old is before and new.update_seq == 8 and est.get(5) is new
+    np.testing.assert_array_equal(new.pose, p)
+    np.testing.assert_array_equal(new.depth, before.depth)
+    np.testing.assert_array_equal(new.source, before.source)
+    # a disparity change of 0.1 x the tolerance and the same pose: nothing to send or compute
+    d5 = (1.0 / depth[5]).astype(np.float32) * np.float32(1 + 0.1 * tol)
+    assert est.apply_update(UpdateEvent(9, "local_ba", [5], p[None], disparities=d5[None])) == []
+    assert est.timings["n"] == n0
+    # the same step three more times: 0.6 and 0.9 x the tolerance since the computation
+    # (kept), then 1.2 x: kf 5 and the two keyframes using it as a view are recomputed
+    for seq, computed in ((10, 0), (11, 0), (12, 3)):
+        p = p @ step
+        pairs = est.apply_update(UpdateEvent(seq, "local_ba", [5], p[None], disparities=d5[None]))
+        assert est.timings["n"] == n0 + computed
+    assert sorted(new.kf_id for _, new in pairs) == [4, 5, 6]
+    assert not np.array_equal(est.get(5).depth, before.depth)
+    # a disparity change above the tolerance recomputes at once
+    n1 = est.timings["n"]
+    est.apply_update(UpdateEvent(13, "local_ba", [5], p[None], disparities=(d5 * (1 + 2 * tol))[None]))
+    assert est.timings["n"] == n1 + 3
+    # the loop closer's updates recompute whatever they move, however little
+    n2 = est.timings["n"]
+    pairs = est.apply_update(UpdateEvent(14, "global_ba", [5], (p @ step)[None]))
+    assert est.timings["n"] == n2 + 3 and sorted(new.kf_id for _, new in pairs) == [4, 5, 6]
+    # update_tol 0: the first small step already recomputes
+    est0, _, _, _ = run_estimator(10, mv_neighbors=2, update_tol=0.0)
+    est0.take_refreshed()
+    m0 = est0.timings["n"]
+    pairs = est0.apply_update(UpdateEvent(8, "local_ba", [5], (poses[5] @ step)[None]))
+    assert est0.timings["n"] == m0 + 3 and sorted(new.kf_id for _, new in pairs) == [4, 5, 6]
+    # out of range: a configuration error when the depth stage is set up, before any keyframe
+    cfg = SlamConfig()
+    cfg.set("depth.update_tol", -0.01)
+    with pytest.raises(ConfigError, match="depth.update_tol"):
+        DepthRole(cfg, loop_closure=False)
 
 
 def test_small_hole_policy_in_estimator():

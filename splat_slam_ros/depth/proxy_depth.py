@@ -22,7 +22,7 @@ image). The mapper needs a depth map at the tracking resolution that it can trus
    (per-pixel triangulation from DIS flow to neighbouring keyframes with the BA poses, kept
    where ``dense_min_views`` views agree) replaces it, and fills its holes where
    ``dense_fill_views`` agree.
-3. Fill (:func:`compose_proxy_depth`, Eq. 10):
+3. Fill (:func:`~splat_slam_ros.depth.compose.compose_proxy_depth`, Eq. 10):
    - with a mono model: invalid pixels take the mono depth mapped by a least-squares
      scale/shift fitted on the valid pixels (Eq. 3, in depth as §3.2 says, or in disparity
      for disparity-output models, ``depth.mono_fit_space``); fitted values outside
@@ -51,17 +51,13 @@ import numpy as np
 import torch
 
 from splat_slam_ros.config import ConfigError, SlamConfig
+from splat_slam_ros.depth.compose import compose_proxy_depth, disp_to_depth, fit_mono
 from splat_slam_ros.depth.dense_depth import DenseProxy
 from splat_slam_ros.depth.upsample import corner_preference, upsample_disparity
 from splat_slam_ros.imaging import image_at, to_gray
 from splat_slam_ros.runtime import resolve_device
 from splat_slam_ros.tracking.multiview import multiview_filter, sample_at_grid
-from splat_slam_ros.types import Intrinsics, KeyframeData, ProxyDepth, UpdateEvent
-
-SOURCE_EMPTY = ProxyDepth.SOURCE_EMPTY
-SOURCE_MULTIVIEW = ProxyDepth.SOURCE_MULTIVIEW
-SOURCE_MONO = ProxyDepth.SOURCE_MONO
-SOURCE_BA = ProxyDepth.SOURCE_BA
+from splat_slam_ros.types import Intrinsics, KeyframeData, UpdateEvent
 
 
 class ProxyDepthError(ValueError):
@@ -85,175 +81,19 @@ class ProxyDepthResult:
         return self.source > 0
 
 
-# ------------------------------------------------------------------ helpers
-def _disp_to_depth(disp: torch.Tensor) -> torch.Tensor:
-    ok = torch.isfinite(disp) & (disp > 0)
-    return torch.where(ok, 1.0 / torch.where(ok, disp, torch.ones_like(disp)),
-                       torch.zeros_like(disp))
-
-
-# ---------------------------------------------------------- scale / shift
-def fit_scale_shift(x: torch.Tensor, y: torch.Tensor, mask: torch.Tensor,
-                    weight: Optional[torch.Tensor] = None) -> Tuple[float, float]:
-    """Least squares ``argmin_{theta,gamma} sum w (theta x + gamma - y)^2`` over ``mask``
-    (Eq. 3). Returns (theta, gamma); (nan, nan) if fewer than 2 distinct x values."""
-    m = mask & torch.isfinite(x) & torch.isfinite(y)
-    xs = x[m].to(torch.float64)
-    ys = y[m].to(torch.float64)
-    ws = torch.ones_like(xs) if weight is None else weight[m].to(torch.float64)
-    sw = ws.sum()
-    if xs.numel() < 2 or float(sw) <= 0:
-        return float("nan"), float("nan")
-    mx = (ws * xs).sum() / sw
-    my = (ws * ys).sum() / sw
-    vx = (ws * (xs - mx) ** 2).sum()
-    if float(vx) <= 1e-12 * float(sw) * max(float(mx) ** 2, 1e-12):
-        return float("nan"), float("nan")
-    theta = (ws * (xs - mx) * (ys - my)).sum() / vx
-    gamma = my - theta * mx
-    return float(theta), float(gamma)
-
-
-# ------------------------------------------------------- small hole fill
-def fill_small_holes(depth: np.ndarray, valid: np.ndarray, max_px: int,
-                     plane_tol: float = 0.02) -> np.ndarray:
-    """Fill enclosed holes of <= ``max_px`` pixels whose 1-pixel rim is a plane.
-
-    The plane is fitted in disparity (affine in the pixel coordinates for any 3D plane) to
-    the rim by least squares; a hole is filled only if every rim pixel lies within
-    ``plane_tol`` (relative disparity) of it, the hole does not touch the image border and
-    the plane is in front of the camera on the whole hole. Returns a bool mask of the filled
-    pixels; ``depth`` is filled in place.
-    """
-    from scipy import ndimage
-    if max_px <= 0:
-        return np.zeros_like(valid, bool)
-    H, W = valid.shape
-    lab, n = ndimage.label(~valid)                       # 4-connected holes
-    if n == 0:
-        return np.zeros_like(valid, bool)
-    sizes = np.bincount(lab.ravel(), minlength=n + 1)
-    border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
-    small = sizes <= max_px
-    small[0] = False
-    small[border] = False
-    if not small.any():
-        return np.zeros_like(valid, bool)
-    slab = np.where(small[lab], lab, 0)
-    rim_lab = ndimage.grey_dilation(slab, size=(3, 3))
-    rim = valid & (rim_lab > 0)
-    rl = rim_lab[rim]
-    vv, uu = np.nonzero(rim)
-    disp = 1.0 / depth[rim].astype(np.float64)
-    u = uu.astype(np.float64)
-    v = vv.astype(np.float64)
-    L = n + 1
-    # per-hole normal equations of disp = a u + b v + c
-    cols = [u * u, u * v, u, v * v, v, np.ones_like(u), u * disp, v * disp, disp]
-    S = np.stack([np.bincount(rl, c, minlength=L) for c in cols], 1)
-    A = np.empty((L, 3, 3))
-    A[:, 0] = S[:, [0, 1, 2]]
-    A[:, 1] = S[:, [1, 3, 4]]
-    A[:, 2] = S[:, [2, 4, 5]]
-    b = S[:, 6:9]
-    cnt = S[:, 5]
-    good = small & (cnt >= 4)
-    A[~good] = np.eye(3)
-    b[~good] = 0
-    det = np.linalg.det(A)
-    good &= np.abs(det) > 1e-9
-    A[~good] = np.eye(3)
-    coef = np.linalg.solve(A, b[..., None])[..., 0]                # (L, 3)
-    pred = coef[rl, 0] * u + coef[rl, 1] * v + coef[rl, 2]
-    rel = np.abs(pred - disp) / np.maximum(disp, 1e-12)
-    worst = np.zeros(L)
-    np.maximum.at(worst, rl, rel)
-    good &= worst <= plane_tol
-    hole = good[lab] & ~valid
-    hv, hu = np.nonzero(hole)
-    hl = lab[hole]
-    dfill = coef[hl, 0] * hu + coef[hl, 1] * hv + coef[hl, 2]
-    bad = np.zeros(L, bool)
-    np.logical_or.at(bad, hl, ~(dfill > 0))
-    keep = ~bad[hl]
-    filled = np.zeros_like(valid, bool)
-    filled[hv[keep], hu[keep]] = True
-    depth[hv[keep], hu[keep]] = (1.0 / dfill[keep]).astype(depth.dtype)
-    return filled
-
-
-# ---------------------------------------------------------------- compose
-def _mono_to_fit_space(mono: torch.Tensor, fit_space: str) -> torch.Tensor:
-    mok = torch.isfinite(mono) & (mono > 0)
-    if fit_space == "disparity":
-        return torch.where(mok, 1.0 / torch.where(mok, mono, torch.ones_like(mono)),
-                           torch.zeros_like(mono))
-    return torch.where(mok, mono, torch.zeros_like(mono))
-
-
-def fit_mono(mono: torch.Tensor, depth: torch.Tensor, valid: torch.Tensor,
-             fit_space: str = "depth") -> Tuple[float, float]:
-    """Eq. 3 (§3.2 in depth, or in disparity): theta, gamma mapping the mono prediction onto
-    the valid multi-view ``depth`` (same grid as ``mono``)."""
-    x = _mono_to_fit_space(mono.to(torch.float32), fit_space)
-    y = _disp_to_depth(depth) if fit_space == "disparity" else depth
-    return fit_scale_shift(x, y, valid & (x > 0) & (depth > 0))
-
-
-def compose_proxy_depth(mv_depth: torch.Tensor, mv_valid: torch.Tensor,
-                        mono_depth: Optional[torch.Tensor] = None, fit_space: str = "depth",
-                        fill_small: int = 0, plane_tol: float = 0.02,
-                        max_depth_ratio: float = 3.0,
-                        scale_shift: Optional[Tuple[float, float]] = None,
-                        ba_depth: Optional[torch.Tensor] = None):
-    """§3.2, Eq. 10: D = multi-view depth where valid, else theta * D_mono + gamma (Eq. 3 in depth;
-    or in disparity for disparity models); without mono, the holes take ``ba_depth`` (the
-    BA-grid depth upsampled over every cell, source 3) when given and some pixel is
-    multi-view consistent (a keyframe without any waits for its views), then the optional
-    small-hole fill.
-
-    ``scale_shift``: (theta, gamma) fitted elsewhere (the estimator fits at BA resolution,
-    where the multi-view depth is not interpolated); default: fitted here on ``mv_valid``.
-    Returns (depth (H,W) float32 numpy, source (H,W) uint8 numpy, theta, gamma).
-    """
-    depth = torch.where(mv_valid, mv_depth, torch.zeros_like(mv_depth)).to(torch.float32)
-    source = torch.where(mv_valid, SOURCE_MULTIVIEW, SOURCE_EMPTY).to(torch.uint8)
-    theta = gamma = float("nan")
-    if mono_depth is not None:
-        mono = mono_depth.to(depth.device, torch.float32)
-        x = _mono_to_fit_space(mono, fit_space)
-        mok = x > 0
-        if scale_shift is None:
-            theta, gamma = fit_mono(mono, depth, mv_valid, fit_space)
-        else:
-            theta, gamma = scale_shift
-        if np.isfinite(theta) and theta > 0:
-            fitted = theta * x + gamma
-            if fit_space == "disparity":
-                fitted = _disp_to_depth(fitted)
-            hole = ~mv_valid & mok & torch.isfinite(fitted) & (fitted > 0)
-            if max_depth_ratio and max_depth_ratio > 0 and bool(mv_valid.any()):
-                med = depth[mv_valid].median()
-                hole &= fitted <= max_depth_ratio * med
-            depth = torch.where(hole, fitted, depth)
-            source = torch.where(hole, torch.full_like(source, SOURCE_MONO), source)
-        else:
-            theta = gamma = float("nan")
-    elif ba_depth is not None and bool(mv_valid.any()):   # nothing consistent yet: wait
-        hole = ~mv_valid & (ba_depth > 0)
-        if max_depth_ratio and max_depth_ratio > 0:
-            hole &= ba_depth <= max_depth_ratio * depth[mv_valid].median()
-        depth = torch.where(hole, ba_depth.to(depth.dtype), depth)
-        source = torch.where(hole, torch.full_like(source, SOURCE_BA), source)
-    depth_np = depth.cpu().numpy().astype(np.float32, copy=False)
-    source_np = source.cpu().numpy()
-    if mono_depth is None and fill_small > 0:
-        filled = fill_small_holes(depth_np, source_np > 0, fill_small, plane_tol)
-        source_np[filled] = SOURCE_MULTIVIEW
-    return depth_np, source_np, theta, gamma
 
 
 # --------------------------------------------------------------- estimator
+def check_settings(dc) -> None:
+    """ConfigError for depth settings out of range (before any keyframe arrives)."""
+    if (dc.mono_fit_space or "auto").lower() not in ("auto", "depth", "disparity"):
+        raise ConfigError(f"depth.mono_fit_space must be auto, depth or disparity, "
+                          f"got {dc.mono_fit_space!r}")
+    if not float(dc.update_tol) >= 0:
+        raise ConfigError(f"depth.update_tol must be >= 0 (0: every change recomputes), "
+                          f"got {dc.update_tol}")
+
+
 @dataclass
 class _KfState:
     kf_id: int
@@ -264,6 +104,8 @@ class _KfState:
     result: Optional[ProxyDepthResult] = None
     n_views: int = 0                 # views used when ``result`` was computed
     grey: Optional[np.ndarray] = None   # (H, W) uint8 image for the dense depth
+    ref_pose: Optional[np.ndarray] = None   # pose and disparity ``result`` was computed from
+    ref_disparity: Optional[np.ndarray] = None
 
 
 class ProxyDepthEstimator:
@@ -284,6 +126,7 @@ class ProxyDepthEstimator:
         self._kfs: "OrderedDict[int, _KfState]" = OrderedDict()
         self._refreshed: List[Tuple[ProxyDepthResult, ProxyDepthResult]] = []
         self.dirty: set = set()        # moved by deferred updates, not recomputed yet
+        self.exact: set = set()        # ... of them, by the loop closer (update_tol not applied)
         self.followers: set = set()    # merged by the loop closer: they follow a kept keyframe
         self.last_seq = 0
         self._flush_seq = 0
@@ -299,10 +142,8 @@ class ProxyDepthEstimator:
             from splat_slam_ros.tracking.mono_depth import check_mono_model
             self.mono_kind = check_mono_model(self.dc.mono_model).output   # MonoDepthError
             self._mono_path = Path(self.dc.mono_model).expanduser()
+        check_settings(self.dc)
         fs = (self.dc.mono_fit_space or "auto").lower()
-        if fs not in ("auto", "depth", "disparity"):
-            raise ConfigError(f"depth.mono_fit_space must be auto, depth or disparity, "
-                              f"got {fs!r}")
         self.fit_space = self.mono_kind if fs == "auto" else fs
         self.timings: Dict[str, float] = {"filter_ms": 0.0, "mono_ms": 0.0, "dense_ms": 0.0,
                                           "n": 0}
@@ -399,6 +240,8 @@ class ProxyDepthEstimator:
                     moved = True
             if moved:
                 self.dirty.add(int(k))
+                if ev.reason != "local_ba":
+                    self.exact.add(int(k))
         return [] if defer else self.flush()
 
     def _follow(self, ev: UpdateEvent, poses: np.ndarray
@@ -428,13 +271,22 @@ class ProxyDepthEstimator:
         return out
 
     def flush(self) -> List[Tuple[ProxyDepthResult, ProxyDepthResult]]:
-        """Recompute what the updates since the last flush moved (see :meth:`apply_update`)."""
+        """Recompute what the updates since the last flush moved (see :meth:`apply_update`):
+        the keyframes that the loop closer moved (loop closure, global BA, final) or that
+        local BA moved more than ``depth.update_tol`` since their proxy depth was computed,
+        and every keyframe that uses one of them as a view. A keyframe that local BA moved
+        less keeps its depth (camera frame) and only takes the new pose, as the loop
+        closer's followers do: most local BA updates shift the older window keyframes by a
+        few hundredths of a degree, and recomputing them for that made most of the depth
+        stage's cost."""
         cset = {k for k in self.dirty if k in self._kfs}
-        self.dirty.clear()
+        exact = self.exact
+        self.dirty, self.exact = set(), set()
         if not cset:
             return []
-        recompute = [k for k in self._kfs if k in cset or (
-            k not in self.followers and any(n in cset for n in self.neighbours(k)))]
+        moved = {k for k in cset if k in exact or self._moved(self._kfs[k])}
+        recompute = [k for k in self._kfs if k in moved or (
+            k not in self.followers and any(n in moved for n in self.neighbours(k)))]
         olds = {k: self._kfs[k].result for k in recompute}
         new = self._compute(recompute, seq=self._flush_seq)
         out = []
@@ -442,7 +294,33 @@ class ProxyDepthEstimator:
             old = olds[k]
             if old is None or k in cset or _differs(old, new[k]):
                 out.append((old, new[k]))
+        for k in sorted(cset - set(recompute)):        # moved less than update_tol: pose only
+            st = self._kfs[k]
+            old = st.result
+            if not np.array_equal(old.pose, st.pose):
+                st.result = replace(old, pose=st.pose.copy(), update_seq=self._flush_seq)
+                out.append((old, st.result))
         return out
+
+    def _moved(self, st: _KfState) -> bool:
+        """Whether ``st`` moved more than ``depth.update_tol`` since its proxy depth was
+        computed: the camera by more than that fraction of its median depth (translation
+        plus rotation angle x median depth) or its disparity by more than that relative
+        change (the median over the cells valid in both; a region that changes much under a
+        steady median is left to the loop closer's updates, which always recompute)."""
+        tol = float(self.dc.update_tol)
+        if tol <= 0 or st.result is None or st.ref_pose is None:
+            return True
+        d, d0 = st.disparity, st.ref_disparity
+        both = (d > 0) & (d0 > 0)
+        if not both.any():
+            return True
+        if float(np.median(np.abs(d[both] - d0[both]) / d0[both])) > tol:
+            return True
+        rel = np.linalg.inv(st.ref_pose) @ st.pose       # the motion in the old camera frame
+        cos = np.clip((np.trace(rel[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+        depth = 1.0 / float(np.median(d[d > 0]))
+        return float(np.linalg.norm(rel[:3, 3])) + float(np.arccos(cos)) * depth > tol * depth
 
     # ------------------------------------------------------------ internals
     def _store(self, kf: KeyframeData) -> None:
@@ -508,7 +386,7 @@ class ProxyDepthEstimator:
         intr_ba = self.intr.resized(w, h)      # the (h, w) BA grid
         pairs = torch.tensor([(index[k], index[n]) for k in ids for n in nb[k]],
                              dtype=torch.long, device=dev).reshape(-1, 2)
-        depth_ba = _disp_to_depth(disp)
+        depth_ba = disp_to_depth(disp)
         valid_ba, _ = multiview_filter(depth_ba, poses, intr_ba, self.dc.mv_eta,
                                        self.dc.mv_min_views, self.dc.mv_max_depth_ratio,
                                        pairs=pairs,
@@ -522,7 +400,7 @@ class ProxyDepthEstimator:
             st = self._kfs[k]
             dup, vup = upsample_disparity(disp[i], valid_ba[i], (H, W), self.dc.upsample_disc,
                                           st.guide)
-            mv_depth = _disp_to_depth(dup)
+            mv_depth = disp_to_depth(dup)
             mono = None if st.mono is None else torch.from_numpy(st.mono).to(dev).float()
             fit = None
             if mono is not None:   # Eq. 3 at BA resolution (multi-view depth not interpolated)
@@ -535,7 +413,7 @@ class ProxyDepthEstimator:
             if mono is None and self.dc.fill_holes_from_ba:     # every BA cell, same upsampling
                 dall, vall = upsample_disparity(disp[i], disp[i] > 0, (H, W),
                                                 self.dc.upsample_disc, st.guide)
-                ba_depth = torch.where(vall, _disp_to_depth(dall), torch.zeros_like(dall))
+                ba_depth = torch.where(vall, disp_to_depth(dall), torch.zeros_like(dall))
             depth, source, th, ga = compose_proxy_depth(
                 mv_depth, mv_valid, mono, self.fit_space,
                 int(self.dc.fill_small_holes), self.dc.fill_plane_tol,
@@ -544,6 +422,7 @@ class ProxyDepthEstimator:
             res = ProxyDepthResult(k, depth, source, st.pose.copy(), int(s), th, ga, len(nb[k]))
             st.result = res
             st.n_views = len(nb[k])
+            st.ref_pose, st.ref_disparity = st.pose.copy(), st.disparity.copy()
             out[k] = res
         return out
 
