@@ -200,7 +200,7 @@ ANCHORS = [
      "(paper Eq. {n})"),
     (2, "eq:dba_wq", r"\mathop{\arg \min}_{d^{h}, \theta, \gamma}",
      "splat_slam_ros/tracking/dspo.py", "(paper §3.1, Eq. {n}-3)"),
-    (3, "eq:wq_least_square", r"\{\theta_i,\,\gamma_i\}", "splat_slam_ros/depth/proxy_depth.py",
+    (3, "eq:wq_least_square", r"\{\theta_i,\,\gamma_i\}", "splat_slam_ros/depth/compose.py",
      "(Eq. {n}). Returns (theta, gamma)"),
     (4, None, r"[\hat{u},\hat{v}, 1]^T \propto", "splat_slam_ros/tracking/multiview.py",
      "Eq. {n}-5: p_i = T_i D_i(u,v)"),
