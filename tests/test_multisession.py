@@ -97,6 +97,28 @@ def test_session_round_trip_and_checksums(tmp_path):
     assert list(ss.descriptor_ranking(d, d[1]))[0] == 1
 
 
+def test_npz_entries_are_the_npy_bytes_and_the_file_is_the_same_every_time(tmp_path):
+    """A session's npz: each entry holds what np.save writes (0-d, empty, strided, bool and
+    big-endian arrays included), np.load reads it, and the same arrays give the same bytes."""
+    import io
+    import zipfile
+    rng = np.random.default_rng(3)
+    arrays = {"scalar": np.asarray(640), "empty": np.zeros((0, 192), np.float32),
+              "strided": rng.random((6, 8))[:, ::2], "mask": rng.random((4, 5)) > 0.5,
+              "be": np.arange(5, dtype=">i4"), "images": rng.integers(0, 255, (3, 24, 32, 3),
+                                                                  dtype=np.uint8)}
+    ss._write_npz(tmp_path / "a.npz", arrays)
+    ss._write_npz(tmp_path / "b.npz", arrays)
+    assert (tmp_path / "a.npz").read_bytes() == (tmp_path / "b.npz").read_bytes()
+    with zipfile.ZipFile(tmp_path / "a.npz") as z, np.load(tmp_path / "a.npz") as f:
+        for name, a in arrays.items():
+            ref = io.BytesIO()
+            np.save(ref, a, allow_pickle=False)
+            assert z.read(f"{name}.npy") == ref.getvalue()
+            assert f[name].shape == a.shape and f[name].dtype == a.dtype
+            np.testing.assert_array_equal(f[name], a)
+
+
 def test_full_run_saves_its_keyframes(work):
     s = ss.load_session(work["s1"])
     kts, kposes = read_trajectory(work["s1"] / "trajectory_keyframes.txt")

@@ -99,11 +99,18 @@ def _write_npz(path: Path, arrays: dict) -> None:
         for name, a in arrays.items():
             info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
             info.compress_type = zipfile.ZIP_DEFLATED
-            buf = io.BytesIO()
             a = np.asarray(a)                   # (0-d arrays stay 0-d)
-            np.lib.format.write_array(buf, a if a.flags.c_contiguous else a.copy(),
-                                      allow_pickle=False)
-            z.writestr(info, buf.getvalue(), compresslevel=NPZ_LEVEL)
+            a = a if a.flags.c_contiguous else a.copy()
+            if a.dtype.hasobject:
+                raise ValueError(f"{name}: object arrays are not stored")
+            # the .npy bytes as np.save writes them (version 1.0 header), built in one buffer:
+            # write_array would add a copy of the whole array (a session's images: 15 MB)
+            buf = io.BytesIO()
+            fmt = np.lib.format
+            fmt.write_array_header_1_0(buf, fmt.header_data_from_array_1_0(a))
+            buf.write(a.reshape(-1).view(np.uint8))
+            with buf.getbuffer() as view:       # the buffer itself, not a copy of it
+                z.writestr(info, view, compresslevel=NPZ_LEVEL)
 
 
 def _merge_manifest(d: Path, part: dict) -> None:

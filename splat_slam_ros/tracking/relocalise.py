@@ -87,7 +87,7 @@ def session_keyframes(trk: Tracker, images: Dict[int, np.ndarray],
         kf_ids=np.array(ids, np.int64),
         frame_indices=np.array([trk.kfs[k].frame_index for k in ids], np.int64),
         timestamps=np.array([trk.kfs[k].timestamp for k in ids], np.float64),
-        poses=poses, disparities=disps, images=imgs.astype(np.uint8),
+        poses=poses, disparities=disps, images=imgs.astype(np.uint8, copy=False),
         descriptors=np.stack([descriptor(i) for i in imgs]) if ids else
         np.zeros((0, 192), np.float32))
 
