@@ -18,7 +18,8 @@ latency p50 / p95 / max (arrival at the tracker -> pose published), the map lag 
 (a keyframe's frame arrives at the tracker -> the mapper mapped it), the map done after the
 stream ends (s), ATE (cm, Sim(3), full trajectory), keyframe PSNR and its difference to
 lockstep, the mapper's steps per keyframe (and steps a wall-clock cap cut), peak RSS summed
-over the nodes, and the load average before and after. Targets (2 cores): >= 95 % of frames
+over the nodes, and the load average before and after; then each node's CPU seconds over the
+whole run. Targets (2 cores): >= 95 % of frames
 posed, p95 latency <= 100 ms, map done <= 15 s after the stream ends, ATE <= 1 cm (fr2desk),
 PSNR within 1 dB of lockstep.
 """
@@ -76,6 +77,7 @@ def run_one(mode: str, bag: Path, out: Path, sets, env) -> dict:
     r["map_lag_s"] = m.get("map_lag_s") or {}
     r["steps_per_keyframe"] = mp.get("steps_per_keyframe")
     r["budget"] = mp.get("budget")
+    r["node_cpu_s"] = {n: v.get("cpu_s") for n, v in (m.get("nodes") or {}).items()}
     frames = int(m.get("frames") or 0)
     r["posed_frac"] = round((m.get("frames_posed") or 0) / frames, 4) if frames else 0.0
     return r
@@ -132,6 +134,10 @@ def main(argv=None) -> int:
               f"{fmt(sp.get('mean'), 1)} ({sp.get('skipped', '-')}) | "
               f"{fmt(r.get('peak_rss_mb_sum'), 0)} | {r['load_before'][0]} -> "
               f"{r['load_after'][0]} |")
+    for k, r in results.items():          # who took the CPU: the mapper gets what is left
+        cpu = r.get("node_cpu_s") or {}
+        print(f"CPU-s per node, {k}: " + (", ".join(f"{n} {fmt(v, 1)}" for n, v in cpu.items())
+                                         or "-"))
     Path(a.json).parent.mkdir(parents=True, exist_ok=True)
     Path(a.json).write_text(json.dumps(results, indent=2))
     print(f"wrote {a.json}")
