@@ -17,6 +17,7 @@ SOURCE_MULTIVIEW = ProxyDepth.SOURCE_MULTIVIEW
 SOURCE_MONO = ProxyDepth.SOURCE_MONO
 SOURCE_BA = ProxyDepth.SOURCE_BA
 
+
 # ------------------------------------------------------------------ helpers
 def disp_to_depth(disp: torch.Tensor) -> torch.Tensor:
     """1 / disparity where it is finite and positive, else 0 (no depth)."""
@@ -117,11 +118,9 @@ def fill_small_holes(depth: np.ndarray, valid: np.ndarray, max_px: int,
 
 # ---------------------------------------------------------------- compose
 def _mono_to_fit_space(mono: torch.Tensor, fit_space: str) -> torch.Tensor:
-    mok = torch.isfinite(mono) & (mono > 0)
     if fit_space == "disparity":
-        return torch.where(mok, 1.0 / torch.where(mok, mono, torch.ones_like(mono)),
-                           torch.zeros_like(mono))
-    return torch.where(mok, mono, torch.zeros_like(mono))
+        return disp_to_depth(mono)                   # 1 / x where positive (an inversion)
+    return torch.where(torch.isfinite(mono) & (mono > 0), mono, torch.zeros_like(mono))
 
 
 def fit_mono(mono: torch.Tensor, depth: torch.Tensor, valid: torch.Tensor,

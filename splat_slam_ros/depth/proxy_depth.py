@@ -264,11 +264,18 @@ class ProxyDepthEstimator:
                 continue
             st.guide = st.grey = st.mono = None
             self.dense.drop(k)
-            old = st.result
-            if not np.array_equal(old.pose, st.pose):
-                st.result = replace(old, pose=st.pose.copy(), update_seq=int(ev.seq))
-                out.append((old, st.result))
+            out += self._repose(st, int(ev.seq))
         return out
+
+    @staticmethod
+    def _repose(st: _KfState, seq: int) -> List[Tuple[ProxyDepthResult, ProxyDepthResult]]:
+        """``st``'s result at its new pose with the same depth (camera frame): [(old, new)],
+        or [] when the pose did not change."""
+        old = st.result
+        if np.array_equal(old.pose, st.pose):
+            return []
+        st.result = replace(old, pose=st.pose.copy(), update_seq=seq)
+        return [(old, st.result)]
 
     def flush(self) -> List[Tuple[ProxyDepthResult, ProxyDepthResult]]:
         """Recompute what the updates since the last flush moved (see :meth:`apply_update`):
@@ -295,11 +302,7 @@ class ProxyDepthEstimator:
             if old is None or k in cset or _differs(old, new[k]):
                 out.append((old, new[k]))
         for k in sorted(cset - set(recompute)):        # moved less than update_tol: pose only
-            st = self._kfs[k]
-            old = st.result
-            if not np.array_equal(old.pose, st.pose):
-                st.result = replace(old, pose=st.pose.copy(), update_seq=self._flush_seq)
-                out.append((old, st.result))
+            out += self._repose(self._kfs[k], self._flush_seq)
         return out
 
     def _moved(self, st: _KfState) -> bool:
