@@ -68,8 +68,19 @@ def frame_counts(received: int, dropped: int, posed: int, skipped: int = 0,
             "frames_posed": posed}
 
 
-def not_initialized_reason(cfg: SlamConfig, frames: int) -> str:
+def not_initialized_reason(cfg: SlamConfig, frames: int, lost: int = 0) -> str:
+    """Why the tracker never initialised over ``frames`` frames: the flow was not confident
+    on most of them (``lost``: little texture, blur, fast motion), or the camera moved too
+    little; with the setting to try."""
     tc = cfg.tracking
+    if lost and 2 * lost >= frames:
+        return (f"the tracker never initialised over {frames} frames: the flow was not "
+                f"confident on {lost} of them (fewer than tracking.lost_min_valid="
+                f"{tc.lost_min_valid:g} of the BA cells had a usable flow: little texture, "
+                f"heavy blur or noise, or a motion too fast for the frame rate). For a scene "
+                f"with little texture try --set tracking.lost_min_valid="
+                f"{tc.lost_min_valid / 3:.2g}; otherwise give sharper input or a higher frame "
+                f"rate")
     # the hint halves what is set now (suggesting the values already in use would not help)
     hint = f"--set tracking.motion_filter_thresh={tc.motion_filter_thresh / 2:g}"
     if tc.init_parallax > 0:
@@ -94,7 +105,8 @@ def no_result_reason(cfg: SlamConfig, metrics: dict) -> Optional[str]:
     """Why a run produced nothing to use (no keyframe, or a full run whose map has no
     Gaussian), or None: such a run ends with an error, never as a success."""
     if not metrics.get("keyframes"):
-        return not_initialized_reason(cfg, int(metrics.get("frames") or 0))
+        return not_initialized_reason(cfg, int(metrics.get("frames") or 0),
+                                      int(metrics.get("frames_lost") or 0))
     if metrics.get("gaussians", 1) == 0:
         return empty_map_reason(cfg, int(metrics["keyframes"]))
     return None
@@ -152,7 +164,8 @@ def run(dataset, cfg: SlamConfig, out: Path, mode: str = "full", progress: bool 
     if "error" in metrics:                               # an extend run never relocalised
         pass
     elif mode != "gt_mapping" and result.keyframes == 0:
-        metrics["error"] = not_initialized_reason(cfg, result.frames)
+        metrics["error"] = not_initialized_reason(cfg, result.frames,
+                                                  int(metrics.get("frames_lost") or 0))
     elif mode != "gt_mapping":
         evaluate_trajectories(dataset, out, metrics)
         if mode in ("full", "extend"):

@@ -418,6 +418,11 @@ def test_no_result_reason_covers_both_failures_and_only_them():
     assert "map is empty" in no_result_reason(cfg, {"keyframes": 3, "gaussians": 0})
     assert no_result_reason(cfg, {"keyframes": 3, "gaussians": 120}) is None
     assert no_result_reason(cfg, {"keyframes": 3}) is None          # tracking only: no map
+    # most frames lost (little texture): the flow, not the motion, and the setting to try
+    msg = no_result_reason(cfg, {"frames": 150, "frames_lost": 133})
+    assert "not confident on 133 of them" in msg and "motion_filter_thresh" not in msg
+    assert "--set tracking.lost_min_valid=0.04;" in msg
+    assert "moved too little" in no_result_reason(cfg, {"frames": 150, "frames_lost": 20})
 
 
 def test_not_initialised_hint_lowers_the_values_in_use():
