@@ -99,7 +99,7 @@ def test_suite_covers_every_trajectory_scene_rate_and_keeps_check_apart():
         assert {c["traj"] for c in gen} == trajs
     assert {c["scene"] for c in gen} == {"room", "low_texture", "tiled", "repetitive", "thin",
                                          "deep"}
-    assert {c["fps"] for c in gen} == {20, 30}
+    assert {c["fps"] for c in gen} == {15, 20, 30}
     assert {c["realism"] for c in gen} == {"realistic", "harsh"}
     tune = [c for c in gen if c["split"] == "tuning"]
     check = [c for c in gen if c["split"] == "check"]

@@ -345,6 +345,55 @@ def test_a_custom_flow_predictor_replaces_dis_without_touching_ba():
     assert ate_cm(frames, gt, ts, poses) < 0.5
 
 
+class ShortReach(OraclePredictor):
+    """The exact flow, but from frame ``after`` on nothing (zero weights) between frames more
+    than ``reach`` apart: a motion too fast for the flow over more than a few frames (a
+    15-Hz camera on a drone)."""
+
+    def __init__(self, frames, reach: int, after: int):
+        super().__init__(frames)
+        self.reach, self.after = reach, after
+
+    def predict(self, a, b):
+        f, w = super().predict(a, b)
+        far = abs(a.index - b.index) > self.reach and max(a.index, b.index) >= self.after
+        return f, (torch.zeros_like(w) if far else w)
+
+
+def test_the_frame_before_a_failed_flow_becomes_a_keyframe(monkeypatch):
+    """The flow to the newest keyframe fails (here: more than 5 frames away, after the
+    warm-up) while the keyframe interval (0.4 s = 12 frames) holds the next keyframe back: the frame before,
+    tracked against that keyframe, becomes a keyframe ("promoted") and the frame is tracked
+    against it. Every frame is posed in one segment; the
+    promoted keyframes are handed on with the step of the frame that needed them, each once.
+    Without it the track is lost and a second segment starts."""
+    from splat_slam_ros.tracking import frontend
+    from splat_slam_ros.tracking.tracker import Tracker
+    frames, gt = sequence()
+
+    def run():
+        tr = Tracker(small_cfg(min_keyframe_interval=0.4), INTR,
+                     flow_predictor=ShortReach(frames, 5, after=15))
+        handed_on = []
+        for f in frames:
+            st = tr.track(f)
+            assert st.info.get("bridged", 0) == 0
+            handed_on += [kd.kf_id for kd in st.keyframes]
+        tr.finalize()
+        return tr, handed_on + [kd.kf_id for kd in tr.final_keyframes]
+    tr, handed_on = run()
+    promoted = [k for k in tr.published if tr.kfs[k].cause == "promoted"]
+    assert tr.n_lost == 0 and tr.n_segments == 1 and len(promoted) >= 4, promoted
+    assert sorted(handed_on) == sorted(set(handed_on)) and set(handed_on) == tr.published
+    # from the first limited frame on, each keyframe within reach of the one before
+    kf_frames = sorted(tr.kfs[k].frame_index for k in tr.published)
+    assert max(np.diff([k for k in kf_frames if k >= 14])) <= 5, kf_frames
+    assert ate_cm(frames, gt, *tr.trajectory_full()) < 0.1
+    monkeypatch.setattr(frontend.TrackerFrontend, "_retreat", lambda self: False)
+    without, _ = run()
+    assert without.n_lost >= 5 and without.n_segments == 2
+
+
 def test_tracking_loss_black_duplicate_and_alien_frames_are_handled(caplog):
     from splat_slam_ros.tracking.tracker import Tracker
     frames, gt = sequence()

@@ -132,6 +132,8 @@ class TrackerFrontend:
                 return self._track(frame, img, prep, rest, bridged)
         if not fc.ok and bridged:
             return None
+        if not fc.ok and not was_lost and self._retreat():
+            return self._track(frame, img, prep, (), bridged)
         if not fc.ok:
             self._last_flow = None
             # relocalise against the other recent keyframes
@@ -225,6 +227,23 @@ class TrackerFrontend:
             self.n_bridged += 1
             self._bridged_steps.append(step)
         return list(gap[mid + 1:]) if self.n_bridged > n_before else None
+
+    def _retreat(self) -> bool:
+        """The flow to the newest keyframe failed, and the frame before this one was tracked
+        against it and moved at least half the motion threshold: that frame becomes a
+        keyframe ("promoted", past the interval and the rate bound) and this one is tracked
+        against it. A motion too fast for the keyframe
+        interval (a 15-Hz camera on a drone: two frames apart the view has moved too far)
+        does not lose the track. The keyframe's step goes out with this frame's (as a
+        bridged one's); the motion model stays that of the frames before."""
+        velocity, spacing = self.velocity, self._spacing
+        step = self._promote_last_input("promoted", 0.5 * self.motion.thresh)
+        if step is None:
+            return False
+        self.velocity, self._spacing = velocity, spacing
+        step.info["promoted"] = 1.0
+        self._bridged_steps.append(step)
+        return True
 
     def _set_pose(self, T, index: int):
         self._spacing = (self._spacing[1], int(index))

@@ -20,9 +20,11 @@ from splat_slam_ros.types import UpdateEvent
 
 # why a keyframe was made (KeyframeState.cause): the warm-up's, the motion threshold's, fast
 # motion's and a view leaving the last keyframe's (MotionFilter.candidate), the last frame's at
-# the end of the input, or loaded from a saved session
-KEYFRAME_CAUSES = ("warmup", "threshold", "fast", "losing", "final", "loaded")
-BUDGET_CAUSES = ("threshold", "losing")     # counted in tracking.max_keyframe_rate
+# the end of the input, loaded from a saved session, or the frame before one whose flow to the
+# last keyframe failed (TrackerFrontend._retreat)
+KEYFRAME_CAUSES = ("warmup", "threshold", "fast", "losing", "final", "loaded", "promoted")
+# counted in tracking.max_keyframe_rate
+BUDGET_CAUSES = ("threshold", "losing", "promoted")
 
 
 @dataclass

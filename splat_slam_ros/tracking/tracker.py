@@ -166,7 +166,8 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
         return step
 
     def _with_bridged(self, step: TrackStep) -> TrackStep:
-        """``step`` with the steps of the skipped frames tracked before it (bridges): their
+        """``step`` with the steps of other frames made while tracking it (skipped frames
+        tracked after all: bridges; the frame before, promoted to a keyframe): their
         keyframes published after every update of this step, so those keyframes carry their
         current pose and disparity and the updates name only keyframes already published."""
         steps, self._bridged_steps = self._bridged_steps + [step], []
@@ -182,7 +183,7 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
                 ks = self.kfs[kd.kf_id]
                 kd.pose = ks.pose.cpu().numpy().copy()
                 kd.disparity = ks.disp.cpu().numpy().astype(np.float32)
-        info = {**step.info, "bridged": len(steps) - 1}
+        info = {**step.info, "bridged": sum(not s.info.get("promoted") for s in steps[:-1])}
         return dataclasses.replace(step, events=events, keyframes=kfs,
                                    keyframe=kfs[-1] if kfs else None, info=info)
 

@@ -282,25 +282,34 @@ class TrajectoryRecorder:
         """End of input: the last frame becomes a keyframe when it moved since the last
         one (half the motion threshold), so the frames after the last keyframe are
         aligned against a keyframe on both sides too."""
-        if not self._pending or self._last_input is None:
+        step = self._promote_last_input("final", 0.5 * self.motion.thresh)
+        if step is None:
             return []
+        self.final_keyframes.extend(step.keyframes)
+        return list(step.events)
+
+    def _promote_last_input(self, cause: str, min_flow: float = 0.0):
+        """The newest input frame, tracked against the newest keyframe and not a keyframe,
+        becomes one (``cause``) when its flow from that keyframe, started from its pose, is
+        confident and at least ``min_flow`` (BA px): the keyframe's step, or None."""
+        if not self._pending or self._last_input is None:
+            return None
         frame, img, prep = self._last_input
         rec = self.records[-1]
         if rec.index != frame.index or rec.kf_id is not None or rec.ref_kf != self.window[-1]:
-            return []
+            return None
         ref = rec.ref_kf
         T = self.kfs[ref].pose @ torch.as_tensor(rec.rel_pose, dtype=torch.float64,
                                                  device=self.device)
         init = self._induced(self.kfs[ref].pose, self.kfs[ref].disp, T)
         f, w, fb, wb = self._flows(self.kfs[ref].prep, prep, init)
         fc = self.motion.check(f, w)
-        if not fc.ok or fc.mean_flow < 0.5 * self.motion.thresh:
-            return []
+        if not fc.ok or fc.mean_flow < min_flow:
+            return None
         self._pending = [(r, p) for r, p in self._pending if r.index != frame.index]
-        step = self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, {}, force=True,
-                                  cause="final")
-        self.final_keyframes.extend(step.keyframes)
-        return list(step.events)
+        self._last_input = None
+        return self._new_keyframe(frame, img, prep, ref, T, f, w, fb, wb, {}, force=True,
+                                  cause=cause)
 
     def trajectory_keyframes(self) -> Tuple[np.ndarray, np.ndarray]:
         return self.kfs.trajectory(self.keyframe_ids())
