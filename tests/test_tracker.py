@@ -394,6 +394,46 @@ def test_the_frame_before_a_failed_flow_becomes_a_keyframe(monkeypatch):
     assert without.n_lost >= 5 and without.n_segments == 2
 
 
+class ShortFlow(OraclePredictor):
+    """The exact flow, but nothing (zero weight) on cells that move more than ``limit`` BA px:
+    forward motion, whose fast periphery the flow loses first while the mean flow over the
+    cells it keeps stays low."""
+
+    def __init__(self, frames, limit: float):
+        super().__init__(frames)
+        self.limit = limit
+
+    def predict(self, a, b):
+        f, w = super().predict(a, b)
+        return f, w * (f.norm(dim=-1, keepdim=True) <= self.limit)
+
+
+def test_the_warm_up_takes_a_keyframe_before_the_flow_to_the_last_one_fails(monkeypatch):
+    """Forward motion through the test room, cells moving more than 1.5 BA px without a flow
+    (the motion threshold is 2 BA px here): the mean flow of the cells left never reaches the
+    threshold while their fraction falls. The warm-up takes a keyframe when the confident
+    cells fall to keyframe_urgent_valid x their typical fraction ("losing", as after the
+    initialisation), initialises and loses no frame; without that it is lost, restarts and
+    never initialises."""
+    from splat_slam_ros.tracking.motion_filter import MotionFilter
+    from splat_slam_ros.tracking.tracker import Tracker
+    frames, gt = make_sequence(40, INTR, motion=(0.0, 0.0, 0.05), rot=0.0)
+
+    def run():
+        tr = Tracker(small_cfg(), INTR, flow_predictor=ShortFlow(frames, 1.5))
+        for f in frames:
+            tr.track(f)
+        tr.finalize()
+        return tr
+    tr = run()
+    warm = sorted(tr.kfs[k].frame_index for k in tr.published if tr.kfs[k].cause == "warmup")
+    assert tr.n_lost == 0 and tr.initialized and len(warm) >= 3, (tr.n_lost, warm)
+    assert ate_cm(frames, gt, *tr.trajectory_full()) < 3.0
+    monkeypatch.setattr(MotionFilter, "losing", lambda self, fc: False)
+    without = run()
+    assert without.n_lost >= 10 and not without.published
+
+
 def test_tracking_loss_black_duplicate_and_alien_frames_are_handled(caplog):
     from splat_slam_ros.tracking.tracker import Tracker
     frames, gt = sequence()

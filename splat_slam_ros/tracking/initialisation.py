@@ -1,9 +1,9 @@
 """Initialisation of the tracker (paper §3.1): the warm-up before the first pose estimate.
 
-Warm-up keyframes are taken by the motion filter until ``init_min_keyframes`` span
-``init_parallax`` (or ``warmup`` keyframes exist); the initialisation BA then starts from the
-identity and from a two-view start (:mod:`two_view`), keeps the better one and normalises the
-mean disparity to 1. At the end of input a late initialisation uses what was collected. After
+Warm-up keyframes are taken by the motion filter (its threshold, or a view leaving the last
+keyframe) until ``init_min_keyframes`` span ``init_parallax`` (or ``warmup`` keyframes
+exist); the initialisation BA then starts from the identity and from a two-view start
+(:mod:`two_view`), keeps the better one and normalises the mean disparity to 1. At the end of input a late initialisation uses what was collected. After
 ``reinit_after`` lost frames a new segment starts a new warm-up whose first keyframe is placed
 where the motion before the loss leads, with the last keyframe's mean disparity.
 
@@ -58,7 +58,10 @@ class TrackerInitialisation:
         self.lost_count = 0
         self._last_flow = (ref, f)
         info = {"mean_flow": fc.mean_flow, "valid": fc.valid_frac}
-        if not self.motion.is_candidate(fc):
+        # a warm-up keyframe at the motion threshold, or before the flow to the last one
+        # fails (its confident cells down to keyframe_urgent_valid x their typical fraction:
+        # forward motion, whose fast periphery fails while the mean flow stays low)
+        if not self.motion.is_candidate(fc) and not self.motion.losing(fc):
             sf, sw = self._store_flow(f, w)
             self._add_pending(self._record(frame, ref_kf=ref, flow=sf, weight=sw), frame, img,
                               prep)

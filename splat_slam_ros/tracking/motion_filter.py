@@ -8,8 +8,8 @@ frame). Two candidates pass the rate budget: a frame whose mean flow is above
 ``keyframe_urgent_flow`` x the threshold ("fast", once the interval has passed; not counted)
 and one whose confident cells fell to ``keyframe_urgent_valid`` x their typical fraction
 ("losing", at once and even below the threshold: the reference is renewed before the flow to
-it fails; not in the warm-up, whose keyframes need parallax; counted). The warm-up's
-keyframes are not counted. After the local BA a candidate whose flow *induced by the
+it fails; counted). The warm-up takes a keyframe at the threshold or when losing (without a
+bound; its keyframes are not counted). After the local BA a candidate whose flow *induced by the
 optimised poses and disparities* stays below the keyframe threshold tau
 (``tracking.keyframe_thresh``) is dropped again. Both
 thresholds are given in *reference* BA-grid pixels - those of the reference's setting (a
