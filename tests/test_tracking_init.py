@@ -229,6 +229,22 @@ def test_late_initialisation_at_finalize():
     assert not tr.initialized and tr.final_keyframes == []
 
 
+def test_late_initialisation_when_the_last_frame_is_a_warm_up_frame():
+    """A late initialisation (end of input) whose last frame was tracked in the warm-up
+    against the last warm-up keyframe, without a pose of its own: it is posed by the
+    trajectory filler, not made the final keyframe (that needs a pose; it raised a
+    TypeError before). 22 frames with a parallax that the warm-up never reaches."""
+    cfg = SlamConfig()
+    cfg.tracking.init_parallax, cfg.tracking.warmup = 3.0, 50
+    frames, gt_ts, gt = fr2desk_clip("320x240", 30, 5)
+    steps, _, tr = _track(frames[:22], cfg)
+    assert not any(s.initialized for s in steps)
+    assert tr.initialized and tr.records[-1].rel_pose is None and tr.records[-1].kf_id is None
+    ts, poses = tr.trajectory_full()
+    assert len(ts) == 22
+    assert _errors_cm(gt_ts, gt, ts, poses).max() <= 2.0
+
+
 def test_full_trajectory_follows_a_loop_closure_correction(clip_run):
     """A loop-closure update moving every keyframe rigidly moves every frame with it."""
     import copy

@@ -296,8 +296,9 @@ class TrajectoryRecorder:
             return None
         frame, img, prep = self._last_input
         rec = self.records[-1]
-        if rec.index != frame.index or rec.kf_id is not None or rec.ref_kf != self.window[-1]:
-            return None
+        if rec.index != frame.index or rec.kf_id is not None or \
+                rec.ref_kf != self.window[-1] or rec.rel_pose is None:
+            return None             # (no pose: a warm-up frame after a late initialisation)
         ref = rec.ref_kf
         T = self.kfs[ref].pose @ torch.as_tensor(rec.rel_pose, dtype=torch.float64,
                                                  device=self.device)
