@@ -303,6 +303,7 @@ class TrackerNode(SplatNode):
                            lost=trk.n_lost if trk is not None else 0,
                            posed=posed, latency_ms=self.camera.latency_stats(),
                            keyframes=self._keyframes(),
+                           **(trk.keyframe_summary() if trk is not None else {}),
                            keyframe_arrival={str(k): round(t, 4)
                                              for k, t in sorted(self.kf_arrival.items())},
                            timings={k: round(float(v), 3) for k, v in

@@ -52,6 +52,15 @@ SUMMARY_METRICS = ("ate_rmse_cm_full", "ate_rmse_cm_keyframes", "psnr", "ssim", 
                    "depth_l1_cm", "depth_l1_edges_cm", "depth_l1_surfaces_cm")
 
 
+def keyframe_line(metrics: dict) -> Optional[str]:
+    """The summary's keyframe line: per second of input and by cause (None without them)."""
+    rate, causes = metrics.get("keyframes_per_s"), metrics.get("keyframe_causes")
+    if rate is None or not causes:
+        return None
+    return (f"keyframes per second of input {rate:.2f} ("
+            + ", ".join(f"{c} {n}" for c, n in causes.items()) + ")")
+
+
 def frame_counts(received: int, dropped: int, posed: int, skipped: int = 0,
                  lost: int = 0) -> Dict[str, int]:
     """The frame counts of metrics.json, the same in every mode: ``frames_received`` (input
@@ -244,6 +253,7 @@ def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics, co
     write_tum(out / "trajectory_full.txt", ts_full, poses_full)
     metrics.update(frame_counts(result.frames, 0, len(ts_full), skipped=trk.n_skipped,
                                 lost=trk.n_lost))
+    metrics.update(trk.keyframe_summary())
     write_tum(out / "trajectory_keyframes.txt", *trk.trajectory_keyframes())
     timings = {k: co.timings.get(k, 0.0) for k in ("tracking", "loop_closure", "depth",
                                                     "mapping")}

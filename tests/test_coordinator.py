@@ -363,6 +363,12 @@ def test_splat_slam_run_end_to_end(synth_seq, tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     m = json.loads((out / "metrics.json").read_text())
     assert m["keyframes"] >= 5 and m["frames"] == 36
+    # keyframes per second of input and by cause (the 36 frames at 10 Hz span 3.5 s)
+    assert sum(m["keyframe_causes"].values()) == m["keyframes"]
+    assert set(m["keyframe_causes"]) <= {"warmup", "threshold", "fast", "losing", "promoted",
+                                         "final"} and m["keyframe_causes"]["warmup"] >= 2
+    assert m["keyframes_per_s"] == pytest.approx(m["keyframes"] / 3.5, rel=1e-2)
+    assert f"keyframes per second of input {m['keyframes_per_s']:.2f} (warmup " in r.stdout
     assert m["ate_rmse_cm_full"] < 5.0, m
     assert m["psnr"] > 18.0, m
     assert (out / "map.ply").stat().st_size > 1000

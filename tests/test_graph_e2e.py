@@ -98,6 +98,7 @@ def test_graph_end_to_end(graph_run):
     assert m["frames"] == 40 and m["frames_received"] == 40 and m["frames_dropped"] == 0
     assert m["frames_tracked"] == 40 and m["frames_posed"] == 40
     assert m["keyframes"] >= 4
+    assert sum(m["keyframe_causes"].values()) == m["keyframes"] and m["keyframes_per_s"] > 0
     # 40 clean 192x144 frames, fast mapping schedule: measured 0.86 cm / 21.3 dB
     assert m["ate_rmse_cm_full"] < 3.0 and m["psnr"] > 17.0 and m["fps"] > 0, m
     for n in ("tracker", "depth", "mapper", "player"):

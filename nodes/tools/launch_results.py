@@ -41,6 +41,7 @@ def write_metrics(L, end_wall: float) -> dict:
     if L.t_eos is not None and L.t_mapped is not None:
         m["map_done_after_stream_s"] = round(L.t_mapped - L.t_eos, 3)
     m["keyframes"] = trk.get("keyframes", 0)
+    m.update({k: trk[k] for k in ("keyframes_per_s", "keyframe_causes") if k in trk})
     m["wall_s"] = round(wall, 3)
     m["wall_total_s"] = round(end_wall - L.t0, 3)
     m["fps"] = round(frames / max(wall, 1e-9), 3)
@@ -134,9 +135,11 @@ def finish(L, end_wall: float) -> int:
 
 
 def summary(L, m: dict) -> None:
-    from splat_slam_ros.pipeline import SUMMARY_METRICS
+    from splat_slam_ros.pipeline import SUMMARY_METRICS, keyframe_line
     L.say(f"frames {m['frames']}  keyframes {m['keyframes']}  wall {m['wall_s']:.1f} s  "
           f"{m['fps']:.2f} frames/s")
+    if keyframe_line(m):
+        L.say(keyframe_line(m))
     L.say(f"frames posed {m['frames_posed']} (tracked {m['frames_tracked']}, skipped "
           f"{m['frames_skipped']}, lost {m['frames_lost']}), dropped "
           f"{m['frames_dropped']}")

@@ -125,7 +125,8 @@ def main(argv=None) -> int:
         bound_heap(RUN_MMAP_THRESHOLD, trim_threshold=RUN_TRIM_THRESHOLD)
         from splat_slam_ros.config import load_config
         from splat_slam_ros.io.datasets import open_dataset
-        from splat_slam_ros.pipeline import SUMMARY_METRICS, NotInitializedError, run
+        from splat_slam_ros.pipeline import (SUMMARY_METRICS, NotInitializedError, keyframe_line,
+                                             run)
 
         if args.gt_poses != args.gt_depth:
             print("error: --gt-poses and --gt-depth go together (mapping in isolation on ground "
@@ -193,6 +194,8 @@ def main(argv=None) -> int:
                   f"{x['gaussians']}")
         print(f"frames {res.frames}  keyframes {res.keyframes}  wall {res.wall_s:.1f} s  "
               f"{m['fps']:.2f} frames/s")
+        if keyframe_line(m):
+            print(keyframe_line(m))
         for k in SUMMARY_METRICS:
             if isinstance(m.get(k), (int, float)):
                 print(f"{k} {m[k]:.4f}")

@@ -21,7 +21,7 @@ import dataclasses
 import itertools
 import logging
 import time
-from collections import defaultdict
+from collections import Counter, defaultdict
 from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
@@ -37,7 +37,7 @@ from splat_slam_ros.tracking.flow_frontend import (ImagePreprocessor, make_flow_
                                                    mapping_preprocessor)
 from splat_slam_ros.tracking.frontend import TrackerFrontend
 from splat_slam_ros.tracking.initialisation import TrackerInitialisation
-from splat_slam_ros.tracking.keyframe_set import KeyframeSet, KeyframeState
+from splat_slam_ros.tracking.keyframe_set import KEYFRAME_CAUSES, KeyframeSet, KeyframeState
 from splat_slam_ros.tracking.motion_filter import flow_scale
 from splat_slam_ros.tracking.trajectory_filler import FrameRecord, TrajectoryRecorder
 from splat_slam_ros.types import (TRACKER_SEQ_START, Frame, Intrinsics, KeyframeData, TrackStep,
@@ -233,3 +233,13 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
 
     def keyframe_ids(self) -> List[int]:
         return [k for k in self.kfs if k in self.published]
+
+    def keyframe_summary(self) -> Dict[str, object]:
+        """``keyframes_per_s`` (published keyframes per second of input, first to last
+        frame; None for a single frame) and ``keyframe_causes`` (how many each cause made,
+        ``KeyframeState.cause``): what the depth stage and the mapper pay for."""
+        causes = Counter(self.kfs[k].cause for k in self.keyframe_ids())
+        span = self.records[-1].timestamp - self.records[0].timestamp \
+            if len(self.records) > 1 else 0.0
+        return {"keyframes_per_s": round(sum(causes.values()) / span, 3) if span > 0 else None,
+                "keyframe_causes": {c: causes[c] for c in KEYFRAME_CAUSES if causes[c]}}
