@@ -232,10 +232,10 @@ class TrackerFrontend:
         """The flow to the newest keyframe failed, and the frame before this one was tracked
         against it and moved at least half the motion threshold: that frame becomes a
         keyframe ("promoted", past the interval and the rate bound) and this one is tracked
-        against it. A motion too fast for the keyframe
-        interval (a 15-Hz camera on a drone: two frames apart the view has moved too far)
-        does not lose the track. The keyframe's step goes out with this frame's (as a
-        bridged one's); the motion model stays that of the frames before."""
+        against it. A motion too fast for the keyframe interval (a 15-Hz camera on a drone:
+        two frames apart the view has moved too far) does not lose the track. The
+        keyframe's step goes out with this frame's (as a bridged one's); the motion model
+        stays that of the frames before."""
         velocity, spacing = self.velocity, self._spacing
         step = self._promote_last_input("promoted", 0.5 * self.motion.thresh)
         if step is None:

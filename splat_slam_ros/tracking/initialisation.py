@@ -3,9 +3,10 @@
 Warm-up keyframes are taken by the motion filter (its threshold, or a view leaving the last
 keyframe) until ``init_min_keyframes`` span ``init_parallax`` (or ``warmup`` keyframes
 exist); the initialisation BA then starts from the identity and from a two-view start
-(:mod:`two_view`), keeps the better one and normalises the mean disparity to 1. At the end of input a late initialisation uses what was collected. After
-``reinit_after`` lost frames a new segment starts a new warm-up whose first keyframe is placed
-where the motion before the loss leads, with the last keyframe's mean disparity.
+(:mod:`two_view`), keeps the better one and normalises the mean disparity to 1. At the end of
+input a late initialisation uses what was collected. After ``reinit_after`` lost frames a
+new segment starts a new warm-up whose first keyframe is placed where the motion before the
+loss leads, with the last keyframe's mean disparity.
 
 :class:`TrackerInitialisation` is a part of :class:`~splat_slam_ros.tracking.tracker.Tracker`
 and works on that object's state.

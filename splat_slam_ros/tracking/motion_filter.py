@@ -9,8 +9,8 @@ frame). Two candidates pass the rate budget: a frame whose mean flow is above
 and one whose confident cells fell to ``keyframe_urgent_valid`` x their typical fraction
 ("losing", at once and even below the threshold: the reference is renewed before the flow to
 it fails; counted). The warm-up takes a keyframe at the threshold or when losing (without a
-bound; its keyframes are not counted). After the local BA a candidate whose flow *induced by the
-optimised poses and disparities* stays below the keyframe threshold tau
+bound; its keyframes are not counted). After the local BA a candidate whose flow *induced by
+the optimised poses and disparities* stays below the keyframe threshold tau
 (``tracking.keyframe_thresh``) is dropped again. Both
 thresholds are given in *reference* BA-grid pixels - those of the reference's setting (a
 640x480 TUM camera, fx = 525, at 1/8: a BA focal length of 65.625 px) - and
