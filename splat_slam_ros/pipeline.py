@@ -247,7 +247,9 @@ def _run_slam(dataset, cfg, out, mode, progress, max_frames, result, metrics, co
             for stale in ("trajectory_full.txt", "trajectory_keyframes.txt", "map.ply"):
                 (out / stale).unlink(missing_ok=True)
             return
-    if result.keyframes == 0:
+    if result.keyframes == 0:               # never initialised: nothing posed (why: run())
+        metrics.update(frame_counts(result.frames, 0, 0, skipped=trk.n_skipped,
+                                    lost=trk.n_lost))
         return
     ts_full, poses_full = trk.trajectory_full()
     write_tum(out / "trajectory_full.txt", ts_full, poses_full)

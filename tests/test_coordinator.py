@@ -415,6 +415,25 @@ def test_splat_slam_run_with_an_empty_map_fails_clearly(synth_seq, tmp_path):
     assert m["keyframes"] >= 2 and m["gaussians"] == 0 and "map is empty" in m["error"]
 
 
+def test_splat_slam_run_without_texture_names_the_flow_not_the_motion(synth_seq, tmp_path):
+    """Every frame uniform grey (no flow can be confident on it): the tracker never
+    initialises, and the reason is the flow (tracking.lost_min_valid), not the motion."""
+    import cv2
+    seq = tmp_path / "grey"
+    shutil.copytree(synth_seq, seq)
+    for png in (seq / "rgb").glob("*.png"):
+        cv2.imwrite(str(png), np.full(cv2.imread(str(png)).shape, 128, np.uint8))
+    out = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "splat_slam_ros.cli.run", str(seq), "--out",
+                        str(out), "--tracking-only", "--no-progress"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 3, (r.returncode, r.stderr[-2000:])
+    assert "not confident on 36 of them" in r.stderr and "tracking.lost_min_valid" in r.stderr
+    assert "motion_filter_thresh" not in r.stderr and "Traceback" not in r.stderr
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["frames_lost"] == 36 and m["frames_posed"] == 0 and m["keyframes"] == 0
+
+
 def test_no_result_reason_covers_both_failures_and_only_them():
     """The rule splat-slam-run and splat-slam-launch share (exit status 3)."""
     from splat_slam_ros.config import SlamConfig
