@@ -94,6 +94,8 @@ def test_full_run_writes_a_complete_report(full_run):
     assert decode(src).shape == (900, 1500, 3)
     m = json.loads((out / "metrics.json").read_text())
     assert f"{m['ate_rmse_cm_full']:.2f} cm" in page.text["summary"]
+    causes = ", ".join(f"{c} {k}" for c, k in m["keyframe_causes"].items())
+    assert f"{m['keyframes_per_s']:.2f} ({causes})" in page.text["summary"]
     assert f"{m['fps']:.2f}" in page.text["timing"] and "mapping" in page.text["timing"]
     assert len(page.imgs["trajectory"]) == 1 and len(page.imgs["map"]) == 1
     # keyframe grid: five tiles per mapped keyframe, at the keyframe's aspect ratio
