@@ -65,6 +65,7 @@ def test_graph_localize_tracks_in_the_loaded_map(graph):
     m = json.loads((out / "metrics.json").read_text())
     assert m["localize"]["relocalised_frame"] == 0 and m["localize"]["session"] == str(s1)
     assert m["frames_posed"] == 30 and m["frames_received"] == 30
+    assert "keyframe_causes" not in m            # a localize run makes no keyframe
     # the loaded map, byte for byte; no keyframes, no session of its own
     assert (out / "map.ply").read_bytes() == (s1 / "map.ply").read_bytes()
     assert not (out / "trajectory_keyframes.txt").exists()

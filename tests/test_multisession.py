@@ -356,6 +356,9 @@ def test_extend_grows_the_loaded_map_in_its_frame(work, ext):
         x["loaded"]["gaussians"] == ma["map"]["gaussians"]
     assert x["relocalised_frame"] == 20 and x["frames_before_relocalised"] == 0
     assert x["new_keyframes"] >= 3 and m["keyframes"] == ma["keyframes"] + x["new_keyframes"]
+    # the loaded keyframes by cause, not in the rate (frames 20-49 at 10 Hz: 2.9 s)
+    assert m["keyframe_causes"]["loaded"] == ma["keyframes"]
+    assert m["keyframes_per_s"] == pytest.approx(x["new_keyframes"] / 2.9, rel=0.02)
     assert x["gaussians"] == m["map"]["gaussians"] > 1.2 * x["loaded"]["gaussians"]
     assert x["mapped_keyframes"] > x["loaded"]["mapped_keyframes"]
     assert f"keyframes {ma['keyframes']} loaded + {x['new_keyframes']} new" in ext["grow_stdout"]

@@ -269,6 +269,10 @@ class Localizer:
     def keyframe_ids(self) -> List[int]:
         return list(self.ids)
 
+    def keyframe_summary(self) -> dict:
+        """No keyframe is made here (the tracker surface): nothing to count."""
+        return {}
+
     def trajectory_keyframes(self) -> Tuple[np.ndarray, np.ndarray]:
         """The loaded map's keyframes (markers of the map the frames are posed in)."""
         return self.trk.kfs.trajectory(self.ids)

@@ -235,11 +235,13 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
         return [k for k in self.kfs if k in self.published]
 
     def keyframe_summary(self) -> Dict[str, object]:
-        """``keyframes_per_s`` (published keyframes per second of input, first to last
-        frame; None for a single frame) and ``keyframe_causes`` (how many each cause made,
-        ``KeyframeState.cause``): what the depth stage and the mapper pay for."""
+        """``keyframes_per_s`` (keyframes made from this input per second of it, first to
+        last frame; a loaded session's are not counted; None for a single frame) and
+        ``keyframe_causes`` (how many each cause made, ``KeyframeState.cause``, over the
+        published keyframes): what the depth stage and the mapper pay for."""
         causes = Counter(self.kfs[k].cause for k in self.keyframe_ids())
+        made = sum(n for c, n in causes.items() if c != "loaded")
         span = self.records[-1].timestamp - self.records[0].timestamp \
             if len(self.records) > 1 else 0.0
-        return {"keyframes_per_s": round(sum(causes.values()) / span, 3) if span > 0 else None,
+        return {"keyframes_per_s": round(made / span, 3) if span > 0 else None,
                 "keyframe_causes": {c: causes[c] for c in KEYFRAME_CAUSES if causes[c]}}
