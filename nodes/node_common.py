@@ -322,7 +322,7 @@ class SplatNode:
                            enqueue_newest, "ProxyDepth")
         elif proxy_depth:
             sub(ProxyDepth, "proxy_depth", Q.proxy_depth_qos(), role.on_proxy_depth, depth_in)
-        self.on_events(lambda d: d.get("event") == "finalized" and self.worker.submit(
+        self.on_events(lambda d: d.get("event") == "finalized" and self.worker.submit_final(
             handle, lambda info: role.on_final(str(info.get("node")), info), lambda d: d, d))
 
     # ------------------------------------------------------------ graph events

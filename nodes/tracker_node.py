@@ -105,9 +105,9 @@ class TrackerNode(SplatNode):
     def _on_event(self, d: dict) -> None:
         if d.get("event") == "end_of_stream" and d.get("node") in ("player", "launch",
                                                                    "camera"):
-            self.worker.submit(self._finalize)
+            self.worker.submit_final(self._finalize)
         elif d.get("event") == "finalized":
-            self.worker.submit(self._on_final, d)
+            self.worker.submit_final(self._on_final, d)
         elif d.get("event") in ("save_map", "load_map") and load_request(d, self.started):
             self.worker.submit(self._save_map if d["event"] == "save_map" else self._load_map, d)
 

@@ -64,7 +64,7 @@ class Worker:
             except queue.Empty:
                 wanted, work = self.idle
                 if wanted():
-                    return (work, (), {})
+                    return (work, (), {}, False)
         return self.q.get()
 
     def start(self) -> None:
@@ -78,7 +78,12 @@ class Worker:
             self.thread.join(timeout=5)
 
     def submit(self, fn: Callable, *args, **kw) -> None:
-        self.q.put((fn, args, kw))
+        self.q.put((fn, args, kw, False))
+
+    def submit_final(self, fn: Callable, *args, **kw) -> None:
+        """A job of the node's finalisation: an error in it stops the node (exit status 1),
+        since nothing would save the run's results after it and the launcher would wait."""
+        self.q.put((fn, args, kw, True))
 
     def pending(self) -> int:
         return self.q.qsize()
@@ -100,7 +105,7 @@ class Worker:
             item = self._take()
             if item is None:
                 break
-            fn, args, kw = item
+            fn, args, kw, final = item
             self.busy = True
             try:
                 with self.lock:
@@ -122,5 +127,8 @@ class Worker:
                 if not rclpy.ok():
                     break
                 self.owner.log.error(f"{type(e).__name__}: {e}\n{traceback.format_exc(limit=6)}")
+                if final:                    # the node's results would never be saved
+                    self._fatal(1, f"finalisation failed ({type(e).__name__}: {e}): stopping")
+                    break
             finally:
                 self.busy = False

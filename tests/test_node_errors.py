@@ -88,6 +88,26 @@ def test_a_malformed_message_is_dropped_and_counted_the_worker_goes_on(worker):
     assert worker.thread.is_alive()
 
 
+def test_an_error_in_the_finalisation_stops_the_worker_with_status_1(worker):
+    """An error in an ordinary job is logged and the worker goes on; one in the node's
+    finalisation (``submit_final``) stops it with status 1: nothing would save the run's
+    results after it, and the launcher would wait for them."""
+    ran = []
+
+    def broken():
+        raise AttributeError("'Localizer' object has no attribute 'keyframe_summary'")
+    assert _run_jobs(worker, broken, lambda: ran.append(1))          # ordinary: goes on
+    assert ran == [1] and worker.fatal_rc == 0 and worker.owner.log.lines[-1][0] == "error"
+    done = threading.Event()
+    worker.submit_final(broken)
+    worker.submit(done.set)
+    worker.thread.join(5)
+    assert not worker.thread.is_alive() and not done.is_set()
+    assert worker.fatal_rc == 1 and worker.shut
+    kind, text = worker.owner.log.lines[-1]
+    assert kind == "fatal" and "finalisation failed (AttributeError" in text
+
+
 def test_a_configuration_error_stops_the_worker_with_status_2(worker):
     ran = []
 
