@@ -237,7 +237,7 @@ class TrackerFrontend:
         keyframe's step goes out with this frame's (as a bridged one's); the motion model
         stays that of the frames before."""
         velocity, spacing = self.velocity, self._spacing
-        step = self._promote_last_input("promoted", 0.5 * self.motion.thresh)
+        step = self._promote_last_input("promoted")
         if step is None:
             return False
         self.velocity, self._spacing = velocity, spacing

@@ -282,16 +282,16 @@ class TrajectoryRecorder:
         """End of input: the last frame becomes a keyframe when it moved since the last
         one (half the motion threshold), so the frames after the last keyframe are
         aligned against a keyframe on both sides too."""
-        step = self._promote_last_input("final", 0.5 * self.motion.thresh)
+        step = self._promote_last_input("final")
         if step is None:
             return []
         self.final_keyframes.extend(step.keyframes)
         return list(step.events)
 
-    def _promote_last_input(self, cause: str, min_flow: float = 0.0):
+    def _promote_last_input(self, cause: str):
         """The newest input frame, tracked against the newest keyframe and not a keyframe,
         becomes one (``cause``) when its flow from that keyframe, started from its pose, is
-        confident and at least ``min_flow`` (BA px): the keyframe's step, or None."""
+        confident and at least half the motion threshold: the keyframe's step, or None."""
         if not self._pending or self._last_input is None:
             return None
         frame, img, prep = self._last_input
@@ -305,7 +305,7 @@ class TrajectoryRecorder:
         init = self._induced(self.kfs[ref].pose, self.kfs[ref].disp, T)
         f, w, fb, wb = self._flows(self.kfs[ref].prep, prep, init)
         fc = self.motion.check(f, w)
-        if not fc.ok or fc.mean_flow < min_flow:
+        if not fc.ok or fc.mean_flow < 0.5 * self.motion.thresh:
             return None
         self._pending = [(r, p) for r, p in self._pending if r.index != frame.index]
         self._last_input = None
