@@ -164,6 +164,9 @@ def run_child(args) -> None:
     cfg = load_config(args.config or None, overrides)
     ds = open_dataset(args.child)
     ds.load_depth = False                   # tracking reads the colour images only
+    if args.start_frame:                    # splat-slam-run --start-frame: later frames only
+        from splat_slam_ros.io.datasets import FromFrame
+        ds = FromFrame(ds, args.start_frame)
     dec = {"decode": 0.0}
 
     def frames():                           # decoding time (PNG -> RGB), for the profile
@@ -242,11 +245,13 @@ def step_profile(st, t_import: float) -> dict:
 
 
 def run_case(name, seq: Path, overrides: dict, config: str, tmp: Path,
-             profile: bool = False) -> dict:
+             profile: bool = False, start_frame: int = 0) -> dict:
     js = tmp / f"{name}.json"
     cmd = [sys.executable, __file__, "--child", str(seq), "--config", config, "--json", str(js)]
     if profile:
         cmd.append("--profile")
+    if start_frame:
+        cmd += ["--start-frame", str(int(start_frame))]
     for k, v in overrides.items():
         cmd += ["--set", f"{k}={json.dumps(v)}"]
     load0 = os.getloadavg()[0]
@@ -299,6 +304,7 @@ def main() -> None:
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "tracking.json"))
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("--json", help=argparse.SUPPRESS)
+    ap.add_argument("--start-frame", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--set", action="append", metavar="KEY=JSON",
                     help="config override for every case, e.g. camera.max_pixels=0")
     ap.add_argument("--profile", action="store_true",

@@ -115,6 +115,41 @@ def test_unknown_case_and_bad_override_exit_2(capsys):
     assert "nope" in capsys.readouterr().err
 
 
+def test_bad_starts_exit_2(capsys):
+    assert bg.main(["--cases", "c_euroc_v101_real", "--starts", "0"]) == 2
+    assert "--starts 0" in capsys.readouterr().err
+    assert bg.main(["--cases", "c_euroc_v101_real", "--starts", "4", "--start-step", "10"]) == 2
+    assert "below 30" in capsys.readouterr().err
+
+
+def test_a_run_from_a_later_start_frame_tracks_the_frames_after_it(small_seq, tmp_path):
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    try:
+        import bench_tracking as bt
+    finally:
+        sys.path.remove(str(REPO / "benchmarks"))
+    first = bt.run_case("s0", small_seq, {}, "", tmp_path)
+    later = bt.run_case("s4", small_seq, {}, "", tmp_path, start_frame=4)
+    assert first["frames"] == 12 and later["frames"] == 8
+
+
+def _run(start, ate, posed=10, lost=0):
+    return dict(start_frame=start, ate_full_cm=ate, posed=posed, frames=10, lost=lost,
+                keyframes=3, fps=20.0)
+
+
+def test_over_starts_keeps_the_median_run_and_the_range():
+    r = bg.over_starts([_run(0, 5.0), _run(2, None, posed=4, lost=6), _run(4, 1.0)])
+    assert r["start_frame"] == 0 and r["ate_full_cm"] == 5.0     # never initialised: worst
+    assert [x["start_frame"] for x in r["starts"]] == [0, 2, 4]
+    assert bg.ate_cell(r) == "5.000 (1.000-no ATE)"
+    assert not bg.all_posed(r)                                   # one start lost frames
+    r = bg.over_starts([_run(0, 2.0), _run(2, 1.0), _run(4, 3.0), _run(6, 4.0)])
+    assert r["ate_full_cm"] == 2.0 and bg.ate_cell(r) == "2.000 (1.000-4.000)"
+    assert bg.all_posed(r) and bg.ate_cell(_run(0, 1.5)) == "1.500"
+    assert bg.ate_cell(bg.over_starts([_run(0, None), _run(2, None)])) == "-"
+
+
 # ------------------------------------------------------------------ ORB-SLAM3 beside us
 FAKE_ORB_PYTHON = textwrap.dedent('''\
     #!{python}
