@@ -27,6 +27,7 @@ from splat_slam_ros.io.trajectory_io import STAMP_TOL, write_tum
 from splat_slam_ros.mapper_role import write_map_outputs, write_mesh
 from splat_slam_ros.mapping.persistence import mapper_arrays
 from splat_slam_ros.report.recording import WarningRecorder
+from splat_slam_ros.report.run_record import keyframe_rate_text
 from splat_slam_ros.tracking.relocalise import input_images, save_session, session_ids
 
 log = logging.getLogger(__name__)
@@ -54,11 +55,8 @@ SUMMARY_METRICS = ("ate_rmse_cm_full", "ate_rmse_cm_keyframes", "psnr", "ssim", 
 
 def keyframe_line(metrics: dict) -> Optional[str]:
     """The summary's keyframe line: per second of input and by cause (None without them)."""
-    rate, causes = metrics.get("keyframes_per_s"), metrics.get("keyframe_causes")
-    if rate is None or not causes:
-        return None
-    return (f"keyframes per second of input {rate:.2f} ("
-            + ", ".join(f"{c} {n}" for c, n in causes.items()) + ")")
+    text = keyframe_rate_text(metrics)
+    return None if text is None else f"keyframes per second of input {text}"
 
 
 def frame_counts(received: int, dropped: int, posed: int, skipped: int = 0,

@@ -138,8 +138,9 @@ def summary(L, m: dict) -> None:
     from splat_slam_ros.pipeline import SUMMARY_METRICS, keyframe_line
     L.say(f"frames {m['frames']}  keyframes {m['keyframes']}  wall {m['wall_s']:.1f} s  "
           f"{m['fps']:.2f} frames/s")
-    if keyframe_line(m):
-        L.say(keyframe_line(m))
+    kf_line = keyframe_line(m)
+    if kf_line:
+        L.say(kf_line)
     L.say(f"frames posed {m['frames_posed']} (tracked {m['frames_tracked']}, skipped "
           f"{m['frames_skipped']}, lost {m['frames_lost']}), dropped "
           f"{m['frames_dropped']}")

@@ -194,8 +194,9 @@ def main(argv=None) -> int:
                   f"{x['gaussians']}")
         print(f"frames {res.frames}  keyframes {res.keyframes}  wall {res.wall_s:.1f} s  "
               f"{m['fps']:.2f} frames/s")
-        if keyframe_line(m):
-            print(keyframe_line(m))
+        kf_line = keyframe_line(m)
+        if kf_line:
+            print(kf_line)
         for k in SUMMARY_METRICS:
             if isinstance(m.get(k), (int, float)):
                 print(f"{k} {m[k]:.4f}")

@@ -14,6 +14,7 @@ import numpy as np
 from splat_slam_ros.report import plots as rp
 from splat_slam_ros.report.run_record import (TILE_NAMES, THUMB_WIDTH, RunRecord, data_uri,
                                               depth_unit, fmt, headline, keyframe_positions,
+                                              keyframe_rate_text,
                                               keyframe_tiles, stage_times,
                                               worst_keyframe)
 
@@ -58,10 +59,9 @@ def _summary(rec: RunRecord, png: bytes) -> str:
     rows = [("dataset", _e(rec.name)), ("mode", _e(m.get("mode", "n/a"))),
             ("frames", fmt(m.get("frames"))), ("keyframes", fmt(m.get("keyframes"))),
             ("wall time", fmt(m.get("wall_s"), 1, "s")), ("frames/s", fmt(m.get("fps"), 2))]
-    if m.get("keyframes_per_s") is not None and m.get("keyframe_causes"):
-        causes = ", ".join(f"{c} {n}" for c, n in m["keyframe_causes"].items())
-        rows.insert(4, ("keyframes per second of input",
-                        _e(f"{fmt(m['keyframes_per_s'], 2)} ({causes})")))
+    kf_rate = keyframe_rate_text(m)
+    if kf_rate is not None:
+        rows.insert(4, ("keyframes per second of input", _e(kf_rate)))
     if rec.ate is not None:
         rows.append(("ATE RMSE, all frames (Sim(3))", fmt(rec.ate["rmse_cm"], 2, "cm")))
     if rec.ate_kf is not None:
