@@ -120,6 +120,10 @@ class TrackingConfig:
     max_edge_age: int = 50               # drop non-consecutive BA edges after this many BA rounds
     ba_iters: int = 2                    # local BA iterations per keyframe
     pose_iters: int = 4                  # pose-only iterations per frame
+    # a keyframe cell counts fully in a frame's pose fit once the keyframe's own edges saw it
+    # with this flow confidence, in proportion below: a cell they never saw (the view entering
+    # on fast motion) has a filled-in disparity that bent the pose (0 = every cell alike)
+    pose_ref_conf: float = 0.2
     robust_huber_px: float = 2.0         # Huber threshold on the reprojection error (tracking px)
     lost_min_valid: float = 0.12         # lost if fewer BA cells than this have a usable flow
     lost_rms: float = 1.0                # lost if the frame's pose fit leaves this rms (BA px)

@@ -11,7 +11,9 @@ from splat_slam_ros.tracking.dense_ba import (_edge_terms, ba_cost, ba_step, bun
                                      disparity_normal_equations, induced_flow_distance,
                                      pose_only_refine, pose_only_refine_batch,
                                      pose_only_refine_multi, reproject)
-from splat_slam_ros.geometry import pixel_grid, project_homogeneous, se3_exp, se3_inverse
+from splat_slam_ros.geometry import (pixel_grid, project_homogeneous, se3_exp, se3_inverse,
+                                     se3_log)
+from splat_slam_ros.tracking.frontend import observed_weight
 
 H, W = 24, 32
 INTR = torch.tensor([28.0, 28.0, 15.5, 11.5])
@@ -207,6 +209,36 @@ def test_pose_only_refine_recovers_frame_pose():
     T, info = pose_only_refine(poses[0], disps[0], T0, INTR, tgt[0], wgt, iters=8)
     assert torch.allclose(T, poses[1], atol=1e-4)
     assert info.rms < 1e-3
+
+
+def test_pose_fit_ignores_keyframe_cells_its_edges_never_observed():
+    """A new keyframe's cells that its one edge never saw (the view entering on fast motion)
+    carry a filled-in disparity; the frame's flow is right there, so with every cell counted
+    the fit bends the pose to that wrong depth. Weighted by the keyframe's confidence
+    (observed_weight) they drop out and the pose is the true one."""
+    poses, disps = scene(2, seed=6)
+    ii, jj = torch.tensor([0]), torch.tensor([1])
+    tgt, _ = reproject(poses, disps, INTR, ii, jj)           # the frame's flow: exact
+    wgt = torch.ones(H, W, 2)
+    conf = torch.ones(H, W)
+    conf[:, W // 2:] = 0.0                                   # never observed by its edges ...
+    d_ref = disps[0].clone()
+    d_ref[:, W // 2:] *= 1.8                                 # ... and filled in wrong
+    T0 = se3_exp(torch.tensor([0.01, -0.01, 0.01, 0.01, -0.01, 0.005],
+                              dtype=torch.float64)) @ poses[1]
+    err = lambda T: float(se3_log(se3_inverse(poses[1]) @ T)[:3].norm())
+    T_all, _ = pose_only_refine(poses[0], d_ref, T0, INTR, tgt[0], wgt, iters=10)
+    T_obs, info = pose_only_refine(poses[0], d_ref, T0, INTR, tgt[0],
+                                   observed_weight(wgt, conf, 0.2), iters=10)
+    assert err(T_all) > 0.02                      # bent by the filled-in half
+    assert err(T_obs) < 1e-4 and info.rms < 1e-3
+    # in proportion below the level, unchanged at and above it, and off at 0
+    conf[0, 0], conf[0, 1] = 0.1, 0.5
+    w = observed_weight(wgt, conf, 0.2)
+    assert w[0, 0].tolist() == [0.5, 0.5] and w[0, 1].tolist() == [1.0, 1.0]
+    assert w[0, -1].tolist() == [0.0, 0.0]
+    assert torch.equal(observed_weight(wgt, conf, 0.0), wgt)
+    assert torch.equal(observed_weight(wgt, None, 0.2), wgt)
 
 
 def test_pose_only_refine_multi_two_keyframes_and_ba_residual():

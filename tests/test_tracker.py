@@ -589,7 +589,7 @@ def test_skipped_frames_are_posed_between_their_tracked_neighbours():
         every.track(f)
     ref_err = ate_cm(frames, gt, *every.trajectory_full())
     all_err = ate_cm(frames, gt, ts, poses)
-    assert all_err < 1.5 * ref_err + 0.05, (all_err, ref_err)
+    assert all_err < 1.6 * ref_err + 0.05, (all_err, ref_err)
     # the prediction at once is a small step from the newest tracked pose
     for i in skipped:
         prev = poses[list(ts).index(frames[i - 1].timestamp)]
@@ -779,7 +779,7 @@ def test_a_long_warm_up_gives_second_flows_to_its_newest_frames_only():
     assert 0 < seen[5][1] <= 5, seen
 
 
-def every_fourth_frame(render, predict_first_flow: bool):
+def every_fourth_frame(render, predict_first_flow: bool, **tracking):
     """The render's first 66 frames, every fourth tracked and the others skipped with their
     images (bridges), as a busy live tracker would; (bridged, lost, ATE cm)."""
     from splat_slam_ros.tracking.tracker import Tracker
@@ -789,6 +789,8 @@ def every_fourth_frame(render, predict_first_flow: bool):
     cfg = SlamConfig()
     cfg.tracking.loop_closure = cfg.tracking.global_ba = False
     cfg.tracking.predict_first_flow = predict_first_flow
+    for k, v in tracking.items():
+        setattr(cfg.tracking, k, v)
     tr = Tracker(cfg, ds.intrinsics)
     for f in frames:
         if tr.initialized and f.index % 4 != 0:
@@ -858,10 +860,24 @@ def test_the_first_frame_after_a_keyframe_starts_its_flow_from_the_prediction():
 def test_a_predicted_first_flow_keeps_a_gap_after_a_keyframe_on_track(v102_render, monkeypatch):
     """Every fourth frame tracked on the fast drone render, the weak-flow bridges off: the
     frame after a keyframe is 4 frames away, and its DIS flow started from zero goes wrong
-    (a keyframe made from it corrupts the depth: about 22 cm); started from the flow the
+    (a keyframe made from it corrupts the depth: about 5 cm); started from the flow the
     constant-velocity pose induces, it holds (about 1.5 cm)."""
     from splat_slam_ros.tracking import frontend
     monkeypatch.setattr(frontend.TrackerFrontend, "_weak_flow", lambda self, fc: False)
     _, lost, err = every_fourth_frame(v102_render, predict_first_flow=True)
     _, lost_zero, err_zero = every_fourth_frame(v102_render, predict_first_flow=False)
-    assert lost == 0 and err < 0.25 * err_zero, (lost, err, lost_zero, err_zero)
+    assert lost == 0 and err < 0.5 * err_zero, (lost, err, lost_zero, err_zero)
+
+
+def test_the_pose_fit_leaves_out_the_keyframe_cells_no_edge_saw(v102_render, monkeypatch):
+    """The same fast render, every fourth frame, the first flow after a keyframe started from
+    zero: the frames after a keyframe see most of the view that was entering it, where its
+    disparity is filled in, not measured. Counted in the pose fit (``pose_ref_conf`` 0) those
+    cells bent the poses and the scale followed (about 22 cm); weighted by the keyframe's
+    confidence, about 5 cm."""
+    from splat_slam_ros.tracking import frontend
+    monkeypatch.setattr(frontend.TrackerFrontend, "_weak_flow", lambda self, fc: False)
+    _, lost, err = every_fourth_frame(v102_render, predict_first_flow=False)
+    _, lost_all, err_all = every_fourth_frame(v102_render, predict_first_flow=False,
+                                              pose_ref_conf=0.0)
+    assert lost == 0 and err < 0.4 * err_all, (lost, err, lost_all, err_all)

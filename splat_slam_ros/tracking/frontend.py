@@ -31,6 +31,19 @@ from splat_slam_ros.types import TrackStep
 log = logging.getLogger(__name__)
 
 
+def observed_weight(weight: torch.Tensor, conf, full_at: float) -> torch.Tensor:
+    """Flow weights (h, w, 2) of a frame's pose fit against a keyframe, scaled by how well the
+    keyframe's own edges observed each cell: its confidence ``conf`` (h, w), in full from
+    ``full_at`` on, in proportion below (``full_at`` 0 or no ``conf``: unchanged). A new
+    keyframe's cells that its edge to the previous one never saw (on fast motion, the part of
+    the view that is entering, which the next frames see best) hold a disparity filled in,
+    not measured; a frame's flow there is right, and fitted to that depth it bent the pose
+    (a 9 cm move taken for a rotation, and the scale of every later keyframe with it)."""
+    if full_at <= 0 or conf is None:
+        return weight
+    return weight * (conf / full_at).clamp(0.0, 1.0)[..., None].to(weight)
+
+
 class TrackerFrontend:
     """Frame-to-keyframe flow, pose fit and keyframe decision of the tracker."""
 
@@ -83,6 +96,7 @@ class TrackerFrontend:
         """Pose-only fit of the frame against the flow ref -> frame; best of ``inits``."""
         best = None
         t0 = time.perf_counter()
+        w = observed_weight(w, self.kfs[ref].conf, self.tc.pose_ref_conf)
         for T0 in inits:
             T, info = pose_only_refine(self.kfs[ref].pose, self.kfs[ref].disp, T0, self.intr,
                                        self.grid + f, w, iters=self.tc.pose_iters,
