@@ -124,6 +124,12 @@ class TrackingConfig:
     # with this flow confidence, in proportion below: a cell they never saw (the view entering
     # on fast motion) has a filled-in disparity that bent the pose (0 = every cell alike)
     pose_ref_conf: float = 0.2
+    # flows matched at a wrong period (repetitive textures): a frame whose pose fit leaves more
+    # than flow_pred_rms_px is fitted again without the cells far from the flow its
+    # constant-velocity pose induces
+    flow_pred_gate: float = 1.0          # far: more than this from it (reference BA px; 0 = off)
+    flow_pred_agree: float = 0.3         # only if this fraction of the confident weight is near it
+    flow_pred_rms_px: float = 0.8        # refit above this pose-fit rms (tracking px)
     robust_huber_px: float = 2.0         # Huber threshold on the reprojection error (tracking px)
     lost_min_valid: float = 0.12         # lost if fewer BA cells than this have a usable flow
     lost_rms: float = 1.0                # lost if the frame's pose fit leaves this rms (BA px)

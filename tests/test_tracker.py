@@ -873,11 +873,78 @@ def test_the_pose_fit_leaves_out_the_keyframe_cells_no_edge_saw(v102_render, mon
     """The same fast render, every fourth frame, the first flow after a keyframe started from
     zero: the frames after a keyframe see most of the view that was entering it, where its
     disparity is filled in, not measured. Counted in the pose fit (``pose_ref_conf`` 0) those
-    cells bent the poses and the scale followed (about 22 cm); weighted by the keyframe's
-    confidence, about 5 cm."""
+    cells bent the poses and the scale followed (10-22 cm: the failing run's error depends on
+    the CPU's last bits); weighted by the keyframe's confidence, about 5 cm. (The refit against the predicted flow, which also catches some of
+    those frames, is off in both runs.)"""
     from splat_slam_ros.tracking import frontend
     monkeypatch.setattr(frontend.TrackerFrontend, "_weak_flow", lambda self, fc: False)
-    _, lost, err = every_fourth_frame(v102_render, predict_first_flow=False)
+    _, lost, err = every_fourth_frame(v102_render, predict_first_flow=False,
+                                      flow_pred_gate=0.0)
     _, lost_all, err_all = every_fourth_frame(v102_render, predict_first_flow=False,
-                                              pose_ref_conf=0.0)
-    assert lost == 0 and err < 0.4 * err_all, (lost, err, lost_all, err_all)
+                                              pose_ref_conf=0.0, flow_pred_gate=0.0)
+    assert lost == 0 and err < 0.6 * err_all, (lost, err, lost_all, err_all)
+
+
+class WrongPeriod(OraclePredictor):
+    """The exact flow, but in the flows into every third frame the left ``frac`` of the cells
+    matched ``period`` BA px off in x, with full weight: a repetitive texture whose wrong
+    period the flow found (forward and backward flows agree there, so no confidence drops)."""
+
+    def __init__(self, frames, period: float, frac: float = 0.4):
+        super().__init__(frames)
+        self.period, self.frac = period, frac
+
+    def predict(self, a, b):
+        f, w = super().predict(a, b)
+        if b.index > a.index and b.index % 3 == 1:
+            f = f.clone()
+            f[:, :int(f.shape[1] * self.frac), 0] += self.period
+        return f, w
+
+
+def _track_counting_refits(frames, cfg, predictor):
+    from splat_slam_ros.tracking.tracker import Tracker
+    tr = Tracker(cfg, INTR, flow_predictor=predictor)
+    refits = 0
+    for f in frames:
+        step = tr.track(f)
+        refits += int(bool(step is not None and step.info and step.info.get("pred_gated")))
+    tr.finalize()
+    return tr, refits
+
+
+def test_a_poorly_fitted_frame_is_fitted_again_without_the_cells_of_a_wrong_period():
+    """Every third frame's flow has a block matched one period off: its pose fit leaves more
+    than tracking.flow_pred_rms_px, so it is fitted again without the cells far from the flow
+    the constant-velocity pose induces. The exact flow is never refitted."""
+    frames, gt = sequence(60)
+    errs, refits = {}, {}
+    for gate in (0.0, 1.0):
+        tr, refits[gate] = _track_counting_refits(frames, small_cfg(flow_pred_gate=gate),
+                                                  WrongPeriod(frames, 2.5))
+        assert tr.n_lost == 0
+        errs[gate] = ate_cm(frames, gt, *tr.trajectory_full())
+    assert refits[0.0] == 0 and refits[1.0] >= 10, refits
+    assert errs[1.0] < 0.4 * errs[0.0] and errs[1.0] < 1.2, errs
+    _, clean = _track_counting_refits(frames, small_cfg(), OraclePredictor(frames))
+    assert clean == 0
+
+
+def test_the_prediction_gate_leaves_the_weights_when_the_prediction_is_what_missed():
+    from splat_slam_ros.tracking.tracker import Tracker
+    frames, _ = sequence(30)
+    tr = Tracker(small_cfg(), INTR, flow_predictor=OraclePredictor(frames))
+    for f in frames[:20]:
+        tr.track(f)
+    ref, index = tr.window[-1], 20
+    ind = tr._induced(tr.kfs[ref].pose, tr.kfs[ref].disp, tr._predict_at(index))
+    w = torch.ones(30, 40, 2)
+    f = ind.clone()
+    f[:, :16, 0] += 3.0                 # 40 % of the cells a period off: those lose weight
+    g = tr._gate_by_prediction(ref, f, w, index)
+    assert bool((g[:, :16] == 0).all()) and bool((g[:, 16:] == 1).all())
+    f = ind + 3.0                       # 80 % off: the prediction missed, nothing changes
+    f[:, :8] = ind[:, :8]
+    assert tr._gate_by_prediction(ref, f, w, index) is w
+    tr.tc.flow_pred_gate = 0.0          # off
+    assert tr._gate_by_prediction(ref, ind + 3.0, w, index) is w

@@ -92,6 +92,22 @@ class TrackerFrontend:
         f, w, fb, wb = self._flows(self.kfs[ref].prep, prep, init)
         return (f, w, fb, wb), self.motion.check(f, w), predicted
 
+    def _gate_by_prediction(self, ref, f, w, index):
+        """Cells whose flow lies more than ``tracking.flow_pred_gate`` (reference BA px) from
+        the flow frame ``index``'s constant-velocity pose induces get no weight, when at least
+        ``flow_pred_agree`` of the confident weight agrees with that flow (a wrong period of a
+        repetitive texture; a motion the prediction missed leaves the weights as they are)."""
+        gate = self.tc.flow_pred_gate * self.px_scale
+        if gate <= 0:
+            return w
+        ind = self._induced(self.kfs[ref].pose, self.kfs[ref].disp, self._predict_at(index))
+        near = ((f - ind).norm(dim=-1) < gate).to(w.dtype)
+        conf = w.mean(-1) * (w.mean(-1) > self.motion.cell_weight)
+        total = float(conf.sum())
+        if total <= 0 or float((conf * near).sum()) < self.tc.flow_pred_agree * total:
+            return w
+        return w * near[..., None]
+
     def _fit_pose(self, ref, f, w, inits):
         """Pose-only fit of the frame against the flow ref -> frame; best of ``inits``."""
         best = None
@@ -162,6 +178,15 @@ class TrackerFrontend:
         T_ref = self.kfs[ref].pose
         inits = [T_ref.clone()] if was_lost else [pred, self.last_pose.clone(), T_ref.clone()]
         T, pinfo = self._fit_pose(ref, f, w, inits)
+        gated = 0.0
+        if not was_lost and pinfo is not None and \
+                pinfo.rms * tc.ba_downsample > tc.flow_pred_rms_px:
+            # a poor fit: without the cells far from the predicted flow (a wrong period)
+            w_g = self._gate_by_prediction(ref, f, w, frame.index)
+            if w_g is not w:
+                T_g, p_g = self._fit_pose(ref, f, w_g, inits)
+                if p_g is not None and np.isfinite(p_g.rms):
+                    T, pinfo, w, gated = T_g, p_g, w_g, 1.0
         if pinfo is None or not np.isfinite(pinfo.rms) or pinfo.rms > tc.lost_rms:
             if bridged:
                 return None
@@ -173,7 +198,7 @@ class TrackerFrontend:
         self.lost_count = 0
         self._last_flow = (ref, f)
         info = {"mean_flow": fc.mean_flow, "valid": fc.valid_frac, "pose_rms": pinfo.rms,
-                "predicted": predicted}
+                "predicted": predicted, "pred_gated": gated}
         since_kf = float(frame.timestamp) - self.kfs[ref].timestamp
         cause = self.motion.candidate(fc, since_kf, self._recent_keyframes(frame))
         if cause is not None and ref == self.window[-1]:
