@@ -874,8 +874,9 @@ def test_the_pose_fit_leaves_out_the_keyframe_cells_no_edge_saw(v102_render, mon
     zero: the frames after a keyframe see most of the view that was entering it, where its
     disparity is filled in, not measured. Counted in the pose fit (``pose_ref_conf`` 0) those
     cells bent the poses and the scale followed (10-22 cm: the failing run's error depends on
-    the CPU's last bits); weighted by the keyframe's confidence, about 5 cm. (The refit against the predicted flow, which also catches some of
-    those frames, is off in both runs.)"""
+    the CPU's last bits); weighted by the keyframe's confidence, about 5 cm. (The refit
+    against the predicted flow, which also catches some of those frames, is off in both
+    runs.)"""
     from splat_slam_ros.tracking import frontend
     monkeypatch.setattr(frontend.TrackerFrontend, "_weak_flow", lambda self, fc: False)
     _, lost, err = every_fourth_frame(v102_render, predict_first_flow=False,

@@ -74,6 +74,10 @@ class TrackerFrontend:
                           torch.tensor([1], device=self.device))
         return uv[0] - self.grid
 
+    def _predicted_flow(self, ref, index: int) -> torch.Tensor:
+        """Flow keyframe ``ref`` -> frame ``index`` that the constant-velocity pose induces."""
+        return self._induced(self.kfs[ref].pose, self.kfs[ref].disp, self._predict_at(index))
+
     def _store_flow(self, f, w):
         return f.detach().to("cpu", torch.float16), w.detach().to("cpu", torch.float16)
 
@@ -87,8 +91,7 @@ class TrackerFrontend:
             self._last_flow[0] == ref else None
         predicted = init is None and index is not None
         if predicted:
-            init = self._induced(self.kfs[ref].pose, self.kfs[ref].disp,
-                                 self._predict_at(index))
+            init = self._predicted_flow(ref, index)
         f, w, fb, wb = self._flows(self.kfs[ref].prep, prep, init)
         return (f, w, fb, wb), self.motion.check(f, w), predicted
 
@@ -100,9 +103,9 @@ class TrackerFrontend:
         gate = self.tc.flow_pred_gate * self.px_scale
         if gate <= 0:
             return w
-        ind = self._induced(self.kfs[ref].pose, self.kfs[ref].disp, self._predict_at(index))
-        near = ((f - ind).norm(dim=-1) < gate).to(w.dtype)
-        conf = w.mean(-1) * (w.mean(-1) > self.motion.cell_weight)
+        near = ((f - self._predicted_flow(ref, index)).norm(dim=-1) < gate).to(w.dtype)
+        conf = w.mean(-1)
+        conf = conf * (conf > self.motion.cell_weight)
         total = float(conf.sum())
         if total <= 0 or float((conf * near).sum()) < self.tc.flow_pred_agree * total:
             return w
