@@ -80,6 +80,10 @@ class TrackingConfig:
     photo_sigma: float = 30.0            # photometric residual scale for confidences (grey levels)
     texture_grad: float = 1.0            # gradient (grey/px) at which a cell counts as textured
     flow_spread_px: float = 1.5          # flow spread inside a BA cell that halves its weight
+    # per axis, the forward-backward error and spread along the other axis count only as far
+    # as the image has texture along it (an edge's flow along itself is not measured: low-
+    # texture scenes keep the weight of their edges; false = one isotropic confidence)
+    flow_aperture: bool = True
     # learned front end (paper 3.1): DROID-SLAM checkpoint in the public layout; "" = DIS
     flow_model: str = ""                 # path to droid.pth (needs ba_downsample 8)
     flow_device: str = "auto"            # where the network runs: auto | cpu | cuda
@@ -132,6 +136,9 @@ class TrackingConfig:
     flow_pred_rms_px: float = 0.8        # refit above this pose-fit rms (tracking px)
     robust_huber_px: float = 2.0         # Huber threshold on the reprojection error (tracking px)
     lost_min_valid: float = 0.12         # lost if fewer BA cells than this have a usable flow
+    # ... or, on a view with little texture, fewer than this x the cells its texture could
+    # make confident at most (never below lost_min_valid / 4; 0 = off)
+    lost_rel_texture: float = 0.25
     lost_rms: float = 1.0                # lost if the frame's pose fit leaves this rms (BA px)
     reloc_keyframes: int = 4             # recent keyframes tried when the last one fails
     # the first frame after a keyframe (no earlier flow to it): DIS starts from the flow the

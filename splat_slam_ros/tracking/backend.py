@@ -66,7 +66,7 @@ class TrackerBackend:
             init_ab = self._induced(self.kfs[k].pose, self.kfs[k].disp, self.kfs[kid].pose)
             init_ba = self._induced(self.kfs[kid].pose, self.kfs[kid].disp, self.kfs[k].pose)
             f, w, fb, wb = self._flows(self.kfs[k].prep, self.kfs[kid].prep, init_ab, init_ba)
-            if self.motion.check(f, w).ok:
+            if self.motion.check(f, w, self._ref_tex(k)).ok:
                 self.graph.add(k, kid, f, w, kind="radius")
                 self.graph.add(kid, k, fb, wb, kind="radius")
 
@@ -87,8 +87,9 @@ class TrackerBackend:
             uv, _valid = reproject(poses, disps, self.intr, ia, ib)
             init = uv - self.grid
             f, w, fb, wb = self._flows(self.kfs[a].prep, self.kfs[b].prep, init[0], init[1])
-            fc = self.motion.check(f, w)
-            if fc.valid_frac < 0.5 * max(self.motion.typical_valid_frac, tc.lost_min_valid):
+            fc = self.motion.check(f, w, self._ref_tex(a))
+            if fc.valid_frac < 0.5 * max(self.motion.typical_valid_frac,
+                                         self.motion.min_valid(self._ref_tex(a))):
                 continue
             self.graph.add(a, b, f, w, kind="proximity")
             self.graph.add(b, a, fb, wb, kind="proximity")

@@ -70,6 +70,7 @@ class PreparedImage:
     gray: np.ndarray            # Hf x Wf uint8
     tex: np.ndarray             # h x w x 2 float32 texture confidence per axis (BA grid)
     mean: float
+    ptex: np.ndarray            # Hf x Wf x 2 uint8 the same per flow pixel (5x5 window), x 255
 
 
 class ImagePreprocessor:
@@ -192,11 +193,15 @@ _PRESETS = {"dis_ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
 class DISFlowPredictor:
     """OpenCV DIS flow at ``1/flow_downsample`` of the tracking image, pooled to the BA grid.
 
-    Confidence per pixel = 1 / (1 + (fb_err / fb_px)^2 + (photo / photo_sigma)^2),
-    zero where the flow leaves the image; per BA cell the flow is the
+    Confidence per pixel and axis = 1 / (1 + (fb_err / fb_px)^2 + (photo / photo_sigma)^2),
+    zero where the flow leaves the image; per BA cell and axis the flow is the
     confidence-weighted mean and the weight is the mean confidence, times a
     texture factor per axis and a penalty on the flow spread inside the cell
-    (a cell across a depth edge cannot be explained by one disparity).
+    (a cell across a depth edge cannot be explained by one disparity). With ``aperture``
+    the forward-backward error and the spread along the other axis count only as far as
+    the image has texture along it: on an edge the flow along the edge is not measured
+    (the aperture problem), and its disagreement must not take the weight of the flow
+    across the edge (low-texture scenes are mostly edges).
     Thresholds are in tracking-image pixels / grey levels.
 
     With ``workers`` = 2 the two halves of a pair (forward and backward DIS, then their
@@ -208,7 +213,7 @@ class DISFlowPredictor:
                  flow_downsample: int = 2, fb_px: float = 1.0, photo_sigma: float = 30.0,
                  texture_grad: float = 1.0, spread_px: float = 1.5, min_weight: float = 0.0,
                  workers: int = 1, finest_scale: int = -1, patch_stride: int = -1,
-                 refine_iters: int = -1):
+                 refine_iters: int = -1, aperture: bool = True):
         if method not in _PRESETS:
             raise FrontendError(f"unknown tracking.flow_method '{method}' "
                                 f"(use one of {', '.join(_PRESETS)})")
@@ -239,6 +244,7 @@ class DISFlowPredictor:
         self.texture_grad = texture_grad
         self.spread_px = spread_px
         self.min_weight = min_weight
+        self.aperture = bool(aperture)
 
     # -------------------------------------------------------------- prepare
     def prepare(self, image: np.ndarray) -> PreparedImage:
@@ -256,7 +262,10 @@ class DISFlowPredictor:
         syy = cv2.resize(gy * gy, size, interpolation=cv2.INTER_AREA)
         t2 = self.texture_grad ** 2
         tex = np.stack([sxx / (sxx + t2), syy / (syy + t2)], -1).astype(np.float32)
-        return PreparedImage(gray=g, tex=tex, mean=float(gf.mean()))
+        px = cv2.boxFilter(gx * gx, -1, (5, 5))
+        py = cv2.boxFilter(gy * gy, -1, (5, 5))
+        ptex = np.rint(np.stack([px / (px + t2), py / (py + t2)], -1) * 255).astype(np.uint8)
+        return PreparedImage(gray=g, tex=tex, mean=float(gf.mean()), ptex=ptex)
 
     def _as_prepared(self, img) -> PreparedImage:
         return img if isinstance(img, PreparedImage) else self.prepare(img)
@@ -299,54 +308,61 @@ class DISFlowPredictor:
 
     def _confidence(self, A: PreparedImage, B: PreparedImage, f_ab: np.ndarray,
                     f_ba: Optional[np.ndarray]) -> np.ndarray:
-        """Per flow-pixel confidence in [0, 1] of the flow a -> b (without ``f_ba``: no
-        forward-backward term, photometric residual only)."""
+        """Per flow-pixel and axis confidence in [0, 1] (H x W x 2) of the flow a -> b
+        (without ``f_ba``: no forward-backward term, photometric residual only)."""
         H, W = f_ab.shape[:2]
         gx, gy = self._grid(H, W)
         mx = gx + f_ab[..., 0]
         my = gy + f_ab[..., 1]
         if f_ba is None:
             inside = (mx >= 0) & (mx <= W - 1) & (my >= 0) & (my <= H - 1)
-            bx = np.where(inside, 0.0, 1e4).astype(np.float32)
-            penalty = np.zeros((H, W), np.float32)
+            out = ~inside
+            penalty = np.zeros((H, W, 2), np.float32)
         else:
             back = cv2.remap(f_ba, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                              borderValue=(1e4, 1e4))
             back += f_ab
-            bx, by = back[..., 0], back[..., 1]
-            penalty = (bx * bx + by * by) * ((self.fds / self.fb_px) ** 2)   # (err / fb_px)^2
+            out = np.abs(back[..., 0]) > 1e3
+            b2 = back * back
+            if self.aperture:
+                # per axis: the error along the other axis counts as far as the image has
+                # texture along it (an edge's flow along the edge is not measured)
+                b2 = b2 + b2[..., ::-1] * A.ptex[..., ::-1] * np.float32(1 / 255)
+            else:
+                b2 = np.repeat(b2.sum(-1, keepdims=True), 2, -1)
+            penalty = b2 * ((self.fds / self.fb_px) ** 2)               # (err / fb_px)^2
         if self.photo_sigma > 0:
             warped = cv2.remap(B.gray, mx, my, cv2.INTER_LINEAR,
                                borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
             gain = float(np.clip(A.mean / max(B.mean, 1.0), 0.5, 2.0))
             res = A.gray.astype(np.float32) - gain * warped
             res *= 1.0 / self.photo_sigma
-            penalty += res * res
+            penalty += (res * res)[..., None]
         penalty += 1.0
         conf = 1.0 / penalty
         # flows leaving the image: the backward remap returned the 1e4 border value
-        conf[np.abs(bx) > 1e3] = 0.0
+        conf[out] = 0.0
         return conf
 
     def _pool_cells(self, A: PreparedImage, f: np.ndarray, c: np.ndarray):
-        """Confidence-weighted mean flow per BA cell and the cell weight."""
+        """Per axis, the confidence-weighted mean flow per BA cell and the cell weight."""
         k = self.k
-        H, W = c.shape
+        H, W = c.shape[:2]
         size = (W // k, H // k)
         area = cv2.INTER_AREA
         cm = cv2.resize(c, size, interpolation=area)                  # mean confidence
-        fc = f * c[..., None]
+        fc = f * c
         cf = cv2.resize(fc, size, interpolation=area)
-        csafe = np.maximum(cm, 1e-6)[..., None]
+        csafe = np.maximum(cm, 1e-6)
         fs = cf / csafe
         weight_cell = cm
         if self.spread_px > 0:
-            f2 = cv2.resize(f[..., 0] * fc[..., 0] + f[..., 1] * fc[..., 1], size,
-                            interpolation=area)
-            var = np.maximum(f2 / csafe[..., 0] - fs[..., 0] ** 2 - fs[..., 1] ** 2,
-                             0.0) * self.fds ** 2
+            f2 = cv2.resize(f * fc, size, interpolation=area)
+            var = np.maximum(f2 / csafe - fs * fs, 0.0) * self.fds ** 2
+            # the spread along the other axis, as the forward-backward error above
+            var = var + var[..., ::-1] * (A.tex[..., ::-1] if self.aperture else 1.0)
             weight_cell = cm / (1.0 + var / self.spread_px ** 2)
-        weight = weight_cell[..., None] * A.tex
+        weight = weight_cell * A.tex
         if self.min_weight > 0:
             weight = np.where(weight < self.min_weight, 0.0, weight)
         flow_ba = fs * (self.fds / self.ba_downsample)
@@ -427,7 +443,8 @@ def make_flow_predictor(tcfg):
                             spread_px=getattr(tcfg, "flow_spread_px", 1.5),
                             workers=tcfg.flow_workers, finest_scale=tcfg.flow_finest_scale,
                             patch_stride=tcfg.flow_patch_stride,
-                            refine_iters=tcfg.flow_refine_iters)
+                            refine_iters=tcfg.flow_refine_iters,
+                            aperture=tcfg.flow_aperture)
 
 
 def compose_flows(f_ab: torch.Tensor, f_bc: torch.Tensor) -> torch.Tensor:

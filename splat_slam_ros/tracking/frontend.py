@@ -53,7 +53,13 @@ class TrackerFrontend:
                             min_valid_frac=tc.lost_min_valid, max_rate=tc.max_keyframe_rate,
                             min_interval=tc.min_keyframe_interval,
                             urgent_flow=tc.keyframe_urgent_flow,
-                            urgent_valid=tc.keyframe_urgent_valid)
+                            urgent_valid=tc.keyframe_urgent_valid,
+                            rel_texture=tc.lost_rel_texture)
+
+    def _ref_tex(self, ref):
+        """Keyframe ``ref``'s texture factor per BA cell for the loss test (None when the
+        flow predictor keeps none: the learned one)."""
+        return getattr(self.kfs[ref].prep, "tex", None)
 
     def _flows(self, a, b, init_ab=None, init_ba=None):
         """Flows a -> b and b -> a with weights; ``init_*`` (BA-grid flows expected
@@ -93,7 +99,7 @@ class TrackerFrontend:
         if predicted:
             init = self._predicted_flow(ref, index)
         f, w, fb, wb = self._flows(self.kfs[ref].prep, prep, init)
-        return (f, w, fb, wb), self.motion.check(f, w), predicted
+        return (f, w, fb, wb), self.motion.check(f, w, self._ref_tex(ref)), predicted
 
     def _gate_by_prediction(self, ref, f, w, index):
         """Cells whose flow lies more than ``tracking.flow_pred_gate`` (reference BA px) from
@@ -149,7 +155,7 @@ class TrackerFrontend:
             T_p = self._predict_at(frame.index)
             init = self._induced(self.kfs[ref].pose, self.kfs[ref].disp, T_p)
             fl = self._flows(self.kfs[ref].prep, prep, init)
-            fc_p = self.motion.check(fl[0], fl[1])
+            fc_p = self.motion.check(fl[0], fl[1], self._ref_tex(ref))
             if fc_p.ok:
                 flows, fc, pred, predicted = fl, fc_p, T_p, 1.0
         # a gap of skipped frames and a flow that failed or is weak: a skipped frame between

@@ -48,7 +48,7 @@ class TrackerInitialisation:
         init = self._last_flow[1] if self._last_flow is not None and \
             self._last_flow[0] == ref else None
         f, w, fb, wb = self._flows(self.kfs[ref].prep, prep, init)
-        fc = self.motion.check(f, w)
+        fc = self.motion.check(f, w, self._ref_tex(ref))
         if not fc.ok:
             self._last_flow = None
             if self.lost_count > 10:       # the first frames were bad: restart the warm-up

@@ -17,7 +17,9 @@ thresholds are given in *reference* BA-grid pixels - those of the reference's se
 scaled by the actual BA focal length (:func:`flow_scale`), so the same value
 selects the same viewing-angle change at 320x240, 640x480 or 1200x680.
 :func:`parallax` measures whether the first keyframes see enough translation to
-initialise. Frames whose flow confidence collapses are reported as lost.
+initialise. Frames whose flow confidence collapses are reported as lost: fewer confident
+cells than ``tracking.lost_min_valid``, or, on a view with little texture, than
+``tracking.lost_rel_texture`` x the cells its texture could make confident at most.
 """
 from __future__ import annotations
 
@@ -79,7 +81,8 @@ class MotionFilter:
 
     def __init__(self, thresh: float, min_valid_frac: float = 0.12, rel_valid_frac: float = 0.35,
                  cell_weight: float = 0.2, max_rate: float = 0.0, min_interval: float = 0.0,
-                 urgent_flow: float = 2.0, urgent_valid: float = 0.7):
+                 urgent_flow: float = 2.0, urgent_valid: float = 0.7,
+                 rel_texture: float = 0.0):
         self.thresh = float(thresh)
         self.max_rate = float(max_rate)             # keyframes in any second (0 = no bound)
         self.min_interval = float(min_interval)     # stream seconds
@@ -87,6 +90,7 @@ class MotionFilter:
         self.urgent_valid = float(urgent_valid)
         self.min_valid_frac = min_valid_frac
         self.rel_valid_frac = rel_valid_frac
+        self.rel_texture = float(rel_texture)
         self.cell_weight = cell_weight
         self._typical = None            # running median-ish of valid_frac on good frames
 
@@ -94,10 +98,23 @@ class MotionFilter:
         """Fraction of BA cells whose mean flow weight exceeds ``cell_weight``."""
         return float((weight.mean(-1) > self.cell_weight).float().mean())
 
-    def check(self, flow: torch.Tensor, weight: torch.Tensor) -> FlowCheck:
+    def min_valid(self, tex: Optional[np.ndarray] = None) -> float:
+        """The confident-cell fraction below which a flow is lost. ``tex`` (h x w x 2, the
+        reference image's texture factor per BA cell and axis, which bounds a cell's weight):
+        on a view with little texture ``rel_texture`` x the fraction of cells it could make
+        confident, when that is lower, but at least a quarter of ``min_valid_frac``."""
+        need = self.min_valid_frac
+        if tex is not None and self.rel_texture > 0:
+            textured = float((np.asarray(tex).mean(-1) > self.cell_weight).mean())
+            need = max(0.25 * need, min(need, self.rel_texture * textured))
+        return need
+
+    def check(self, flow: torch.Tensor, weight: torch.Tensor,
+              tex: Optional[np.ndarray] = None) -> FlowCheck:
+        """``tex``: the reference's texture factor (:meth:`min_valid`), None if unknown."""
         valid = self.confident_fraction(weight)
         mf = mean_flow(flow, weight, self.cell_weight)
-        need = self.min_valid_frac
+        need = self.min_valid(tex)
         if self._typical is not None:
             need = max(need, self.rel_valid_frac * self._typical)
         ok = valid >= need

@@ -140,7 +140,7 @@ def match_keyframe(trk: Tracker, ref: int, prep, inits, init_flow=None):
     tracker's pose-only fit from the best of ``inits``; None when the flow or the fit fails
     the tracker's loss thresholds (``tracking.lost_min_valid``, ``tracking.lost_rms``)."""
     f, w, _, _ = trk._flows(trk.kfs[ref].prep, prep, init_flow)
-    if trk.motion.confident_fraction(w) < trk.tc.lost_min_valid:
+    if trk.motion.confident_fraction(w) < trk.motion.min_valid(trk._ref_tex(ref)):
         return None
     T, info = trk._fit_pose(ref, f, w, inits)
     if info is None or not np.isfinite(info.rms) or info.rms > trk.tc.lost_rms:

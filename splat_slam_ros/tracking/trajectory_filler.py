@@ -271,7 +271,8 @@ class TrajectoryRecorder:
                 f, w = (x.to(self.device) for x in flows[id(rec)])
             else:
                 f, w, _, _ = self._flows(ks.prep, prep, init)
-            if self.motion.check(f, w).valid_frac < self.tc.lost_min_valid:
+            if self.motion.check(f, w, self._ref_tex(kid)).valid_frac < \
+                    self.motion.min_valid(self._ref_tex(kid)):
                 continue
             rec.ref2_kf = kid
             rec.flow2, rec.weight2 = self._store_flow(f, w)
@@ -304,7 +305,7 @@ class TrajectoryRecorder:
                                                  device=self.device)
         init = self._induced(self.kfs[ref].pose, self.kfs[ref].disp, T)
         f, w, fb, wb = self._flows(self.kfs[ref].prep, prep, init)
-        fc = self.motion.check(f, w)
+        fc = self.motion.check(f, w, self._ref_tex(ref))
         if not fc.ok or fc.mean_flow < 0.5 * self.motion.thresh:
             return None
         self._pending = [(r, p) for r, p in self._pending if r.index != frame.index]
