@@ -88,6 +88,9 @@ SUITE = {
     # a 15-Hz camera on fast drone motion: two frames apart the view has moved too far for
     # the flow (the keyframe interval is 0.125 s)
     "t_v102_fast40_15hz": seq("tuning", V102, 40, 75, 15, "room", "realistic", "photo", 17),
+    # low texture through a harsh camera (noise, JPEG): the loss threshold's floor
+    "t_fr2desk_lowtex_harsh": seq("tuning", FR2, 50, 150, 30, "low_texture", "harsh", "proc",
+                                  18),
     # check set: other seeds, starts, scenes, rates; no parameter is chosen on these
     "c_fr2desk_tiled_harsh": seq("check", FR2, 60, 150, 30, "tiled", "harsh", "proc", 101),
     "c_v102_room_photo": seq("check", V102, 8, 200, 20, "room", "realistic", "photo", 102,
