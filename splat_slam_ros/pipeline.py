@@ -81,9 +81,14 @@ def not_initialized_reason(cfg: SlamConfig, frames: int, lost: int = 0) -> str:
     little; with the setting to try."""
     tc = cfg.tracking
     if lost and 2 * lost >= frames:
+        rule = (f"fewer than tracking.lost_min_valid={tc.lost_min_valid:g} of the BA cells "
+                f"had a usable flow")
+        if tc.lost_rel_texture > 0:
+            rule += (f", or on a view with little texture fewer than tracking.lost_rel_texture="
+                     f"{tc.lost_rel_texture:g} of the cells its texture allows (and not fewer "
+                     f"than {tc.lost_min_valid / 4:g} of all)")
         return (f"the tracker never initialised over {frames} frames: the flow was not "
-                f"confident on {lost} of them (fewer than tracking.lost_min_valid="
-                f"{tc.lost_min_valid:g} of the BA cells had a usable flow: little texture, "
+                f"confident on {lost} of them ({rule}: little texture, "
                 f"heavy blur or noise, or a motion too fast for the frame rate). For a scene "
                 f"with little texture try --set tracking.lost_min_valid="
                 f"{tc.lost_min_valid / 3:.2g}; otherwise give sharper input or a higher frame "

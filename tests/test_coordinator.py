@@ -447,6 +447,9 @@ def test_no_result_reason_covers_both_failures_and_only_them():
     msg = no_result_reason(cfg, {"frames": 150, "frames_lost": 133})
     assert "not confident on 133 of them" in msg and "motion_filter_thresh" not in msg
     assert "--set tracking.lost_min_valid=0.04;" in msg
+    assert "tracking.lost_rel_texture=0.25 of the cells its texture allows" in msg
+    cfg.tracking.lost_rel_texture = 0.0                 # off: only the absolute threshold
+    assert "lost_rel_texture" not in no_result_reason(cfg, {"frames": 150, "frames_lost": 133})
     assert "moved too little" in no_result_reason(cfg, {"frames": 150, "frames_lost": 20})
 
 
