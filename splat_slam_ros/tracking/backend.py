@@ -87,9 +87,10 @@ class TrackerBackend:
             uv, _valid = reproject(poses, disps, self.intr, ia, ib)
             init = uv - self.grid
             f, w, fb, wb = self._flows(self.kfs[a].prep, self.kfs[b].prep, init[0], init[1])
-            fc = self.motion.check(f, w, self._ref_tex(a))
+            tex = self._ref_tex(a)
+            fc = self.motion.check(f, w, tex)
             if fc.valid_frac < 0.5 * max(self.motion.typical_valid_frac,
-                                         self.motion.min_valid(self._ref_tex(a))):
+                                         self.motion.min_valid(tex)):
                 continue
             self.graph.add(a, b, f, w, kind="proximity")
             self.graph.add(b, a, fb, wb, kind="proximity")

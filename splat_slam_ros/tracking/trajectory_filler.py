@@ -266,13 +266,14 @@ class TrajectoryRecorder:
             if hasattr(self.flow, "predict_forward_many") else []      # one DIS call each
         flows = dict(zip((id(t[0]) for t in fwd), self.flow.predict_forward_many(
             ks.prep, [t[1] for t in fwd], [t[2] for t in fwd]))) if fwd else {}
+        tex = self._ref_tex(kid)
+        need = self.motion.min_valid(tex)               # one keyframe: one threshold
         for rec, prep, init in todo:
             if id(rec) in flows:
                 f, w = (x.to(self.device) for x in flows[id(rec)])
             else:
                 f, w, _, _ = self._flows(ks.prep, prep, init)
-            if self.motion.check(f, w, self._ref_tex(kid)).valid_frac < \
-                    self.motion.min_valid(self._ref_tex(kid)):
+            if self.motion.check(f, w, tex).valid_frac < need:
                 continue
             rec.ref2_kf = kid
             rec.flow2, rec.weight2 = self._store_flow(f, w)
