@@ -34,6 +34,13 @@ class CameraConfig:
     max_pixels: int = 76800      # auto rule's limit: 320x240 for 2 cores (0 = keep input size)
     crop: int = 0                # pixels cropped from every border before resize
     undistort: bool = True       # undistort when the camera has distortion coefficients
+    # Rolling shutter: readout time from the top to the bottom row in ms (0 = global shutter).
+    # The tracker rectifies each image for the rotation during the readout, at the tracked
+    # angular velocity (tracking/rolling_shutter.py; docs/tracking.md "Rolling shutter")
+    rolling_shutter_ms: float = 0.0
+    # ... the row whose readout time an image's stamp gives: 0 = top, 0.5 = middle, 1 = bottom
+    # (splat-slam-synth: 1)
+    rolling_shutter_stamp_row: float = 0.5
 
     def processing_size(self, width: int, height: int) -> tuple:
         """(width, height) to resize a cropped ``width`` x ``height`` input to; (0, 0) keeps
@@ -491,6 +498,7 @@ def _assign(obj, name: str, value: Any, dotted: str) -> None:
 CORE_KEYS = (
     "dataset",
     "camera.width", "camera.height", "camera.max_pixels", "camera.crop", "camera.undistort",
+    "camera.rolling_shutter_ms", "camera.rolling_shutter_stamp_row",
     "tracking.device", "tracking.threads", "tracking.flow_model", "tracking.motion_filter_thresh",
     "tracking.keyframe_thresh", "tracking.max_keyframe_rate", "tracking.loop_closure",
     "tracking.global_ba", "tracking.dspo",

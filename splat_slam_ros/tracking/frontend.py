@@ -26,6 +26,7 @@ from splat_slam_ros.tracking.dense_ba import induced_flow_distance, pose_only_re
 from splat_slam_ros.tracking.flow_frontend import predict_both
 from splat_slam_ros.tracking.keyframe_set import BUDGET_CAUSES
 from splat_slam_ros.tracking.motion_filter import MotionFilter, predict_pose
+from splat_slam_ros.tracking.rolling_shutter import angular_velocity, rectify
 from splat_slam_ros.types import TrackStep
 
 log = logging.getLogger(__name__)
@@ -43,6 +44,8 @@ def observed_weight(weight: torch.Tensor, conf, full_at: float) -> torch.Tensor:
         return weight
     return weight * (conf / full_at).clamp(0.0, 1.0)[..., None].to(weight)
 
+
+RS_KEEP = 256        # frames whose stamp and rectification rotation are kept
 
 class TrackerFrontend:
     """Frame-to-keyframe flow, pose fit and keyframe decision of the tracker."""
@@ -263,7 +266,7 @@ class TrackerFrontend:
         n_before = self.n_bridged
         pos, skipped = self._take_skipped(f.index)
         n0 = len(self.records)
-        img = self.pre(f.image)
+        img = self._rectified(f, self.pre(f.image))
         step = None
         if not image_is_degenerate(img):
             step = self._track(f, img, self.flow.prepare(img), gap[:mid], bridged=True)
@@ -292,6 +295,39 @@ class TrackerFrontend:
         step.info["promoted"] = 1.0
         self._bridged_steps.append(step)
         return True
+
+    def _angular_velocity(self):
+        """Camera-frame angular velocity (rad/s) of the motion model: its last tracked step,
+        or, right after the initialisation or a relocalisation, the last two keyframes'
+        motion; None when unknown (warm-up, lost)."""
+        i0, i1 = self._spacing
+        if i0 is not None and i1 is not None and i0 in self._stamps and i1 in self._stamps:
+            return angular_velocity(self.velocity[:3, :3].cpu().numpy(),
+                                    self._stamps[i1] - self._stamps[i0])
+        if self.initialized and self.lost_count == 0 and len(self.window) > 1:
+            a, b = self.kfs[self.window[-2]], self.kfs[self.window[-1]]
+            return angular_velocity((se3_inverse(a.pose) @ b.pose)[:3, :3].cpu().numpy(),
+                                    b.timestamp - a.timestamp)
+        return None
+
+    def _rectified(self, frame, img, intrinsics=None):
+        """``img``, an image of ``frame`` (the tracking image; ``intrinsics``: another one's,
+        the mapping image), rectified for the rolling shutter (camera.rolling_shutter_ms) at
+        the motion model's angular velocity when the frame first came: every image of a
+        frame the same way."""
+        if self.rs_readout <= 0:
+            return img
+        i = int(frame.index)
+        self._stamps[i] = float(frame.timestamp)
+        if i not in self._rs_omega:
+            self._rs_omega[i] = self._angular_velocity()
+            if len(self._stamps) > 2 * RS_KEEP:          # only recent frames are needed
+                for d in (self._stamps, self._rs_omega):
+                    for k in [k for k in d if k < i - RS_KEEP]:
+                        del d[k]
+        K = self.intrinsics if intrinsics is None else intrinsics
+        return rectify(img, (K.fx, K.fy, K.cx, K.cy), self._rs_omega[i], self.rs_readout,
+                       self.rs_stamp_row)
 
     def _set_pose(self, T, index: int):
         self._spacing = (self._spacing[1], int(index))

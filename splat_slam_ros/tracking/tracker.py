@@ -39,6 +39,7 @@ from splat_slam_ros.tracking.frontend import TrackerFrontend
 from splat_slam_ros.tracking.initialisation import TrackerInitialisation
 from splat_slam_ros.tracking.keyframe_set import KEYFRAME_CAUSES, KeyframeSet, KeyframeState
 from splat_slam_ros.tracking.motion_filter import flow_scale
+from splat_slam_ros.tracking.rolling_shutter import RollingShutterError, check_settings
 from splat_slam_ros.tracking.trajectory_filler import FrameRecord, TrajectoryRecorder
 from splat_slam_ros.types import (TRACKER_SEQ_START, Frame, Intrinsics, KeyframeData, TrackStep,
                                   UpdateEvent)
@@ -63,6 +64,14 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
         W0, H0 = intrinsics.width - 2 * cam.crop, intrinsics.height - 2 * cam.crop
         w, h = tc.processing_size(cam, W0, H0)               # tracking size (0x0: input)
         self.pre = ImagePreprocessor(intrinsics, tc.ba_downsample, w, h, cam.crop, cam.undistort)
+        try:
+            check_settings(cam.rolling_shutter_ms, cam.rolling_shutter_stamp_row)
+        except RollingShutterError as e:
+            raise TrackingError(str(e)) from None
+        self.rs_readout = float(cam.rolling_shutter_ms) * 1e-3      # s (0: global shutter)
+        self.rs_stamp_row = float(cam.rolling_shutter_stamp_row)
+        self._stamps: Dict[int, float] = {}    # tracked frames' stamps (the velocity's dt)
+        self._rs_omega: Dict[int, np.ndarray] = {}   # the rotation a frame was rectified for
         self.intrinsics = self.pre.intrinsics
         # keyframes are handed on at the mapping size (camera.*), which may be smaller
         self.map_pre = mapping_preprocessor(cfg, intrinsics)
@@ -144,7 +153,7 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
     def _track_frame(self, frame: Frame) -> TrackStep:
         t0 = time.perf_counter()
         try:
-            img = self.pre(frame.image)
+            img = self._rectified(frame, self.pre(frame.image))
         except ValueError as e:
             raise TrackingError(str(e)) from None
         gap = [g for g in self._gap if g.index < frame.index]   # (unskip: not itself)
@@ -208,7 +217,7 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
     def _add_keyframe(self, frame, img, prep, pose, disp) -> int:
         kid = self._new_kf_id()
         if self.map_pre is not None:         # the image handed on: at the mapping size
-            img = self.map_pre(frame.image)
+            img = self._rectified(frame, self.map_pre(frame.image), self.map_intrinsics)
         self.kfs.add(kid, KeyframeState(
             orthonormalize(pose.to(self.device, torch.float64)), disp.to(self.device, torch.float32),
             frame.index, float(frame.timestamp), prep=prep, image=img,

@@ -1,0 +1,81 @@
+"""Rolling-shutter rectification of the tracking images (rotation only).
+
+A rolling-shutter camera reads its rows one after another: row ``v`` of an H-row image is
+read ``readout * (v / (H - 1) - stamp_row)`` seconds after the image stamp (``stamp_row``:
+the row whose readout time the stamp gives; 0 = top, 1 = bottom). The method (paper §3.1)
+models a global shutter, so on fast motion every image is skewed against its pose. Rotating
+at ``omega`` (rad/s, camera frame), row ``v``'s camera is the stamp's camera turned by
+``exp(tau_v omega)``; a pixel ``y`` of the image the stamp's camera would have taken shows
+up at ``x = K exp(-tau_v omega) K^-1 y`` in the rolling-shutter image (the row of ``y``
+stands for the row of ``x``: a few pixels apart, a few tenths of a millisecond). The
+rectified image samples the input there. Translation during the readout is not undone (it
+needs the depth), and the tracker knows the angular velocity of the frames before, not of
+this one (docs/tracking.md "Rolling shutter").
+"""
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import cv2
+import numpy as np
+
+
+class RollingShutterError(ValueError):
+    """Invalid rolling-shutter settings (camera.rolling_shutter_*)."""
+
+
+def check_settings(readout_ms: float, stamp_row: float) -> None:
+    if not np.isfinite(readout_ms) or readout_ms < 0:
+        raise RollingShutterError(f"camera.rolling_shutter_ms must be >= 0, got {readout_ms}")
+    if not np.isfinite(stamp_row) or not 0.0 <= stamp_row <= 1.0:
+        raise RollingShutterError("camera.rolling_shutter_stamp_row must be in [0, 1] "
+                                  f"(0 = top row, 1 = bottom row), got {stamp_row}")
+
+
+def row_times(height: int, readout_s: float, stamp_row: float) -> np.ndarray:
+    """Readout time of each row relative to the stamp (s; negative before it)."""
+    v = np.arange(int(height), dtype=np.float64)
+    return readout_s * (v / max(int(height) - 1, 1) - stamp_row)
+
+
+def _rotations(rotvecs: np.ndarray) -> np.ndarray:
+    """Rotation matrices (n, 3, 3) of rotation vectors (n, 3) (Rodrigues)."""
+    th = np.linalg.norm(rotvecs, axis=1)
+    k = rotvecs / np.maximum(th, 1e-12)[:, None]
+    Kx = np.zeros((len(rotvecs), 3, 3))
+    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    Kx = Kx - Kx.transpose(0, 2, 1)
+    s, c = np.sin(th)[:, None, None], (1.0 - np.cos(th))[:, None, None]
+    return np.eye(3)[None] + s * Kx + c * (Kx @ Kx)
+
+
+def rectify(image: np.ndarray, intrinsics: Sequence[float], omega: Optional[np.ndarray],
+            readout_s: float, stamp_row: float) -> np.ndarray:
+    """``image`` (H x W [x C], pinhole ``intrinsics`` fx, fy, cx, cy) as the camera at the
+    stamp would have seen it, turning at ``omega`` (rad/s, camera frame) during the readout.
+    Returned unchanged without a readout time or a rotation."""
+    if omega is None or readout_s <= 0:
+        return image
+    w = np.asarray(omega, dtype=np.float64).reshape(3)
+    if not np.isfinite(w).all() or not np.any(w):
+        return image
+    H, W = image.shape[:2]
+    fx, fy, cx, cy = (float(x) for x in intrinsics[:4])
+    R = _rotations(-row_times(H, readout_s, stamp_row)[:, None] * w[None])   # (H, 3, 3)
+    u = (np.arange(W, dtype=np.float64) - cx) / fx
+    v = (np.arange(H, dtype=np.float64) - cy) / fy
+    # ray (u, v_row, 1) of every pixel of a row, turned by that row's rotation
+    X = R[:, None, :, 0] * u[None, :, None] + (R[:, :, 1] * v[:, None] + R[:, :, 2])[:, None]
+    z = np.maximum(X[..., 2], 1e-6)
+    mx = (fx * X[..., 0] / z + cx).astype(np.float32)
+    my = (fy * X[..., 1] / z + cy).astype(np.float32)
+    return cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def angular_velocity(R_step: np.ndarray, dt: float) -> Optional[np.ndarray]:
+    """Camera-frame angular velocity (rad/s) of a relative rotation ``R_step`` (camera-to-
+    world before^-1 @ after) over ``dt`` seconds; None without a positive ``dt``."""
+    if not dt > 0:
+        return None
+    rv, _ = cv2.Rodrigues(np.asarray(R_step, dtype=np.float64))
+    return rv.reshape(3) / dt
