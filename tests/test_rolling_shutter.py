@@ -4,32 +4,13 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import cv2
 import numpy as np
 import pytest
 
 import splat_slam_synth as synth
-from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.tracking.rolling_shutter import angular_velocity, rectify, row_times
 from splat_slam_ros.tracking.tracker import Tracker, TrackingError
-from splat_slam_ros.types import Frame
-
-
-def _pan(duration=3.0, rate=200.0, omega=1.5):
-    """A pure yaw pan at a fixed position, looking horizontally (world z up)."""
-    t = np.arange(0, duration, 1 / rate)
-    P = np.tile(np.eye(4), (len(t), 1, 1))
-    for i, a in enumerate(omega * t):
-        z = np.array([np.cos(a), np.sin(a), 0.0])
-        x = np.array([np.sin(a), -np.cos(a), 0.0])
-        P[i, :3, :3] = np.stack([x, np.cross(z, x), z], 1)
-        P[i, :3, 3] = [0.0, 0.0, 1.4]
-    return t, P
-
-
-def _shift(a, b) -> float:
-    (dx, _), _ = cv2.phaseCorrelate(a.astype(np.float64).mean(-1), b.astype(np.float64).mean(-1))
-    return dx
+from test_synth_scenes import _pan, _shift
 
 
 def test_row_times_follow_the_stamp_row():
