@@ -25,7 +25,7 @@ RASTER_BACKENDS = ("auto", "cpp", "torch", "gsplat")
 
 @dataclass
 class CameraConfig:
-    """Input images: border crop, undistortion and the processing (mapping) image size."""
+    """Input images: crop, undistortion, rolling shutter and the processing (mapping) size."""
 
     # Processing (tracking + mapping) image size after crop/resize. 0 x 0 = auto: the input
     # size, shrunk (aspect kept, sides multiples of 16) to at most max_pixels pixels.
@@ -34,13 +34,8 @@ class CameraConfig:
     max_pixels: int = 76800      # auto rule's limit: 320x240 for 2 cores (0 = keep input size)
     crop: int = 0                # pixels cropped from every border before resize
     undistort: bool = True       # undistort when the camera has distortion coefficients
-    # Rolling shutter: readout time from the top to the bottom row in ms (0 = global shutter).
-    # The tracker rectifies each image for the rotation during the readout, at the tracked
-    # angular velocity (tracking/rolling_shutter.py; docs/tracking.md "Rolling shutter")
-    rolling_shutter_ms: float = 0.0
-    # ... the row whose readout time an image's stamp gives: 0 = top, 0.5 = middle, 1 = bottom
-    # (splat-slam-synth: 1)
-    rolling_shutter_stamp_row: float = 0.5
+    rolling_shutter_ms: float = 0.0  # readout top -> bottom row, ms (0 = global shutter)
+    rolling_shutter_stamp_row: float = 0.5  # row an image stamp gives: 0 top, 1 bottom (synth)
 
     def processing_size(self, width: int, height: int) -> tuple:
         """(width, height) to resize a cropped ``width`` x ``height`` input to; (0, 0) keeps
