@@ -26,7 +26,7 @@ from splat_slam_ros.tracking.dense_ba import induced_flow_distance, pose_only_re
 from splat_slam_ros.tracking.flow_frontend import predict_both
 from splat_slam_ros.tracking.keyframe_set import BUDGET_CAUSES
 from splat_slam_ros.tracking.motion_filter import MotionFilter, predict_pose
-from splat_slam_ros.tracking.rolling_shutter import angular_velocity, rectify
+from splat_slam_ros.tracking.rolling_shutter import readout_motion, rectify
 from splat_slam_ros.types import TrackStep
 
 log = logging.getLogger(__name__)
@@ -296,18 +296,20 @@ class TrackerFrontend:
         self._bridged_steps.append(step)
         return True
 
-    def _angular_velocity(self):
-        """Camera-frame angular velocity (rad/s) of the motion model: its last tracked step,
-        or, right after the initialisation or a relocalisation, the last two keyframes'
-        motion; None when unknown (warm-up, lost)."""
+    def _readout_motion(self):
+        """The motion model's motion for the rolling-shutter rectification: its last tracked
+        step, or, right after the initialisation or a relocalisation, the last two keyframes'
+        motion; at the newest keyframe's median depth. None when unknown (warm-up, lost)."""
         i0, i1 = self._spacing
+        depth = 1.0 / max(float(self.kfs[self.window[-1]].disp.median()), 1e-6) \
+            if self.window else 0.0
         if i0 is not None and i1 is not None and i0 in self._stamps and i1 in self._stamps:
-            return angular_velocity(self.velocity[:3, :3].cpu().numpy(),
-                                    self._stamps[i1] - self._stamps[i0])
+            return readout_motion(self.velocity.cpu().numpy(),
+                                  self._stamps[i1] - self._stamps[i0], depth)
         if self.initialized and self.lost_count == 0 and len(self.window) > 1:
             a, b = self.kfs[self.window[-2]], self.kfs[self.window[-1]]
-            return angular_velocity((se3_inverse(a.pose) @ b.pose)[:3, :3].cpu().numpy(),
-                                    b.timestamp - a.timestamp)
+            return readout_motion((se3_inverse(a.pose) @ b.pose).cpu().numpy(),
+                                  b.timestamp - a.timestamp, depth)
         return None
 
     def _rectified(self, frame, img, intrinsics=None):
@@ -319,14 +321,14 @@ class TrackerFrontend:
             return img
         i = int(frame.index)
         self._stamps[i] = float(frame.timestamp)
-        if i not in self._rs_omega:
-            self._rs_omega[i] = self._angular_velocity()
+        if i not in self._rs_motion:
+            self._rs_motion[i] = self._readout_motion()
             if len(self._stamps) > 2 * RS_KEEP:          # only recent frames are needed
-                for d in (self._stamps, self._rs_omega):
+                for d in (self._stamps, self._rs_motion):
                     for k in [k for k in d if k < i - RS_KEEP]:
                         del d[k]
         K = self.intrinsics if intrinsics is None else intrinsics
-        return rectify(img, (K.fx, K.fy, K.cx, K.cy), self._rs_omega[i], self.rs_readout,
+        return rectify(img, (K.fx, K.fy, K.cx, K.cy), self._rs_motion[i], self.rs_readout,
                        self.rs_stamp_row)
 
     def _set_pose(self, T, index: int):

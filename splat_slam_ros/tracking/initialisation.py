@@ -23,7 +23,9 @@ import torch
 from splat_slam_ros.tracking.dense_ba import bundle_adjust
 from splat_slam_ros.tracking.factor_graph import FactorGraph
 from splat_slam_ros.tracking.flow_frontend import compose_flows
+from splat_slam_ros.geometry import se3_inverse
 from splat_slam_ros.tracking.motion_filter import parallax, predict_pose
+from splat_slam_ros.tracking.rolling_shutter import readout_motion, rectify
 from splat_slam_ros.tracking.two_view import two_view_start
 from splat_slam_ros.types import Frame, TrackStep
 
@@ -31,6 +33,10 @@ log = logging.getLogger(__name__)
 
 # a late initialisation (end of input) accepts this fraction of tracking.init_parallax
 LATE_INIT_PARALLAX = 0.25
+
+
+def _pinhole(K):
+    return K.fx, K.fy, K.cx, K.cy
 
 
 class TrackerInitialisation:
@@ -143,6 +149,7 @@ class TrackerInitialisation:
         self.motion = self._motion_filter()
         self._warm_best = None
         self._pending = []
+        self._rs_raw = {}
 
     def _init_ba(self, ids, poses, disps, ii, jj, tgt, wgt):
         """Initialisation BA from the identity and from the two-view start: the better one."""
@@ -160,6 +167,49 @@ class TrackerInitialisation:
                 best = alt
         return best
 
+    def _rectify_warmup(self, ids, poses, disps):
+        """Rolling shutter (camera.rolling_shutter_ms): the warm-up keyframes came before any
+        motion estimate, unrectified, and the initialisation fixes the structure and scale
+        that the later keyframes inherit. They are rectified now at the angular velocity of
+        the initialisation's poses (centred differences over the keyframes), their edges'
+        flows measured again from the previous ones, and the initialisation BA continued."""
+        for n, k in enumerate(ids):
+            a, b = ids[max(n - 1, 0)], ids[min(n + 1, len(ids) - 1)]
+            ks = self.kfs[k]
+            w = readout_motion((se3_inverse(poses[ids.index(a)]) @ poses[ids.index(b)])
+                               .cpu().numpy(), self.kfs[b].timestamp - self.kfs[a].timestamp,
+                               1.0 / max(float(disps[n].median()), 1e-6))
+            raw = self._rs_raw.pop(k, None)
+            if raw is None:
+                continue
+            img = rectify(raw, _pinhole(self.intrinsics), w, self.rs_readout, self.rs_stamp_row)
+            ks.prep = self.flow.prepare(img)
+            if ks.image is not None:
+                ks.image = img if self.map_pre is None else rectify(
+                    ks.image, _pinhole(self.map_intrinsics), w, self.rs_readout,
+                    self.rs_stamp_row)
+            self._rs_motion[ks.frame_index] = w
+        done = set()
+        for (a, b) in self.graph.gather(ids)[4]:
+            if (a, b) in done:
+                continue
+            back = (b, a) in self.graph
+            f, w_, fb, wb = self._flows(self.kfs[a].prep, self.kfs[b].prep, self.graph.flow(a, b),
+                                        self.graph.flow(b, a) if back else None)
+            kind = self.graph.kind[(a, b)]
+            self.graph.add(a, b, f, w_, kind=kind)
+            if back:
+                self.graph.add(b, a, fb, wb, kind=self.graph.kind[(b, a)])
+                if kind == "odometry" and ids.index(b) == ids.index(a) + 1:
+                    self.kfs[b].conf = wb.mean(-1)
+            done |= {(a, b), (b, a)}
+        ii, jj, tgt, wgt, _ = self.graph.gather(ids)
+        poses, disps, infos = bundle_adjust(poses, disps, self.intr, ii, jj, tgt, wgt,
+                                            iters=self.tc.init_iters, fixed=1, huber=self.huber)
+        log.info("initialisation on rolling-shutter-rectified keyframes: rms %.3f BA px",
+                 infos[-1].rms)
+        return poses, disps
+
     def _initialize(self, frame, info) -> TrackStep:
         ids = list(self.window)
         # extra edges k -> k-2 (and back) for a stiffer warm-up graph
@@ -172,6 +222,9 @@ class TrackerInitialisation:
         ii, jj, tgt, wgt, pairs = self.graph.gather(ids)
         t0 = time.perf_counter()
         poses, disps, infos = self._init_ba(ids, poses, disps, ii, jj, tgt, wgt)
+        if self._rs_raw:
+            poses, disps = self._rectify_warmup(ids, poses, disps)
+            ii, jj, tgt, wgt, pairs = self.graph.gather(ids)
         # Monocular scale is arbitrary: normalise the mean disparity to 1.
         s = float(disps.mean())
         disps = disps / s

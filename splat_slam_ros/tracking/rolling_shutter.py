@@ -14,7 +14,7 @@ this one (docs/tracking.md "Rolling shutter").
 """
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from typing import NamedTuple, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -49,23 +49,49 @@ def _rotations(rotvecs: np.ndarray) -> np.ndarray:
     return np.eye(3)[None] + s * Kx + c * (Kx @ Kx)
 
 
-def rectify(image: np.ndarray, intrinsics: Sequence[float], omega: Optional[np.ndarray],
+class ReadoutMotion(NamedTuple):
+    """The camera's motion during a readout (camera frame): angular velocity (rad/s),
+    velocity (units/s) and the scene depth (same units) that turns the velocity into an
+    image motion (0: the rotation only)."""
+    omega: np.ndarray
+    velocity: np.ndarray
+    depth: float
+
+
+def readout_motion(step: np.ndarray, dt: float, depth: float = 0.0) -> Optional[ReadoutMotion]:
+    """The motion of a relative pose ``step`` (camera-to-world before^-1 @ after, 4x4) over
+    ``dt`` seconds, at scene ``depth``; None without a positive ``dt``."""
+    step = np.asarray(step, dtype=np.float64)
+    w = angular_velocity(step[:3, :3], dt)
+    if w is None:
+        return None
+    return ReadoutMotion(w, step[:3, 3] / dt, float(depth) if np.isfinite(depth) else 0.0)
+
+
+def rectify(image: np.ndarray, intrinsics: Sequence[float], motion: Optional[ReadoutMotion],
             readout_s: float, stamp_row: float) -> np.ndarray:
     """``image`` (H x W [x C], pinhole ``intrinsics`` fx, fy, cx, cy) as the camera at the
-    stamp would have seen it, turning at ``omega`` (rad/s, camera frame) during the readout.
-    Returned unchanged without a readout time or a rotation."""
-    if omega is None or readout_s <= 0:
+    stamp would have seen it, moving by ``motion`` during the readout (its translation as if
+    the scene were a plane at ``motion.depth``). Returned unchanged without a readout time or
+    a rotation."""
+    if motion is None or readout_s <= 0:
         return image
-    w = np.asarray(omega, dtype=np.float64).reshape(3)
+    w = np.asarray(motion.omega, dtype=np.float64).reshape(3)
     if not np.isfinite(w).all() or not np.any(w):
         return image
     H, W = image.shape[:2]
     fx, fy, cx, cy = (float(x) for x in intrinsics[:4])
-    R = _rotations(-row_times(H, readout_s, stamp_row)[:, None] * w[None])   # (H, 3, 3)
+    tau = row_times(H, readout_s, stamp_row)
+    R = _rotations(-tau[:, None] * w[None])                                  # (H, 3, 3)
     u = (np.arange(W, dtype=np.float64) - cx) / fx
     v = (np.arange(H, dtype=np.float64) - cy) / fy
     # ray (u, v_row, 1) of every pixel of a row, turned by that row's rotation
     X = R[:, None, :, 0] * u[None, :, None] + (R[:, :, 1] * v[:, None] + R[:, :, 2])[:, None]
+    vel = np.asarray(motion.velocity, dtype=np.float64).reshape(3)
+    if motion.depth > 0 and np.isfinite(vel).all():
+        # the row's camera is tau_v velocity from the stamp's: the point moves by -tau_v v
+        c = -tau[:, None] * vel[None] / motion.depth
+        X = X + np.einsum("rab,rb->ra", R, c)[:, None]
     z = np.maximum(X[..., 2], 1e-6)
     mx = (fx * X[..., 0] / z + cx).astype(np.float32)
     my = (fy * X[..., 1] / z + cy).astype(np.float32)

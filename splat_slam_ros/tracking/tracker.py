@@ -71,7 +71,8 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
         self.rs_readout = float(cam.rolling_shutter_ms) * 1e-3      # s (0: global shutter)
         self.rs_stamp_row = float(cam.rolling_shutter_stamp_row)
         self._stamps: Dict[int, float] = {}    # tracked frames' stamps (the velocity's dt)
-        self._rs_omega: Dict[int, np.ndarray] = {}   # the rotation a frame was rectified for
+        self._rs_motion: Dict[int, object] = {}   # the motion a frame was rectified for
+        self._rs_raw: Dict[int, np.ndarray] = {}     # warm-up keyframes' unrectified images
         self.intrinsics = self.pre.intrinsics
         # keyframes are handed on at the mapping size (camera.*), which may be smaller
         self.map_pre = mapping_preprocessor(cfg, intrinsics)
@@ -216,6 +217,8 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
 
     def _add_keyframe(self, frame, img, prep, pose, disp) -> int:
         kid = self._new_kf_id()
+        if self.rs_readout > 0 and not self.initialized:   # rectified at the initialisation
+            self._rs_raw[kid] = img
         if self.map_pre is not None:         # the image handed on: at the mapping size
             img = self._rectified(frame, self.map_pre(frame.image), self.map_intrinsics)
         self.kfs.add(kid, KeyframeState(
