@@ -26,7 +26,7 @@ from splat_slam_ros.tracking.dense_ba import induced_flow_distance, pose_only_re
 from splat_slam_ros.tracking.flow_frontend import predict_both
 from splat_slam_ros.tracking.keyframe_set import BUDGET_CAUSES
 from splat_slam_ros.tracking.motion_filter import MotionFilter, predict_pose
-from splat_slam_ros.tracking.rolling_shutter import readout_motion, rectify
+from splat_slam_ros.tracking.rolling_shutter import pinhole, readout_motion, rectify
 from splat_slam_ros.types import TrackStep
 
 log = logging.getLogger(__name__)
@@ -45,7 +45,8 @@ def observed_weight(weight: torch.Tensor, conf, full_at: float) -> torch.Tensor:
     return weight * (conf / full_at).clamp(0.0, 1.0)[..., None].to(weight)
 
 
-RS_KEEP = 256        # frames whose stamp and rectification rotation are kept
+RS_KEEP = 256        # frames whose stamp and rectification motion are kept
+
 
 class TrackerFrontend:
     """Frame-to-keyframe flow, pose fit and keyframe decision of the tracker."""
@@ -315,8 +316,8 @@ class TrackerFrontend:
     def _rectified(self, frame, img, intrinsics=None):
         """``img``, an image of ``frame`` (the tracking image; ``intrinsics``: another one's,
         the mapping image), rectified for the rolling shutter (camera.rolling_shutter_ms) at
-        the motion model's angular velocity when the frame first came: every image of a
-        frame the same way."""
+        the motion model's motion when the frame first came: every image of a frame the same
+        way."""
         if self.rs_readout <= 0:
             return img
         i = int(frame.index)
@@ -327,9 +328,8 @@ class TrackerFrontend:
                 for d in (self._stamps, self._rs_motion):
                     for k in [k for k in d if k < i - RS_KEEP]:
                         del d[k]
-        K = self.intrinsics if intrinsics is None else intrinsics
-        return rectify(img, (K.fx, K.fy, K.cx, K.cy), self._rs_motion[i], self.rs_readout,
-                       self.rs_stamp_row)
+        return rectify(img, pinhole(self.intrinsics if intrinsics is None else intrinsics),
+                       self._rs_motion[i], self.rs_readout, self.rs_stamp_row)
 
     def _set_pose(self, T, index: int):
         self._spacing = (self._spacing[1], int(index))

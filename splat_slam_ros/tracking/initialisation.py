@@ -25,7 +25,7 @@ from splat_slam_ros.tracking.factor_graph import FactorGraph
 from splat_slam_ros.tracking.flow_frontend import compose_flows
 from splat_slam_ros.geometry import se3_inverse
 from splat_slam_ros.tracking.motion_filter import parallax, predict_pose
-from splat_slam_ros.tracking.rolling_shutter import readout_motion, rectify
+from splat_slam_ros.tracking.rolling_shutter import pinhole, readout_motion, rectify
 from splat_slam_ros.tracking.two_view import two_view_start
 from splat_slam_ros.types import Frame, TrackStep
 
@@ -33,10 +33,6 @@ log = logging.getLogger(__name__)
 
 # a late initialisation (end of input) accepts this fraction of tracking.init_parallax
 LATE_INIT_PARALLAX = 0.25
-
-
-def _pinhole(K):
-    return K.fx, K.fy, K.cx, K.cy
 
 
 class TrackerInitialisation:
@@ -182,11 +178,11 @@ class TrackerInitialisation:
             raw = self._rs_raw.pop(k, None)
             if raw is None:
                 continue
-            img = rectify(raw, _pinhole(self.intrinsics), w, self.rs_readout, self.rs_stamp_row)
+            img = rectify(raw, pinhole(self.intrinsics), w, self.rs_readout, self.rs_stamp_row)
             ks.prep = self.flow.prepare(img)
             if ks.image is not None:
                 ks.image = img if self.map_pre is None else rectify(
-                    ks.image, _pinhole(self.map_intrinsics), w, self.rs_readout,
+                    ks.image, pinhole(self.map_intrinsics), w, self.rs_readout,
                     self.rs_stamp_row)
             self._rs_motion[ks.frame_index] = w
         done = set()

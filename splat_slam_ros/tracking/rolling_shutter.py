@@ -1,16 +1,18 @@
-"""Rolling-shutter rectification of the tracking images (rotation only).
+"""Rolling-shutter rectification of the tracking images.
 
 A rolling-shutter camera reads its rows one after another: row ``v`` of an H-row image is
-read ``readout * (v / (H - 1) - stamp_row)`` seconds after the image stamp (``stamp_row``:
-the row whose readout time the stamp gives; 0 = top, 1 = bottom). The method (paper §3.1)
-models a global shutter, so on fast motion every image is skewed against its pose. Rotating
-at ``omega`` (rad/s, camera frame), row ``v``'s camera is the stamp's camera turned by
-``exp(tau_v omega)``; a pixel ``y`` of the image the stamp's camera would have taken shows
-up at ``x = K exp(-tau_v omega) K^-1 y`` in the rolling-shutter image (the row of ``y``
-stands for the row of ``x``: a few pixels apart, a few tenths of a millisecond). The
-rectified image samples the input there. Translation during the readout is not undone (it
-needs the depth), and the tracker knows the angular velocity of the frames before, not of
-this one (docs/tracking.md "Rolling shutter").
+read ``tau_v = readout * (v / (H - 1) - stamp_row)`` seconds after the image stamp
+(``stamp_row``: the row whose readout time the stamp gives; 0 = top, 1 = bottom). The method
+(paper §3.1) models a global shutter, so on fast motion every image is skewed against its
+pose. Moving at angular velocity ``omega`` and velocity ``v`` (camera frame), row ``v``'s
+camera is the stamp's turned by ``exp(tau_v omega)`` and moved by ``tau_v v``; a point ``P``
+of the stamp's camera frame is ``exp(-tau_v omega) (P - tau_v v)`` in the row's. With every
+point on a plane at the scene's depth ``Z`` (``P = Z K^-1 y``), a pixel ``y`` of the image
+the stamp's camera would have taken shows up at ``x = K exp(-tau_v omega) (K^-1 y -
+tau_v v / Z)`` in the rolling-shutter image (the row of ``y`` stands for the row of ``x``: a
+few pixels apart, a few tenths of a millisecond). The rectified image samples the input
+there. The translation is exact on that plane only, and the tracker knows the motion of the
+frames before, not of this one (docs/tracking.md "Rolling shutter").
 """
 from __future__ import annotations
 
@@ -30,6 +32,11 @@ def check_settings(readout_ms: float, stamp_row: float) -> None:
     if not np.isfinite(stamp_row) or not 0.0 <= stamp_row <= 1.0:
         raise RollingShutterError("camera.rolling_shutter_stamp_row must be in [0, 1] "
                                   f"(0 = top row, 1 = bottom row), got {stamp_row}")
+
+
+def pinhole(K) -> tuple:
+    """(fx, fy, cx, cy) of an :class:`~splat_slam_ros.types.Intrinsics`."""
+    return K.fx, K.fy, K.cx, K.cy
 
 
 def row_times(height: int, readout_s: float, stamp_row: float) -> np.ndarray:
