@@ -20,10 +20,10 @@ from typing import Dict
 import numpy as np
 import torch
 
+from splat_slam_ros.geometry import se3_inverse
 from splat_slam_ros.tracking.dense_ba import bundle_adjust
 from splat_slam_ros.tracking.factor_graph import FactorGraph
 from splat_slam_ros.tracking.flow_frontend import compose_flows
-from splat_slam_ros.geometry import se3_inverse
 from splat_slam_ros.tracking.motion_filter import parallax, predict_pose
 from splat_slam_ros.tracking.rolling_shutter import pinhole, readout_motion, rectify
 from splat_slam_ros.tracking.two_view import two_view_start
@@ -166,18 +166,19 @@ class TrackerInitialisation:
     def _rectify_warmup(self, ids, poses, disps):
         """Rolling shutter (camera.rolling_shutter_ms): the warm-up keyframes came before any
         motion estimate, unrectified, and the initialisation fixes the structure and scale
-        that the later keyframes inherit. They are rectified now at the angular velocity of
-        the initialisation's poses (centred differences over the keyframes), their edges'
-        flows measured again from the previous ones, and the initialisation BA continued."""
+        that the later keyframes inherit. They are rectified now at the motion of the
+        initialisation's poses (centred differences over the keyframes, each at its own
+        median depth), their edges' flows measured again from the previous ones, and the
+        initialisation BA continued."""
         for n, k in enumerate(ids):
-            a, b = ids[max(n - 1, 0)], ids[min(n + 1, len(ids) - 1)]
-            ks = self.kfs[k]
-            w = readout_motion((se3_inverse(poses[ids.index(a)]) @ poses[ids.index(b)])
-                               .cpu().numpy(), self.kfs[b].timestamp - self.kfs[a].timestamp,
-                               1.0 / max(float(disps[n].median()), 1e-6))
             raw = self._rs_raw.pop(k, None)
             if raw is None:
                 continue
+            a, b = max(n - 1, 0), min(n + 1, len(ids) - 1)
+            ks = self.kfs[k]
+            w = readout_motion((se3_inverse(poses[a]) @ poses[b]).cpu().numpy(),
+                               self.kfs[ids[b]].timestamp - self.kfs[ids[a]].timestamp,
+                               1.0 / max(float(disps[n].median()), 1e-6))
             img = rectify(raw, pinhole(self.intrinsics), w, self.rs_readout, self.rs_stamp_row)
             ks.prep = self.flow.prepare(img)
             if ks.image is not None:

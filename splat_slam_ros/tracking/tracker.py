@@ -39,7 +39,8 @@ from splat_slam_ros.tracking.frontend import TrackerFrontend
 from splat_slam_ros.tracking.initialisation import TrackerInitialisation
 from splat_slam_ros.tracking.keyframe_set import KEYFRAME_CAUSES, KeyframeSet, KeyframeState
 from splat_slam_ros.tracking.motion_filter import flow_scale
-from splat_slam_ros.tracking.rolling_shutter import RollingShutterError, check_settings
+from splat_slam_ros.tracking.rolling_shutter import (ReadoutMotion, RollingShutterError,
+                                                     check_settings)
 from splat_slam_ros.tracking.trajectory_filler import FrameRecord, TrajectoryRecorder
 from splat_slam_ros.types import (TRACKER_SEQ_START, Frame, Intrinsics, KeyframeData, TrackStep,
                                   UpdateEvent)
@@ -71,7 +72,7 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
         self.rs_readout = float(cam.rolling_shutter_ms) * 1e-3      # s (0: global shutter)
         self.rs_stamp_row = float(cam.rolling_shutter_stamp_row)
         self._stamps: Dict[int, float] = {}    # tracked frames' stamps (the velocity's dt)
-        self._rs_motion: Dict[int, object] = {}   # the motion a frame was rectified for
+        self._rs_motion: Dict[int, Optional[ReadoutMotion]] = {}   # a frame's rectification
         self._rs_raw: Dict[int, np.ndarray] = {}     # warm-up keyframes' unrectified images
         self.intrinsics = self.pre.intrinsics
         # keyframes are handed on at the mapping size (camera.*), which may be smaller
