@@ -20,6 +20,9 @@ from typing import NamedTuple, Optional, Sequence
 
 import cv2
 import numpy as np
+import torch
+
+from splat_slam_ros.geometry import so3_exp, so3_log
 
 
 class RollingShutterError(ValueError):
@@ -43,17 +46,6 @@ def row_times(height: int, readout_s: float, stamp_row: float) -> np.ndarray:
     """Readout time of each row relative to the stamp (s; negative before it)."""
     v = np.arange(int(height), dtype=np.float64)
     return readout_s * (v / max(int(height) - 1, 1) - stamp_row)
-
-
-def _rotations(rotvecs: np.ndarray) -> np.ndarray:
-    """Rotation matrices (n, 3, 3) of rotation vectors (n, 3) (Rodrigues)."""
-    th = np.linalg.norm(rotvecs, axis=1)
-    k = rotvecs / np.maximum(th, 1e-12)[:, None]
-    Kx = np.zeros((len(rotvecs), 3, 3))
-    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    Kx = Kx - Kx.transpose(0, 2, 1)
-    s, c = np.sin(th)[:, None, None], (1.0 - np.cos(th))[:, None, None]
-    return np.eye(3)[None] + s * Kx + c * (Kx @ Kx)
 
 
 class ReadoutMotion(NamedTuple):
@@ -89,7 +81,7 @@ def rectify(image: np.ndarray, intrinsics: Sequence[float], motion: Optional[Rea
     H, W = image.shape[:2]
     fx, fy, cx, cy = (float(x) for x in intrinsics[:4])
     tau = row_times(H, readout_s, stamp_row)
-    R = _rotations(-tau[:, None] * w[None])                                  # (H, 3, 3)
+    R = so3_exp(torch.from_numpy(-tau[:, None] * w[None])).numpy()          # (H, 3, 3)
     u = (np.arange(W, dtype=np.float64) - cx) / fx
     v = (np.arange(H, dtype=np.float64) - cy) / fy
     # ray (u, v_row, 1) of every pixel of a row, turned by that row's rotation
@@ -110,5 +102,4 @@ def angular_velocity(R_step: np.ndarray, dt: float) -> Optional[np.ndarray]:
     world before^-1 @ after) over ``dt`` seconds; None without a positive ``dt``."""
     if not dt > 0:
         return None
-    rv, _ = cv2.Rodrigues(np.asarray(R_step, dtype=np.float64))
-    return rv.reshape(3) / dt
+    return so3_log(torch.as_tensor(np.asarray(R_step, dtype=np.float64))).numpy() / dt
