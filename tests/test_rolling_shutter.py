@@ -62,18 +62,18 @@ def test_the_translation_moves_rows_as_a_plane_at_the_depth():
     """Moving sideways at 1 unit/s past a plane 2 units away during a 20 ms readout (bottom
     row at the stamp): the top row's camera was 0.02 behind, so a point shows fx 0.02 / 2 =
     0.5 px further along x in the top row than the stamp's camera sees it; the bottom row is
-    the stamp's. A faint rotation only switches the rectification on."""
+    the stamp's, with or without a faint rotation."""
     H, W, fx = 48, 64, 50.0
     img = np.tile((np.arange(W) * 4 % 256).astype(np.uint8), (H, 1))
     intr = (fx, fx, (W - 1) / 2, (H - 1) / 2)
     m = readout_motion(np.array([[1, 0, 0, 0.05], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]]),
                        0.05, depth=2.0)
     assert m.velocity == pytest.approx([1.0, 0.0, 0.0]) and m.depth == 2.0
-    m = m._replace(omega=np.array([0.0, 0.0, 1e-9]))
-    out = rectify(img.astype(np.float32), intr, m, 0.02, 1.0)
-    # pixel x of the rectified top row samples x + 0.5 of the input (4 grey levels a pixel)
-    assert out[0, 10:50] == pytest.approx(img[0, 10:50] + 2.0, abs=1e-3)
-    assert out[-1, 10:50] == pytest.approx(img[-1, 10:50], abs=1e-3)
+    for omega in (np.zeros(3), np.array([0.0, 0.0, 1e-9])):
+        out = rectify(img.astype(np.float32), intr, m._replace(omega=omega), 0.02, 1.0)
+        # pixel x of the rectified top row samples x + 0.5 of the input (4 grey levels a px)
+        assert out[0, 10:50] == pytest.approx(img[0, 10:50] + 2.0, abs=1e-3)
+        assert out[-1, 10:50] == pytest.approx(img[-1, 10:50], abs=1e-3)
 
 
 def test_the_tracker_rectifies_with_its_motion_and_checks_the_settings():

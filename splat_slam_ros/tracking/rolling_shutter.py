@@ -72,11 +72,13 @@ def rectify(image: np.ndarray, intrinsics: Sequence[float], motion: Optional[Rea
     """``image`` (H x W [x C], pinhole ``intrinsics`` fx, fy, cx, cy) as the camera at the
     stamp would have seen it, moving by ``motion`` during the readout (its translation as if
     the scene were a plane at ``motion.depth``). Returned unchanged without a readout time or
-    a rotation."""
+    a motion."""
     if motion is None or readout_s <= 0:
         return image
     w = np.asarray(motion.omega, dtype=np.float64).reshape(3)
-    if not np.isfinite(w).all() or not np.any(w):
+    vel = np.asarray(motion.velocity, dtype=np.float64).reshape(3)
+    moves = motion.depth > 0 and np.isfinite(vel).all() and np.any(vel)
+    if not np.isfinite(w).all() or not (np.any(w) or moves):
         return image
     H, W = image.shape[:2]
     fx, fy, cx, cy = (float(x) for x in intrinsics[:4])
@@ -86,8 +88,7 @@ def rectify(image: np.ndarray, intrinsics: Sequence[float], motion: Optional[Rea
     v = (np.arange(H, dtype=np.float64) - cy) / fy
     # ray (u, v_row, 1) of every pixel of a row, turned by that row's rotation
     X = R[:, None, :, 0] * u[None, :, None] + (R[:, :, 1] * v[:, None] + R[:, :, 2])[:, None]
-    vel = np.asarray(motion.velocity, dtype=np.float64).reshape(3)
-    if motion.depth > 0 and np.isfinite(vel).all():
+    if moves:
         # the row's camera is tau_v velocity from the stamp's: the point moves by -tau_v v
         c = -tau[:, None] * vel[None] / motion.depth
         X = X + np.einsum("rab,rb->ra", R, c)[:, None]
