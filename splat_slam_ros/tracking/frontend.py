@@ -26,7 +26,7 @@ from splat_slam_ros.tracking.dense_ba import induced_flow_distance, pose_only_re
 from splat_slam_ros.tracking.flow_frontend import predict_both
 from splat_slam_ros.tracking.keyframe_set import BUDGET_CAUSES
 from splat_slam_ros.tracking.motion_filter import MotionFilter, predict_pose
-from splat_slam_ros.tracking.rolling_shutter import pinhole, readout_motion, rectify
+from splat_slam_ros.tracking.rolling_shutter import median_depth, readout_motion, rectify
 from splat_slam_ros.types import TrackStep
 
 log = logging.getLogger(__name__)
@@ -302,8 +302,7 @@ class TrackerFrontend:
         step, or, right after the initialisation or a relocalisation, the last two keyframes'
         motion; at the newest keyframe's median depth. None when unknown (warm-up, lost)."""
         i0, i1 = self._spacing
-        depth = 1.0 / max(float(self.kfs[self.window[-1]].disp.median()), 1e-6) \
-            if self.window else 0.0
+        depth = median_depth(self.kfs[self.window[-1]].disp) if self.window else 0.0
         if i0 is not None and i1 is not None and i0 in self._stamps and i1 in self._stamps:
             return readout_motion(self.velocity.cpu().numpy(),
                                   self._stamps[i1] - self._stamps[i0], depth)
@@ -328,7 +327,7 @@ class TrackerFrontend:
                 for d in (self._stamps, self._rs_motion):
                     for k in [k for k in d if k < i - RS_KEEP]:
                         del d[k]
-        return rectify(img, pinhole(self.intrinsics if intrinsics is None else intrinsics),
+        return rectify(img, self.intrinsics if intrinsics is None else intrinsics,
                        self._rs_motion[i], self.rs_readout, self.rs_stamp_row)
 
     def _set_pose(self, T, index: int):

@@ -25,7 +25,7 @@ from splat_slam_ros.tracking.dense_ba import bundle_adjust
 from splat_slam_ros.tracking.factor_graph import FactorGraph
 from splat_slam_ros.tracking.flow_frontend import compose_flows
 from splat_slam_ros.tracking.motion_filter import parallax, predict_pose
-from splat_slam_ros.tracking.rolling_shutter import pinhole, readout_motion, rectify
+from splat_slam_ros.tracking.rolling_shutter import median_depth, readout_motion, rectify
 from splat_slam_ros.tracking.two_view import two_view_start
 from splat_slam_ros.types import Frame, TrackStep
 
@@ -178,13 +178,12 @@ class TrackerInitialisation:
             ks = self.kfs[k]
             w = readout_motion((se3_inverse(poses[a]) @ poses[b]).cpu().numpy(),
                                self.kfs[ids[b]].timestamp - self.kfs[ids[a]].timestamp,
-                               1.0 / max(float(disps[n].median()), 1e-6))
-            img = rectify(raw, pinhole(self.intrinsics), w, self.rs_readout, self.rs_stamp_row)
+                               median_depth(disps[n]))
+            img = rectify(raw, self.intrinsics, w, self.rs_readout, self.rs_stamp_row)
             ks.prep = self.flow.prepare(img)
             if ks.image is not None:
                 ks.image = img if self.map_pre is None else rectify(
-                    ks.image, pinhole(self.map_intrinsics), w, self.rs_readout,
-                    self.rs_stamp_row)
+                    ks.image, self.map_intrinsics, w, self.rs_readout, self.rs_stamp_row)
             self._rs_motion[ks.frame_index] = w
         done = set()
         for (a, b) in self.graph.gather(ids)[4]:

@@ -16,13 +16,13 @@ frames before, not of this one (docs/tracking.md "Rolling shutter").
 """
 from __future__ import annotations
 
-from typing import NamedTuple, Optional, Sequence
+from typing import NamedTuple, Optional
 
 import cv2
 import numpy as np
 import torch
 
-from splat_slam_ros.geometry import so3_exp, so3_log
+from splat_slam_ros.geometry import intr_tensor, so3_exp, so3_log
 
 
 class RollingShutterError(ValueError):
@@ -37,9 +37,10 @@ def check_settings(readout_ms: float, stamp_row: float) -> None:
                                   f"(0 = top row, 1 = bottom row), got {stamp_row}")
 
 
-def pinhole(K) -> tuple:
-    """(fx, fy, cx, cy) of an :class:`~splat_slam_ros.types.Intrinsics`."""
-    return K.fx, K.fy, K.cx, K.cy
+def median_depth(disparity) -> float:
+    """The scene depth a keyframe's disparity map stands for in the rectification: the
+    inverse of its median."""
+    return 1.0 / max(float(disparity.median()), 1e-6)
 
 
 def row_times(height: int, readout_s: float, stamp_row: float) -> np.ndarray:
@@ -67,9 +68,10 @@ def readout_motion(step: np.ndarray, dt: float, depth: float = 0.0) -> Optional[
     return ReadoutMotion(w, step[:3, 3] / dt, float(depth) if np.isfinite(depth) else 0.0)
 
 
-def rectify(image: np.ndarray, intrinsics: Sequence[float], motion: Optional[ReadoutMotion],
+def rectify(image: np.ndarray, intrinsics, motion: Optional[ReadoutMotion],
             readout_s: float, stamp_row: float) -> np.ndarray:
-    """``image`` (H x W [x C], pinhole ``intrinsics`` fx, fy, cx, cy) as the camera at the
+    """``image`` (H x W [x C]; pinhole ``intrinsics``: an Intrinsics or (fx, fy, cx, cy)) as
+    the camera at the
     stamp would have seen it, moving by ``motion`` during the readout (its translation as if
     the scene were a plane at ``motion.depth``). Returned unchanged without a readout time or
     a motion."""
@@ -81,7 +83,7 @@ def rectify(image: np.ndarray, intrinsics: Sequence[float], motion: Optional[Rea
     if not np.isfinite(w).all() or not (np.any(w) or moves):
         return image
     H, W = image.shape[:2]
-    fx, fy, cx, cy = (float(x) for x in intrinsics[:4])
+    fx, fy, cx, cy = (float(x) for x in intr_tensor(intrinsics, torch.float64)[:4])
     tau = row_times(H, readout_s, stamp_row)
     R = so3_exp(torch.from_numpy(-tau[:, None] * w[None])).numpy()          # (H, 3, 3)
     u = (np.arange(W, dtype=np.float64) - cx) / fx
