@@ -60,7 +60,10 @@ def build_flags() -> list[str]:
     extra = shlex.split(os.environ.get("SPLAT_SLAM_CXXFLAGS", ""))
     # -fno-trapping-math: without it GCC refuses to if-convert (and so to vectorise) the
     # compositing loops; it changes no results (no FP traps are enabled).
-    return ["-O3", "-fno-trapping-math", "-fopenmp", "-DNDEBUG", *_cpu_flags(), *extra]
+    # -ffp-contract=off: the kernels fuse multiply-adds themselves, the same way in the
+    # forward and in the backward's recomputation of it (raster_kernels.h).
+    return ["-O3", "-fno-trapping-math", "-ffp-contract=off", "-fopenmp", "-DNDEBUG",
+            *_cpu_flags(), *extra]
 
 
 def _compiler() -> str:
