@@ -29,8 +29,11 @@
 //  * exp() is exp_neg() (plain arithmetic) on the exponent clamped to >= -12;
 //  * only the Gaussians with a footprint (a view sees a small part of a large map) are
 //    binned and packed, one per cache line, once per view (the backward reuses the
-//    forward's packing); backward gradients are written per (tile, Gaussian) pair in list
-//    order and reduced per Gaussian afterwards (deterministic, no atomics).
+//    forward's packing); the binning radix-sorts them by depth once and counting-sorts
+//    their pairs by tile, so no list needs sorting (-40 % against a sort per tile);
+//    backward gradients are written per (tile, Gaussian) pair in list order and reduced
+//    per Gaussian afterwards (deterministic, no atomics; written at slot-major positions
+//    instead, the scattered writes cost the backward more than the reduction saved).
 // Tried and not kept: each row's lane vectors bounded by the Gaussian's alpha >= 1/255
 // ellipse instead of its footprint (6 % fewer vectors, slower: scalar work per row); the
 // forward skipping all-zero vectors (88 % of the visited vectors have a live alpha).
@@ -55,6 +58,8 @@ constexpr float kAlphaMax = 0.99f;
 constexpr float kTMin = 1e-4f;
 constexpr float kPowerMin = -12.0f;
 constexpr float kVisibleT = 0.5f;
+
+inline int64_t key_slot(int64_t key) { return key & 0xffffffffLL; }
 
 struct GaussianTiles {
   int32_t tx0, tx1, ty0, ty1;
@@ -109,37 +114,52 @@ inline int max_threads() {
 #endif
 }
 
+// The keys (float32 depth bits << 32 | slot) of the nc slots, sorted: front to back, ties
+// by index (an LSD radix sort of the depth bits, stable over the slots' index order).
+inline std::vector<int64_t> depth_order(const float* depths, const int32_t* ids, int64_t nc) {
+  std::vector<int64_t> a(nc), b(nc);
+  for (int64_t s = 0; s < nc; ++s) {
+    uint32_t dbits;
+    std::memcpy(&dbits, depths + ids[s], sizeof(float));  // depth > near > 0: bits monotonic
+    a[s] = (int64_t(dbits) << 32) | s;
+  }
+  for (int shift = 32; shift < 64; shift += 8) {
+    int64_t count[257] = {0};
+    for (int64_t s = 0; s < nc; ++s) ++count[((a[s] >> shift) & 0xff) + 1];
+    if (count[((a[0] >> shift) & 0xff) + 1] == nc) continue;  // one value: nothing to move
+    for (int v = 0; v < 256; ++v) count[v + 1] += count[v];
+    for (int64_t s = 0; s < nc; ++s) b[count[(a[s] >> shift) & 0xff]++] = a[s];
+    a.swap(b);
+  }
+  return a;
+}
+
 // Per-tile lists of keys (float32 depth bits << 32 | slot), each sorted: the Gaussians of
-// a tile front to back, ties by index. Parallel counting sort by tile (stable), then a
-// sort inside each tile. pair_off: slot-major pair offsets (nc + 1).
+// a tile front to back, ties by index. The slots in depth order (depth_order), then a
+// stable counting sort of their (tile, Gaussian) pairs by tile: the lists come out sorted.
+// pair_off: slot-major pair offsets (nc + 1), for the total.
 inline void bin_gaussians(const int32_t* ranges, const float* depths, const int32_t* ids,
                           int64_t nc, int ts, int64_t tiles_x, int64_t tiles_y,
                           const int64_t* pair_off, int64_t* tile_off, int64_t* keys) {
-  const int64_t n_tiles = tiles_x * tiles_y, m = pair_off[nc];
-  std::vector<int32_t> pair_tile(m);
-  std::vector<int64_t> pair_key(m);
-#pragma omp parallel for schedule(static)
-  for (int64_t s = 0; s < nc; ++s) {
-    const int64_t g = ids[s];
-    uint32_t dbits;
-    std::memcpy(&dbits, depths + g, sizeof(float));  // depth > near > 0: bits are monotonic
-    const int64_t key = (int64_t(dbits) << 32) | s;
-    const GaussianTiles t = tiles_of(ranges + 4 * g, ts);
-    int64_t p = pair_off[s];
-    for (int32_t ty = t.ty0; ty <= t.ty1; ++ty)
-      for (int32_t tx = t.tx0; tx <= t.tx1; ++tx, ++p) {
-        pair_tile[p] = int32_t(ty * tiles_x + tx);
-        pair_key[p] = key;
-      }
+  const int64_t n_tiles = tiles_x * tiles_y;
+  tile_off[n_tiles] = pair_off[nc];
+  if (nc == 0) {
+    for (int64_t tile = 0; tile < n_tiles; ++tile) tile_off[tile] = 0;
+    return;
   }
+  const std::vector<int64_t> order = depth_order(depths, ids, nc);
   const int max_t = max_threads();
   std::vector<int64_t> hist(size_t(max_t) * n_tiles, 0);  // [thread][tile]
 #pragma omp parallel
   {
     const int t = thread_id(), nt = thread_count();
-    const int64_t p0 = m * t / nt, p1 = m * (t + 1) / nt;
+    const int64_t j0 = nc * t / nt, j1 = nc * (t + 1) / nt;  // a stretch of the depth order
     int64_t* h = hist.data() + size_t(t) * n_tiles;
-    for (int64_t p = p0; p < p1; ++p) ++h[pair_tile[p]];
+    for (int64_t j = j0; j < j1; ++j) {
+      const GaussianTiles g = tiles_of(ranges + 4 * int64_t(ids[key_slot(order[j])]), ts);
+      for (int32_t ty = g.ty0; ty <= g.ty1; ++ty)
+        for (int32_t tx = g.tx0; tx <= g.tx1; ++tx) ++h[ty * tiles_x + tx];
+    }
 #pragma omp barrier
 #pragma omp single
     {
@@ -152,12 +172,14 @@ inline void bin_gaussians(const int32_t* ranges, const float* depths, const int3
           off += c;
         }
       }
-      tile_off[n_tiles] = off;
     }
-    for (int64_t p = p0; p < p1; ++p) keys[h[pair_tile[p]]++] = pair_key[p];
+    for (int64_t j = j0; j < j1; ++j) {
+      const int64_t key = order[j];
+      const GaussianTiles g = tiles_of(ranges + 4 * int64_t(ids[key_slot(key)]), ts);
+      for (int32_t ty = g.ty0; ty <= g.ty1; ++ty)
+        for (int32_t tx = g.tx0; tx <= g.tx1; ++tx) keys[h[ty * tiles_x + tx]++] = key;
+    }
   }
-#pragma omp parallel for schedule(dynamic, 8)
-  for (int64_t i = 0; i < n_tiles; ++i) std::sort(keys + tile_off[i], keys + tile_off[i + 1]);
 }
 
 // One cache line per Gaussian: the per-tile lists visit Gaussians in depth order.
@@ -193,7 +215,6 @@ inline void pack(const int32_t* ids, int64_t nc, const float* means2d, const flo
   }
 }
 
-inline int64_t key_slot(int64_t key) { return key & 0xffffffffLL; }
 
 // ------------------------------------------------------------------ lane vectors
 // The pixel loops work on explicit 8-lane float vectors (GCC/Clang vector extensions: AVX
