@@ -10,6 +10,7 @@ catches any systematic mistake (a wrong term moves it to >1e-2).
 from __future__ import annotations
 
 import os
+import platform
 import subprocess
 import sys
 import textwrap
@@ -420,6 +421,47 @@ def test_compile_error_is_reported(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "ERR building the C++ rasterizer failed" in r.stdout
     assert "-fno-such-flag" in r.stdout          # the compiler's own diagnostic is shown
+
+
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64") or
+                    not torch.backends.cpu.get_cpu_capability().startswith("AVX"),
+                    reason="the default build here already is the non-AVX one")
+def test_kernel_built_without_avx_matches_reference(tmp_path):
+    """The kernels' 4-lane path (SSE or NEON registers: what a CPU without AVX builds), built
+    here with AVX turned off: renders, gradients and the fused view loss against the torch
+    reference, as the default build is tested above."""
+    code = """
+        import sys, torch
+        sys.path.insert(0, "tests")
+        from test_rasterizer import grads_of, make_scene, rel, render
+        from splat_slam_ros.mapping.rasterizer import kernel
+        kernel.load_extension()
+        for seed in (0, 1):
+            scene = make_scene(seed=seed)
+            (a, ga), (b, gb) = grads_of(scene, "cpp", seed=seed), grads_of(scene, "torch", seed=seed)
+            print("FWD", max(rel(a.rgb, b.rgb), rel(a.depth, b.depth), rel(a.alpha, b.alpha)),
+                  bool(torch.equal(a.visible, b.visible)))
+            print("BWD", max(rel(x, y) for x, y in zip(ga, gb)))
+        for ts in (8, 32):
+            o = render(make_scene(seed=5), "cpp", tile_size=ts)[0]
+            print("TILE", rel(o.rgb, render(make_scene(seed=5), "torch")[0].rgb))
+        from test_rasterizer import test_fused_view_loss_matches_the_torch_loss as loss_test
+        for vignetting, weights, n in ((True, "mask", 1), (False, "float", 2)):
+            loss_test(None, vignetting, weights, n)      # asserts inside
+            print("LOSS ok")
+    """
+    r = _run_py(code, {"SPLAT_SLAM_CXXFLAGS": "-mno-avx -mno-avx2 -mno-fma",
+                       "SPLAT_SLAM_EXT_DIR": str(tmp_path)})
+    assert r.returncode == 0, r.stderr[-3000:]
+    lines = r.stdout.split("\n")
+    fwd = [ln.split() for ln in lines if ln.startswith("FWD")]
+    bwd = [float(ln.split()[1]) for ln in lines if ln.startswith("BWD")]
+    tile = [float(ln.split()[1]) for ln in lines if ln.startswith("TILE")]
+    assert len(fwd) == 2 and len(bwd) == 2 and len(tile) == 2, r.stdout
+    assert all(float(f[1]) < TOL and f[2] == "True" for f in fwd), fwd
+    assert max(bwd) < TOL and max(tile) < TOL, (bwd, tile)
+    assert r.stdout.count("LOSS ok") == 2, r.stdout
+    assert "-mno-avx" in (tmp_path / next(tmp_path.iterdir()).name / "build.ninja").read_text()
 
 
 # ---------------------------------------------------------------- gsplat (CUDA only)

@@ -29,7 +29,7 @@ except ImportError:  # pragma: no cover - Windows: no inter-process build lock
 CSRC = Path(__file__).resolve().parent / "csrc"
 SOURCES = ("raster.cpp",)              # compiled
 # part of the cache key
-HASHED = ("raster.cpp", "raster_kernels.h", "project_kernels.h", "loss_kernels.h")
+HASHED = ("raster.cpp", "raster_kernels.h", "project_kernels.h", "loss_kernels.h", "lanes.h")
 _lock = threading.Lock()
 _module = None
 _failure: "RasterizerBuildError | None" = None

@@ -47,6 +47,8 @@
 #include <cstring>
 #include <vector>
 
+#include "lanes.h"
+
 #ifdef _OPENMP
 #include <omp.h>
 #endif
@@ -217,54 +219,10 @@ inline void pack(const int32_t* ids, int64_t nc, const float* means2d, const flo
 
 
 // ------------------------------------------------------------------ lane vectors
-// The pixel loops work on explicit 8-lane float vectors (GCC/Clang vector extensions: AVX
-// registers on x86-64, two SSE/NEON halves elsewhere). A vector whose alphas are all 0
-// (below 1/255 or outside the footprint) changes nothing: the same expressions give back
-// T, R and the sums unchanged.
-#if defined(__AVX__)
-constexpr int kLanes = 8;  // 256-bit registers
-#else
-constexpr int kLanes = 4;  // SSE, NEON
-#endif
-typedef float vf __attribute__((vector_size(4 * kLanes)));
-typedef int32_t vi __attribute__((vector_size(4 * kLanes)));
-
-inline vf vload(const float* p) { vf v; std::memcpy(&v, p, sizeof(vf)); return v; }
-inline void vstore(float* p, vf v) { std::memcpy(p, &v, sizeof(vf)); }
-inline vf vsplat(float s) { return vf{} + s; }
-// a * b + c, fused where the CPU has FMA (the build turns off the compiler's own
-// contraction, so the forward and the backward's recomputation round alike)
-inline vf vfma(vf a, vf b, vf c) {
-#if defined(__AVX__) && defined(__FMA__)
-  return __builtin_ia32_vfmaddps256(a, b, c);
-#else
-  return a * b + c;
-#endif
-}
-inline vf vsel(vi m, vf a, vf b) { return m ? a : b; }   // lane-wise m != 0 ? a : b
-inline bool vany(vi m) {
-#if defined(__AVX__)
-  return __builtin_ia32_movmskps256(reinterpret_cast<vf>(m)) != 0;
-#elif defined(__SSE__)
-  return __builtin_ia32_movmskps(reinterpret_cast<vf>(m)) != 0;
-#else
-  int r = 0;
-  for (int l = 0; l < kLanes; ++l) r |= m[l];
-  return r != 0;
-#endif
-}
-// Sum of the lanes, in a fixed order (pairwise).
-inline float hsum(vf v) {
-  if constexpr (kLanes == 8)
-    return ((v[0] + v[4]) + (v[1] + v[5])) + ((v[2] + v[6]) + (v[3] + v[7]));
-  else
-    return (v[0] + v[2]) + (v[1] + v[3]);
-}
-inline int vsum(vi m) {
-  int r = 0;
-  for (int l = 0; l < kLanes; ++l) r += m[l];
-  return r;
-}
+// The pixel loops work on lane vectors (lanes.h). A vector whose alphas are all 0 (below
+// 1/255 or outside the footprint) changes nothing: the same expressions give back T, R and
+// the sums unchanged.
+using namespace splat_lanes;
 
 // exp(x) for x in [-12, ~0], lane-wise: Cody-Waite range reduction + degree-7 Taylor
 // polynomial (relative error ~1e-7), plain arithmetic.
