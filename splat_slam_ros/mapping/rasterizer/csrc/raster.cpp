@@ -131,11 +131,14 @@ std::vector<torch::Tensor> rasterize_backward(
       packed_ptr(packed), out_rgb.data_ptr<float>(), out_depth.data_ptr<float>(),
       out_T.data_ptr<float>(), g_rgb.data_ptr<float>(), g_depth.data_ptr<float>(),
       g_alpha.data_ptr<float>(), pair_grad.data_ptr<float>()));
-  torch::Tensor grads = torch::empty({n, kNumGrad}, f32);
+  torch::Tensor d_m2d = torch::empty({n, 2}, f32), d_conic = torch::empty({n, 3}, f32);
+  torch::Tensor d_col = torch::empty({n, 3}, f32), d_op = torch::empty({n}, f32);
+  torch::Tensor d_depth = torch::empty({n}, f32);
   reduce_pairs(n, ids.data_ptr<int32_t>(), nc, m, keys.data_ptr<int64_t>(),
-               pair_grad.data_ptr<float>(), grads.data_ptr<float>());
-  return {grads.narrow(1, 0, 2), grads.narrow(1, 2, 3), grads.narrow(1, 6, 3),
-          grads.select(1, 5), grads.select(1, 9)};
+               pair_grad.data_ptr<float>(),
+               {d_m2d.data_ptr<float>(), d_conic.data_ptr<float>(), d_col.data_ptr<float>(),
+                d_op.data_ptr<float>(), d_depth.data_ptr<float>()});
+  return {d_m2d, d_conic, d_col, d_op, d_depth};
 }
 
 // ------------------------------------------------------------------ projection

@@ -473,11 +473,15 @@ void backward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_ti
   }
 }
 
-// Deterministic reduction of the per-(tile, Gaussian) gradients into per-Gaussian ones
-// (grads: n x kNumGrad, zero for Gaussians without a footprint): every thread owns a range
-// of slots and scans the whole (tile-major) list, adding in list order.
+// Deterministic reduction of the per-(tile, Gaussian) gradients into per-Gaussian ones, zero
+// for Gaussians without a footprint: every thread owns a range of slots and scans the whole
+// (tile-major) list, adding in list order. Written as the autograd outputs (contiguous, no
+// copies later): d_m2d (n x 2), d_conic (n x 3), d_col (n x 3), d_op (n), d_depth (n).
+struct PerGaussianGrads {
+  float *m2d, *conic, *col, *op, *depth;
+};
 inline void reduce_pairs(int64_t n, const int32_t* ids, int64_t nc, int64_t m,
-                         const int64_t* keys, const float* pair_grad, float* grads) {
+                         const int64_t* keys, const float* pair_grad, PerGaussianGrads out) {
   std::vector<float> acc(size_t(nc) * kNumGrad, 0.f);
 #pragma omp parallel
   {
@@ -489,10 +493,20 @@ inline void reduce_pairs(int64_t n, const int32_t* ids, int64_t nc, int64_t m,
       for (int j = 0; j < kNumGrad; ++j) acc[kNumGrad * s + j] += pair_grad[kNumGrad * k + j];
     }
   }
-  std::memset(grads, 0, sizeof(float) * size_t(n) * kNumGrad);
-  for (int64_t s = 0; s < nc; ++s)
-    std::memcpy(grads + kNumGrad * int64_t(ids[s]), acc.data() + kNumGrad * s,
-                sizeof(float) * kNumGrad);
+  std::memset(out.m2d, 0, sizeof(float) * size_t(n) * 2);
+  std::memset(out.conic, 0, sizeof(float) * size_t(n) * 3);
+  std::memset(out.col, 0, sizeof(float) * size_t(n) * 3);
+  std::memset(out.op, 0, sizeof(float) * size_t(n));
+  std::memset(out.depth, 0, sizeof(float) * size_t(n));
+  for (int64_t s = 0; s < nc; ++s) {   // the pair layout: mx, my, conic a b c, o, colour, depth
+    const float* a = acc.data() + kNumGrad * s;
+    const int64_t g = ids[s];
+    std::memcpy(out.m2d + 2 * g, a, sizeof(float) * 2);
+    std::memcpy(out.conic + 3 * g, a + 2, sizeof(float) * 3);
+    out.op[g] = a[5];
+    std::memcpy(out.col + 3 * g, a + 6, sizeof(float) * 3);
+    out.depth[g] = a[9];
+  }
 }
 
 }  // namespace splat_raster
