@@ -12,9 +12,8 @@
 //
 // Performance notes (measured on a 2-core x86-64 with AVX2: forward + backward of a
 // 320x240 view of a 13k-Gaussian map, 19.6 ms before these rules, 12.9 ms with them):
-//  * the pixel loops work on explicit 8-lane vectors (GCC/Clang vector extensions, see
-//    "lane vectors"): a tile row is TS / 8 of them, and only the vectors a footprint
-//    reaches are visited;
+//  * the pixel loops work on explicit lane vectors (lanes.h: 8 floats with AVX, else 4): a
+//    tile row is TS / kLanes of them, and only the vectors a footprint reaches are visited;
 //  * the build turns the compiler's FP contraction off (-ffp-contract=off) and the kernels
 //    fuse multiply-adds explicitly (vfma): the backward's recomputation of the forward
 //    then rounds exactly as the forward did, whatever the compiler inlines where;
