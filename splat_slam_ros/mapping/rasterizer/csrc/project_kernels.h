@@ -80,22 +80,18 @@ inline vf sqrt_(vf x) {
   return x;
 #endif
 }
-inline vf ceil_(vf x) {
+// ceil (Mode 0x0a: toward +inf) or floor (0x09: toward -inf), lane-wise, no exceptions
+template <int Mode>
+inline vf round_(vf x) {
 #if defined(__AVX__)
-  return __builtin_ia32_roundps256(x, 0x0a);   // toward +inf, no exceptions
+  return __builtin_ia32_roundps256(x, Mode);
 #else
-  for (int l = 0; l < kLanes; ++l) x[l] = std::ceil(x[l]);
+  for (int l = 0; l < kLanes; ++l) x[l] = Mode == 0x0a ? std::ceil(x[l]) : std::floor(x[l]);
   return x;
 #endif
 }
-inline vf floor_(vf x) {
-#if defined(__AVX__)
-  return __builtin_ia32_roundps256(x, 0x09);   // toward -inf, no exceptions
-#else
-  for (int l = 0; l < kLanes; ++l) x[l] = std::floor(x[l]);
-  return x;
-#endif
-}
+inline vf ceil_(vf x) { return round_<0x0a>(x); }
+inline vf floor_(vf x) { return round_<0x09>(x); }
 inline int32_t to_int(float x) { return int32_t(x); }
 inline int32_t to_int(double x) { return int32_t(x); }
 inline vi to_int(vf x) { return __builtin_convertvector(x, vi); }
