@@ -237,12 +237,22 @@ class Player:
             self.pubs[topic].publish(raw)
         self.pubs[self.roles["image"]].publish(img_raw)
 
-    def _wait_consumed(self, n: int, stamp, wait_kf: List[str]) -> int:
+    def _wait_consumed(self, n: int, stamp, wait_kf: List[str], resend=None) -> int:
         """Lockstep: the tracker's ack of the frame (and the consumers' acks of the keyframe it
-        made); a resumed tracker (``self.rewind``) ends the wait. Returns acks missing."""
+        made); a resumed tracker (``self.rewind``) ends the wait. Returns acks missing.
+        ``resend`` (the frame's log time and messages): the first frame after a restart of
+        the player or of the tracker, sent again when no ack came within ``--resend-after``
+        seconds: a message published before the other side's connection has settled can be
+        lost, and the frame would otherwise wait out ``--ack-timeout`` and never be tracked
+        (a frame the tracker did get is acknowledged as a replay, not tracked twice)."""
         a, lost = self.args, 0
-        ok = self.spin_until(lambda: stamp in self.tracker_acks or self.rewind is not None,
-                             a.ack_timeout, f"the tracker's ack of frame {n - 1}")
+        acked = lambda: stamp in self.tracker_acks or self.rewind is not None  # noqa: E731
+        if resend is not None and 0 < a.resend_after < a.ack_timeout and \
+                not self.spin_until(acked, a.resend_after, f"the tracker's ack of frame {n - 1}"):
+            self.log.warning(f"no ack of frame {n - 1} within {a.resend_after:g} s of a restart: "
+                             "sending it again")
+            self._publish(*resend)
+        ok = self.spin_until(acked, a.ack_timeout, f"the tracker's ack of frame {n - 1}")
         if not ok:
             self.log.error(f"no ack of frame {n - 1} from the tracker within "
                            f"{a.ack_timeout:g} s; going on")
@@ -283,6 +293,7 @@ class Player:
         lost_acks = 0
         self.event("start", frames=total, mode=a.mode)
         it = self._frames_after(start)
+        restarted = start is not None          # resumed: its first frame may be resent
         while True:
             item = next(it, None)
             if item is None:
@@ -299,10 +310,13 @@ class Player:
             self._publish(t_ns, group)
             n = pos + 1
             if a.mode == "lockstep":
-                lost_acks += self._wait_consumed(n, stamp, wait_kf)
+                lost_acks += self._wait_consumed(n, stamp, wait_kf,
+                                                 (t_ns, group) if restarted else None)
+                restarted = False
                 if self.rewind is not None:     # a restarted tracker: from its checkpoint on
                     it, self.rewind = self._frames_after(self.rewind), None
                     self.tracker_acks.clear()
+                    restarted = True
                     continue
             else:
                 rclpy.spin_once(self.node, timeout_sec=0)
@@ -374,6 +388,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--min-subscribers", type=int, default=1)
     ap.add_argument("--start-timeout", type=float, default=120.0)
     ap.add_argument("--ack-timeout", type=float, default=300.0)
+    ap.add_argument("--resend-after", type=float, default=15.0,
+                    help="lockstep: the first frame after a restart of the player or the "
+                         "tracker is sent again when not acknowledged within this many "
+                         "seconds (0 = never)")
     ap.add_argument("--max-frames", type=int, default=0)
     ap.add_argument("--no-clock", dest="clock", action="store_false", help="do not publish /clock")
     ap.add_argument("--no-end-of-stream", dest="end_of_stream", action="store_false",
