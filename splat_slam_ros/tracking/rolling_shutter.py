@@ -71,10 +71,9 @@ def readout_motion(step: np.ndarray, dt: float, depth: float = 0.0) -> Optional[
 def rectify(image: np.ndarray, intrinsics, motion: Optional[ReadoutMotion],
             readout_s: float, stamp_row: float) -> np.ndarray:
     """``image`` (H x W [x C]; pinhole ``intrinsics``: an Intrinsics or (fx, fy, cx, cy)) as
-    the camera at the
-    stamp would have seen it, moving by ``motion`` during the readout (its translation as if
-    the scene were a plane at ``motion.depth``). Returned unchanged without a readout time or
-    a motion."""
+    the camera at the stamp would have seen it, moving by ``motion`` during the readout (its
+    translation as if the scene were a plane at ``motion.depth``). Returned unchanged without
+    a readout time or a motion."""
     if motion is None or readout_s <= 0:
         return image
     w = np.asarray(motion.omega, dtype=np.float64).reshape(3)

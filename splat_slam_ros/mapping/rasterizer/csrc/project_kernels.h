@@ -323,17 +323,18 @@ void project_backward(int64_t n, const Camera<T>& cam, const T* means, const T* 
   for (int64_t b = 0; b < blocks; ++b) {
     const int64_t g0 = b * L;
     const int cnt = int(std::min<int64_t>(L, n - g0));
-    bool any = false;
-    for (int64_t g = g0; g < g0 + cnt; ++g) {
+    bool zero[L], any = false;
+    for (int l = 0; l < cnt; ++l) {
+      const int64_t g = g0 + l;
       const T* gm = g_m2d + 2 * g;
       const T* gc = g_con + 3 * g;
-      const bool zero = gm[0] == 0 && gm[1] == 0 && gc[0] == 0 && gc[1] == 0 && gc[2] == 0 &&
-                        g_dep[g] == 0;
-      if (zero) {
+      zero[l] = gm[0] == 0 && gm[1] == 0 && gc[0] == 0 && gc[1] == 0 && gc[2] == 0 &&
+                g_dep[g] == 0;
+      if (zero[l]) {
         for (int k = 0; k < 3; ++k) d_means[3 * g + k] = 0, d_scales[3 * g + k] = 0;
         for (int k = 0; k < 4; ++k) d_quats[4 * g + k] = 0;
       }
-      any |= !zero;
+      any |= !zero[l];
     }
     if (!any) continue;
     V m[3], q[4], s[3], gm[2], gc[3], gd;
@@ -350,10 +351,7 @@ void project_backward(int64_t n, const Camera<T>& cam, const T* means, const T* 
     project_grads(cam, m, q, s, gm, gc, gd, dm, dq, ds);
     for (int l = 0; l < cnt; ++l) {
       const int64_t g = g0 + l;
-      const T* up = g_m2d + 2 * g;
-      const T* uc = g_con + 3 * g;
-      if (up[0] == 0 && up[1] == 0 && uc[0] == 0 && uc[1] == 0 && uc[2] == 0 && g_dep[g] == 0)
-        continue;   // zeros written above
+      if (zero[l]) continue;   // zeros written above
       for (int k = 0; k < 3; ++k) d_means[3 * g + k] = lane(dm[k], l);
       for (int k = 0; k < 4; ++k) d_quats[4 * g + k] = lane(dq[k], l);
       for (int k = 0; k < 3; ++k) d_scales[3 * g + k] = lane(ds[k], l);

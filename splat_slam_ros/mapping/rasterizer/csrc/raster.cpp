@@ -68,15 +68,15 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
   const int32_t* rg = ranges.data_ptr<int32_t>();
   const std::vector<int32_t> slots = with_footprint(rg, n);
   const int64_t nc = int64_t(slots.size());
-  const std::vector<int64_t> pair_off = pair_offsets(rg, slots.data(), nc, ts);
+  const int64_t m = pair_count(rg, slots.data(), nc, ts);
   auto i64 = torch::TensorOptions().dtype(torch::kInt64);
   auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
   torch::Tensor ids = torch::from_blob(const_cast<int32_t*>(slots.data()), {nc},
                                        torch::TensorOptions().dtype(torch::kInt32)).clone();
   torch::Tensor tile_off = torch::empty({n_tiles + 1}, i64);
-  torch::Tensor keys = torch::empty({pair_off[nc]}, i64);
+  torch::Tensor keys = torch::empty({m}, i64);
   bin_gaussians(rg, depths.data_ptr<float>(), slots.data(), nc, ts, tiles_x, tiles_y,
-                pair_off.data(), tile_off.data_ptr<int64_t>(), keys.data_ptr<int64_t>());
+                m, tile_off.data_ptr<int64_t>(), keys.data_ptr<int64_t>());
   torch::Tensor packed = torch::empty({nc, int64_t(sizeof(Packed))},
                                       torch::TensorOptions().dtype(torch::kUInt8));
   Packed* gs = packed_ptr(packed);

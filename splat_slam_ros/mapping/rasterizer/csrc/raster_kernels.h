@@ -82,15 +82,14 @@ inline std::vector<int32_t> with_footprint(const int32_t* ranges, int64_t n) {
   return ids;
 }
 
-// Slot-major pair offsets (nc + 1): a slot's (tile, Gaussian) pairs.
-inline std::vector<int64_t> pair_offsets(const int32_t* ranges, const int32_t* ids, int64_t nc,
-                                         int ts) {
-  std::vector<int64_t> off(nc + 1, 0);
+// The number of (tile, Gaussian) pairs of the nc slots: the binned lists' total length.
+inline int64_t pair_count(const int32_t* ranges, const int32_t* ids, int64_t nc, int ts) {
+  int64_t m = 0;
   for (int64_t s = 0; s < nc; ++s) {
     const GaussianTiles t = tiles_of(ranges + 4 * int64_t(ids[s]), ts);
-    off[s + 1] = off[s] + int64_t(t.tx1 - t.tx0 + 1) * (t.ty1 - t.ty0 + 1);
+    m += int64_t(t.tx1 - t.tx0 + 1) * (t.ty1 - t.ty0 + 1);
   }
-  return off;
+  return m;
 }
 
 inline int thread_id() {
@@ -138,12 +137,12 @@ inline std::vector<int64_t> depth_order(const float* depths, const int32_t* ids,
 // Per-tile lists of keys (float32 depth bits << 32 | slot), each sorted: the Gaussians of
 // a tile front to back, ties by index. The slots in depth order (depth_order), then a
 // stable counting sort of their (tile, Gaussian) pairs by tile: the lists come out sorted.
-// pair_off: slot-major pair offsets (nc + 1), for the total.
+// m: pair_count, the lists' total length.
 inline void bin_gaussians(const int32_t* ranges, const float* depths, const int32_t* ids,
                           int64_t nc, int ts, int64_t tiles_x, int64_t tiles_y,
-                          const int64_t* pair_off, int64_t* tile_off, int64_t* keys) {
+                          int64_t m, int64_t* tile_off, int64_t* keys) {
   const int64_t n_tiles = tiles_x * tiles_y;
-  tile_off[n_tiles] = pair_off[nc];
+  tile_off[n_tiles] = m;
   if (nc == 0) {
     for (int64_t tile = 0; tile < n_tiles; ++tile) tile_off[tile] = 0;
     return;
