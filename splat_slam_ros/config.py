@@ -136,7 +136,7 @@ class TrackingConfig:
     flow_pred_gate: float = 1.0          # far: more than this from it (reference BA px; 0 = off)
     flow_pred_agree: float = 0.3         # only if this fraction of the confident weight is near it
     flow_pred_rms_px: float = 0.8        # refit above this pose-fit rms (tracking px)
-    robust_huber_px: float = 2.0         # Huber threshold on the reprojection error (tracking px)
+    robust_huber_px: float = 0.5         # Huber threshold on BA residuals, tracking px (tracking.md)
     lost_min_valid: float = 0.12         # lost if fewer BA cells than this have a usable flow
     # ... or, on a view with little texture, fewer than this x the cells its texture could
     # make confident at most (never below lost_min_valid / 4; 0 = off)

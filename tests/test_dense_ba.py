@@ -350,3 +350,28 @@ def test_ba_runs_on_cuda():
     P, D, _ = bundle_adjust(poses.to(dev), disps.to(dev), INTR.to(dev), ii.to(dev), jj.to(dev),
                             tgt.to(dev), torch.ones(len(ii), H, W, 2, device=dev), iters=2)
     assert P.device.type == "cuda" and torch.allclose(P.cpu(), poses, atol=1e-4)
+
+
+def test_default_huber_resists_wrong_period_flow():
+    """Flow matched at the wrong period of a repetitive texture: a block of cells off by a
+    period (here 1.5 BA px, all the same way, forward and backward agreeing, so confident).
+    With the default threshold (``tracking.robust_huber_px``, tracking px, over the BA
+    downsampling) BA is pulled less than with the old 2-px threshold (docs/tracking.md
+    "Robust weights")."""
+    from splat_slam_ros.config import TrackingConfig
+    tc = TrackingConfig()
+    n = 4
+    poses, disps = scene(n, seed=3)
+    ii, jj = all_edges(n, 2)
+    tgt, _ = reproject(poses, disps, INTR, ii, jj)
+    bad = tgt.clone()
+    bad[:, :, : W // 5, 0] += 1.5                  # the left fifth of every view
+    wgt = torch.ones(len(ii), H, W, 2)
+    p0 = poses.clone()
+    p0[2:] = se3_exp(torch.full((2, 6), 0.01, dtype=torch.float64)) @ poses[2:]
+    errs = {}
+    for px in (2.0, tc.robust_huber_px):
+        P, _, _ = bundle_adjust(p0, disps.clone(), INTR, ii, jj, bad, wgt, iters=15, fixed=2,
+                                huber=px / tc.ba_downsample)
+        errs[px] = float((P[:, :3, 3] - poses[:, :3, 3]).norm(dim=-1).max())
+    assert errs[tc.robust_huber_px] < 0.6 * errs[2.0]
