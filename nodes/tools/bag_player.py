@@ -247,12 +247,13 @@ class Player:
         (a frame the tracker did get is acknowledged as a replay, not tracked twice)."""
         a, lost = self.args, 0
         acked = lambda: stamp in self.tracker_acks or self.rewind is not None  # noqa: E731
+        what = f"the tracker's ack of frame {n - 1}"
         if resend is not None and 0 < a.resend_after < a.ack_timeout and \
-                not self.spin_until(acked, a.resend_after, f"the tracker's ack of frame {n - 1}"):
+                not self.spin_until(acked, a.resend_after, what):
             self.log.warning(f"no ack of frame {n - 1} within {a.resend_after:g} s of a restart: "
                              "sending it again")
             self._publish(*resend)
-        ok = self.spin_until(acked, a.ack_timeout, f"the tracker's ack of frame {n - 1}")
+        ok = self.spin_until(acked, a.ack_timeout, what)
         if not ok:
             self.log.error(f"no ack of frame {n - 1} from the tracker within "
                            f"{a.ack_timeout:g} s; going on")

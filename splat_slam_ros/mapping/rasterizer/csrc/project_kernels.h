@@ -53,6 +53,8 @@ Camera<T> make_camera(const T* viewmat, double fx, double fy, double cx, double 
 template <typename V>
 using MaskOf = decltype(V{} < V{});
 template <typename V>
+constexpr int kLanesOf = std::is_same_v<V, vf> ? kLanes : 1;   // Gaussians per value
+template <typename V>
 inline V lit(double c) {
   if constexpr (std::is_same_v<V, vf>) return vsplat(float(c));
   else return V(c);
@@ -203,6 +205,20 @@ inline void set_lane(X& x, int l, S v) {
   else x[l] = v;
 }
 
+// Gaussians g0 .. g0 + cnt - 1 into lane vectors (the last one repeated in the spare lanes)
+// or, for a scalar V, Gaussian g0: centres m (3), quaternions q (4), scales s (3).
+template <typename T, typename V>
+inline void gather_gaussians(const T* means, const T* quats, const T* scales, int64_t g0,
+                             int cnt, V* m, V* q, V* s) {
+  constexpr int L = kLanesOf<V>;
+  for (int l = 0; l < L; ++l) {
+    const int64_t g = g0 + std::min(l, cnt - 1);
+    for (int k = 0; k < 3; ++k) set_lane(m[k], l, means[3 * g + k]);
+    for (int k = 0; k < 4; ++k) set_lane(q[k], l, quats[4 * g + k]);
+    for (int k = 0; k < 3; ++k) set_lane(s[k], l, scales[3 * g + k]);
+  }
+}
+
 // Gradients w.r.t. the centre (3), quaternion (4) and scales (3) of one Gaussian (or lane
 // vector) from those w.r.t. means2d (gm, 2), conics (gc, 3) and depth (gd).
 template <typename T, typename V>
@@ -279,21 +295,16 @@ template <typename T>
 void project_forward(int64_t n, const Camera<T>& cam, const T* means, const T* quats,
                      const T* scales, T* means2d, T* conics, T* depths, int32_t* ranges,
                      int32_t* radii, uint8_t* valid) {
-  // float32: kLanes Gaussians at a time (the last block repeats its last Gaussian)
+  // float32: kLanes Gaussians at a time (gather_gaussians)
   using V = std::conditional_t<std::is_same_v<T, float>, vf, T>;
-  constexpr int L = std::is_same_v<V, vf> ? kLanes : 1;
+  constexpr int L = kLanesOf<V>;
   const int64_t blocks = (n + L - 1) / L;
 #pragma omp parallel for schedule(static)
   for (int64_t b = 0; b < blocks; ++b) {
     const int64_t g0 = b * L;
     const int cnt = int(std::min<int64_t>(L, n - g0));
     V m[3], q[4], s[3];
-    for (int l = 0; l < L; ++l) {
-      const int64_t g = g0 + std::min(l, cnt - 1);
-      for (int k = 0; k < 3; ++k) set_lane(m[k], l, means[3 * g + k]);
-      for (int k = 0; k < 4; ++k) set_lane(q[k], l, quats[4 * g + k]);
-      for (int k = 0; k < 3; ++k) set_lane(s[k], l, scales[3 * g + k]);
-    }
+    gather_gaussians(means, quats, scales, g0, cnt, m, q, s);
     Proj<V> o;
     project_one(cam, m, q, s, o);
     const ProjOut<V> out = project_outputs(cam, o);
@@ -317,7 +328,7 @@ void project_backward(int64_t n, const Camera<T>& cam, const T* means, const T* 
                       const T* scales, const T* g_m2d, const T* g_con, const T* g_dep,
                       T* d_means, T* d_quats, T* d_scales) {
   using V = std::conditional_t<std::is_same_v<T, float>, vf, T>;
-  constexpr int L = std::is_same_v<V, vf> ? kLanes : 1;
+  constexpr int L = kLanesOf<V>;
   const int64_t blocks = (n + L - 1) / L;
 #pragma omp parallel for schedule(static)
   for (int64_t b = 0; b < blocks; ++b) {
@@ -338,11 +349,9 @@ void project_backward(int64_t n, const Camera<T>& cam, const T* means, const T* 
     }
     if (!any) continue;
     V m[3], q[4], s[3], gm[2], gc[3], gd;
+    gather_gaussians(means, quats, scales, g0, cnt, m, q, s);
     for (int l = 0; l < L; ++l) {
       const int64_t g = g0 + std::min(l, cnt - 1);
-      for (int k = 0; k < 3; ++k) set_lane(m[k], l, means[3 * g + k]);
-      for (int k = 0; k < 4; ++k) set_lane(q[k], l, quats[4 * g + k]);
-      for (int k = 0; k < 3; ++k) set_lane(s[k], l, scales[3 * g + k]);
       for (int k = 0; k < 2; ++k) set_lane(gm[k], l, g_m2d[2 * g + k]);
       for (int k = 0; k < 3; ++k) set_lane(gc[k], l, g_con[3 * g + k]);
       set_lane(gd, l, g_dep[g]);
