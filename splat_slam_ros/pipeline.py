@@ -26,8 +26,7 @@ from splat_slam_ros.io.dataset_base import associate
 from splat_slam_ros.io.trajectory_io import STAMP_TOL, write_tum
 from splat_slam_ros.mapper_role import write_map_outputs, write_mesh
 from splat_slam_ros.mapping.persistence import mapper_arrays
-from splat_slam_ros.report.recording import WarningRecorder
-from splat_slam_ros.report.run_record import keyframe_rate_text
+from splat_slam_ros.report.recording import WarningRecorder, keyframe_rate_text
 from splat_slam_ros.tracking.relocalise import input_images, save_session, session_ids
 
 log = logging.getLogger(__name__)

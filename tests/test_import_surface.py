@@ -1,6 +1,7 @@
 """A command imports the stages it runs: ``splat-slam-run --tracking-only`` never loads the
-mapper, scipy's spatial module or Open3D (90 MB of memory and a second of start-up), and a
-user mistake is still one ``error:`` line, whatever module raised it."""
+mapper, scipy's spatial module or Open3D (90 MB of memory and a second of start-up), nor
+matplotlib before its report, and a user mistake is still one ``error:`` line, whatever
+module raised it."""
 import json
 import subprocess
 import sys
@@ -37,6 +38,16 @@ def test_a_tracking_only_run_loads_neither_the_mapper_scipy_nor_open3d(small_seq
     assert res["rc"] in (0, 3), err[-2000:]           # 3: too little motion to initialise
     assert (tmp_path / "trk" / "metrics.json").is_file()
     assert res["loaded"] == [], res
+
+
+def test_the_run_loads_the_plotting_library_only_for_its_report():
+    """What ``splat-slam-run`` imports before its first frame leaves matplotlib out (30 MB of
+    memory through the whole run); the report imports it when it is written."""
+    code = ("import sys, splat_slam_ros.pipeline, splat_slam_ros.io.datasets; "
+            "print('matplotlib' in sys.modules)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0 and r.stdout.strip() == "False", r.stdout + r.stderr[-2000:]
 
 
 def test_a_user_mistake_is_one_error_line_from_a_module_loaded_on_demand(small_seq, tmp_path):

@@ -119,6 +119,27 @@ def test_npz_entries_are_the_npy_bytes_and_the_file_is_the_same_every_time(tmp_p
             np.testing.assert_array_equal(f[name], a)
 
 
+def test_npz_streamed_in_chunks_is_the_one_write_file(tmp_path):
+    """An array of several NPZ_CHUNK pieces is streamed into its entry; the file has the bytes
+    zipfile writes for the whole .npy in one writestr at the same level (same checksum)."""
+    import io
+    import zipfile
+    rng = np.random.default_rng(5)
+    arrays = {"images": rng.integers(0, 255, (3 * ss.NPZ_CHUNK // 900 + 1, 20, 15, 3),
+                                     dtype=np.uint8),
+              "disparities": rng.random((7, 30, 40)).astype(np.float32)}
+    assert arrays["images"].nbytes > 2 * ss.NPZ_CHUNK
+    ss._write_npz(tmp_path / "streamed.npz", arrays)
+    with zipfile.ZipFile(tmp_path / "ref.npz", "w", zipfile.ZIP_DEFLATED) as z:
+        for name, a in arrays.items():
+            buf = io.BytesIO()
+            np.save(buf, a, allow_pickle=False)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            z.writestr(info, buf.getvalue(), compresslevel=ss.NPZ_LEVEL)
+    assert (tmp_path / "streamed.npz").read_bytes() == (tmp_path / "ref.npz").read_bytes()
+
+
 def test_full_run_saves_its_keyframes(work):
     s = ss.load_session(work["s1"])
     kts, kposes = read_trajectory(work["s1"] / "trajectory_keyframes.txt")

@@ -12,9 +12,9 @@ from typing import Dict, List, Sequence
 import numpy as np
 
 from splat_slam_ros.report import plots as rp
+from splat_slam_ros.report.recording import keyframe_rate_text
 from splat_slam_ros.report.run_record import (TILE_NAMES, THUMB_WIDTH, RunRecord, data_uri,
                                               depth_unit, fmt, headline, keyframe_positions,
-                                              keyframe_rate_text,
                                               keyframe_tiles, stage_times,
                                               worst_keyframe)
 

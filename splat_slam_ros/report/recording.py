@@ -1,6 +1,7 @@
 """What a run records for its report while it runs: the configuration it used
 (:func:`save_config`), the warnings its loggers emit (:class:`WarningRecorder`) and the
-warning lines of the launcher's console (:class:`WarningTee`)."""
+warning lines of the launcher's console (:class:`WarningTee`); the keyframe rate line of its
+summary (:func:`keyframe_rate_text`)."""
 from __future__ import annotations
 
 import logging
@@ -75,3 +76,12 @@ class WarningTee:
 
     def flush(self) -> None:
         self.stream.flush()
+
+
+def keyframe_rate_text(metrics: dict) -> Optional[str]:
+    """Keyframes per second of input and by cause, ``6.43 (warmup 7, threshold 42)``, from
+    ``metrics.json``'s ``keyframes_per_s`` and ``keyframe_causes`` (None without them)."""
+    rate, causes = metrics.get("keyframes_per_s"), metrics.get("keyframe_causes")
+    if rate is None or not causes:
+        return None
+    return f"{rate:.2f} (" + ", ".join(f"{c} {n}" for c, n in causes.items()) + ")"

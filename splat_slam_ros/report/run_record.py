@@ -249,15 +249,6 @@ def fmt(v, nd: int = 2, unit: str = "") -> str:
     return s + (f" {unit}" if unit else "")
 
 
-def keyframe_rate_text(metrics: dict) -> Optional[str]:
-    """Keyframes per second of input and by cause, ``6.43 (warmup 7, threshold 42)``, from
-    ``metrics.json``'s ``keyframes_per_s`` and ``keyframe_causes`` (None without them)."""
-    rate, causes = metrics.get("keyframes_per_s"), metrics.get("keyframe_causes")
-    if rate is None or not causes:
-        return None
-    return f"{rate:.2f} (" + ", ".join(f"{c} {n}" for c, n in causes.items()) + ")"
-
-
 def data_uri(data: bytes) -> str:
     kind = "jpeg" if data[:2] == b"\xff\xd8" else "png"
     return f"data:image/{kind};base64," + base64.b64encode(data).decode("ascii")
