@@ -52,7 +52,7 @@ INPROC = r'''
 import json, sys, time
 from pathlib import Path
 from splat_slam_ros.heap import bound_heap, peak_rss_mb
-bound_heap()                                   # as splat-slam-run
+bound_heap()                                   # as a node
 from splat_slam_ros.config import load_config
 from splat_slam_ros.io.datasets import open_dataset
 from splat_slam_ros.pipeline import run

@@ -146,8 +146,8 @@ def ensure_sequence(data_dir: Path, c: dict) -> Path:
 
 # ------------------------------------------------------------------ child run
 def run_child(args) -> None:
-    """One tracking run (in its own process, with the allocator settings of
-    ``splat-slam-run``): writes metrics JSON to --json."""
+    """One tracking run (in its own process, with a node's allocator settings:
+    ``heap.bound_heap``): writes metrics JSON to --json."""
     t0 = time.perf_counter()
     from splat_slam_ros.heap import bound_heap, peak_rss_mb
     bound_heap()

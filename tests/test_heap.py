@@ -133,3 +133,21 @@ def test_peak_rss_is_the_programs_own_not_the_parents():
                                  check=True).stdout)
     assert 1 < child < 100, child
     del big
+
+
+TOP = """
+import sys, torch
+from splat_slam_ros import heap
+trim = heap.TRACKING_TRIM_THRESHOLD if sys.argv[1] == "tracking" else heap.RUN_TRIM_THRESHOLD
+assert heap.bound_heap(heap.RUN_MMAP_THRESHOLD, trim_threshold=trim) is True
+blocks = [torch.ones(250000) for _ in range(40)]    # 40 x 1 MB at the top of the heap, freed
+del blocks
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc mallopt: Linux only")
+def test_a_tracking_only_run_gives_the_free_top_of_its_heap_back():
+    """splat-slam-run --tracking-only (heap.TRACKING_TRIM_THRESHOLD): a free top of the heap
+    above 4 MiB goes back to the OS; a mapping run keeps it for its next step."""
+    rss = child_rss_mb(TOP, ("tracking", "run"))
+    assert rss["tracking"] < rss["run"] - 30, rss       # 40 MB freed at the top

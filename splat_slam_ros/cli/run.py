@@ -120,9 +120,11 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
 
     def body() -> int:
-        from splat_slam_ros.heap import RUN_MMAP_THRESHOLD, RUN_TRIM_THRESHOLD, bound_heap
+        from splat_slam_ros.heap import (RUN_MMAP_THRESHOLD, RUN_TRIM_THRESHOLD,
+                                         TRACKING_TRIM_THRESHOLD, bound_heap)
         # one run, then exit: the step's temporaries stay in the heap (heap.RUN_*)
-        bound_heap(RUN_MMAP_THRESHOLD, trim_threshold=RUN_TRIM_THRESHOLD)
+        bound_heap(RUN_MMAP_THRESHOLD, trim_threshold=TRACKING_TRIM_THRESHOLD
+                   if args.tracking_only else RUN_TRIM_THRESHOLD)
         from splat_slam_ros.config import load_config
         from splat_slam_ros.io.datasets import open_dataset
         from splat_slam_ros.pipeline import (SUMMARY_METRICS, NotInitializedError, keyframe_line,
