@@ -136,11 +136,11 @@ def test_peak_rss_is_the_programs_own_not_the_parents():
 
 
 TOP = """
-import sys, torch
+import sys, numpy as np
 from splat_slam_ros import heap
 trim = heap.TRACKING_TRIM_THRESHOLD if sys.argv[1] == "tracking" else heap.RUN_TRIM_THRESHOLD
 assert heap.bound_heap(heap.RUN_MMAP_THRESHOLD, trim_threshold=trim) is True
-blocks = [torch.ones(250000) for _ in range(40)]    # 40 x 1 MB at the top of the heap, freed
+blocks = [np.ones(125000) for _ in range(40)]       # 40 x 1 MB at the top of the heap, freed
 del blocks
 """
 
