@@ -122,7 +122,8 @@ def main(argv=None) -> int:
     def body() -> int:
         from splat_slam_ros.heap import (RUN_MMAP_THRESHOLD, RUN_TRIM_THRESHOLD,
                                          TRACKING_TRIM_THRESHOLD, bound_heap)
-        # one run, then exit: the step's temporaries stay in the heap (heap.RUN_*)
+        # one run, then exit: the step's temporaries stay in the heap (heap.RUN_*); a
+        # tracking-only run, with no mapping step, gives its free heap top back
         bound_heap(RUN_MMAP_THRESHOLD, trim_threshold=TRACKING_TRIM_THRESHOLD
                    if args.tracking_only else RUN_TRIM_THRESHOLD)
         from splat_slam_ros.config import load_config
