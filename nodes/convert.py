@@ -84,8 +84,9 @@ def msg_to_image(msg: Image, copy: bool = True) -> np.ndarray:
     return decode_image(msg, copy)
 
 
-def msg_to_rgb(msg: Image) -> np.ndarray:
-    """sensor_msgs/Image of a colour/mono 8-bit encoding -> H x W x 3 uint8 RGB (a copy)."""
+def msg_to_rgb(msg) -> np.ndarray:
+    """sensor_msgs/Image of a colour/mono camera encoding, or a CompressedImage -> H x W x 3
+    uint8 RGB (a copy)."""
     return decode_rgb(msg)
 
 

@@ -327,13 +327,27 @@ class Extractor:
                 continue
             kind, i_name, i_qos = CALLS[attr]
             name = self._name_of(n.args[i_name], cli)
-            typ = types.get(getattr(n.args[0], "id", ""))
+            typs = self._types_of(n.args[0], fn, types)
             qos = () if i_qos is None else self._qos_alts(n.args[i_qos], fn)
-            if name is None or typ is None or qos is None:
+            if name is None or not typs or qos is None:
                 if (module, attr) not in DYNAMIC_TOPICS:
                     code.unresolved.append(f"{module}:{n.lineno} {attr}")
                 continue
-            code.endpoints.add(Endpoint(kind, name, typ, qos))
+            for typ in typs:
+                code.endpoints.add(Endpoint(kind, name, typ, qos))
+
+    @staticmethod
+    def _types_of(node: ast.AST, fn: ast.AST, types: Dict[str, str]) -> Tuple[str, ...]:
+        """A message class argument's type names: an imported class, or a local chosen
+        between two of them (``t = A if cond else B``: both)."""
+        if getattr(node, "id", "") in types:
+            return (types[node.id],)
+        for a in ast.walk(fn) if isinstance(node, ast.Name) else ():
+            if isinstance(a, ast.Assign) and getattr(a.targets[0], "id", "") == node.id and \
+                    isinstance(a.value, ast.IfExp):
+                alts = [types.get(getattr(x, "id", "")) for x in (a.value.body, a.value.orelse)]
+                return tuple(alts) if all(alts) else ()
+        return ()
 
     def _helper(self, attr: str, call: ast.Call, code: NodeCode) -> None:
         """What SplatNode.publishers / route / on_events create for the calling node."""

@@ -59,6 +59,30 @@ def tiny_bag(tmp_path_factory):
     return d / "bag", cfg
 
 
+def compressed_copy(bag: Path, out: Path) -> Path:
+    """``bag``'s frames as a camera driver with image_transport records them: PNG
+    CompressedImage on /camera/image_raw/compressed beside /camera/camera_info."""
+    import cv2
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from splat_slam_ros.io import bagio
+    ts = bagio.make_typestore(project_types=False)
+    w = Writer(out, version=8, storage_plugin=StoragePlugin.MCAP)
+    w.open()
+    ci = w.add_connection("/camera/camera_info", bagio.T_INFO, typestore=ts)
+    im = w.add_connection("/camera/image_raw/compressed", bagio.T_COMPRESSED, typestore=ts)
+    for f in bagio.BagDataset(bag):
+        ns = bagio.stamp_to_ns(f.timestamp)
+        png = cv2.imencode(".png", np.ascontiguousarray(f.image[:, :, ::-1]))[1].reshape(-1)
+        m = ts.types[bagio.T_COMPRESSED](header=bagio._header(ts, ns, "camera"),
+                                         format="rgb8; png compressed bgr8", data=png)
+        w.write(ci, ns, ts.serialize_cdr(bagio.camera_info_msg(ts, f.intrinsics, ns),
+                                         bagio.T_INFO))
+        w.write(im, ns, ts.serialize_cdr(m, bagio.T_COMPRESSED))
+    w.close()
+    return out
+
+
 def _launch_args(bag, cfg, out):
     return [PY, "-m", "splat_slam_nodes.tools.launch", "--bag", str(bag), "--out", str(out),
             "--config", str(cfg)]
@@ -287,15 +311,18 @@ def test_resume_after_the_whole_graph_was_killed(revisit_bag, tmp_path):
 def test_live_topics_ctrl_c_finalises(tiny_bag, tmp_path):
     """No --bag: the graph listens on the configured topics (here fed by a player in realtime
     mode acting as a camera at 60 Hz, faster than the tracker keeps up: frames are skipped or
-    dropped, counted); the first SIGINT finalises and saves."""
+    dropped, counted); the first SIGINT finalises and saves. The camera publishes compressed
+    images (image_transport's ``/compressed`` topic), which the tracker decodes."""
     bag, cfg = tiny_bag
+    bag = compressed_copy(bag, tmp_path / "compressed")
     env = isolated_env()
     out = tmp_path / "out"
     launch = start([PY, "-m", "splat_slam_nodes.tools.launch", "--out", str(out), "--config",
-                    str(cfg), "--set", "ros.image_topic=/camera/image_raw",
+                    str(cfg), "--set", "ros.image_topic=/camera/image_raw/compressed",
                     "--set", "ros.camera_info_topic=/camera/camera_info"], env,
                    tmp_path / "launch.log")
     cam = start([PY, "-m", "splat_slam_nodes.tools.bag_player", str(bag), "--mode", "realtime",
+                 "--image-topic", "/camera/image_raw/compressed",
                  "--rate", "6.0", "--wait-nodes", "tracker,depth,mapper", "--wait-acks", "",
                  "--no-end-of-stream", "--no-clock", "--start-timeout", "300"], env,
                 tmp_path / "camera.log")

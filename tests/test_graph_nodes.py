@@ -278,7 +278,7 @@ res = {}
 res["no_info"] = send(convert.image_to_msg(img, "rgb8"))             # no camera_info yet
 pc.publish(convert.intrinsics_to_camera_info(Intrinsics(50, 50, 31.5, 23.5, 64, 48)))
 spin_until(lambda: False, 0.5)
-bad = convert.image_to_msg(img, "rgb8"); bad.encoding = "yuv422"
+bad = convert.image_to_msg(img, "rgb8"); bad.encoding = "8SC3"
 res["encoding"] = send(bad)
 res["depth_enc"] = send(convert.image_to_msg(img[:, :, 0].astype(np.uint16), "16UC1"))
 pi.publish(b"\x00\x01\x00\x00garbage-not-cdr")                         # undecodable bytes
@@ -335,7 +335,7 @@ def test_bad_input_is_logged_and_nodes_keep_running(tmp_path):
         assert r[k], (k, tlog[-3000:])
     assert r["acks"] == 9
     assert "no camera_info received on /cam/info" in tlog
-    assert "unsupported image encoding 'yuv422'" in tlog
+    assert "unsupported image encoding '8SC3'" in tlog
     assert "image encoding '16UC1' is not a colour image" in tlog
     assert "cannot be deserialised" in tlog
     assert "image data has 100 bytes" in tlog
@@ -343,6 +343,77 @@ def test_bad_input_is_logged_and_nodes_keep_running(tmp_path):
     assert "tracker started on 64x48" in tlog
     assert "cannot be deserialised" in dlog and "keyframe 3 disparity: 7 values" in dlog
     assert "cannot be deserialised" in mlog and "ProxyDepth" in mlog
+
+
+COMPRESSED_INPUT = r'''
+import json, sys, time
+from splat_slam_ros.ros_env import apply_ros_environment
+apply_ros_environment()
+import cv2, numpy as np, rclpy
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from splat_slam_msgs.msg import FrameAck
+from splat_slam_nodes import convert, qos as Q
+from splat_slam_nodes.node_common import TOPICS
+from splat_slam_ros.types import Intrinsics
+rclpy.init()
+node = rclpy.create_node("compressed_input")
+acks = []
+node.create_subscription(FrameAck, TOPICS["ack"], lambda m: acks.append(m), Q.ack_qos())
+raw = node.create_publisher(Image, "/cam/image/compressed", Q.image_qos())   # the wrong type
+pc = node.create_publisher(CameraInfo, "/cam/info", Q.image_qos())
+''' + SPIN_UNTIL + r'''spin_until(lambda: pc.get_subscription_count(), 120)
+rng = np.random.default_rng(0)
+img = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+raw.publish(convert.image_to_msg(img, "rgb8"))         # never reaches the tracker
+spin_until(lambda: False, 8.0)                          # its type check runs meanwhile
+node.destroy_publisher(raw)
+pz = node.create_publisher(CompressedImage, "/cam/image/compressed", Q.image_qos())
+spin_until(lambda: pz.get_subscription_count(), 60)
+pc.publish(convert.intrinsics_to_camera_info(Intrinsics(50, 50, 31.5, 23.5, 64, 48)))
+spin_until(lambda: False, 0.5)
+t = [1.0]
+def send(fmt, data):
+    n = len(acks)
+    m = CompressedImage(format=fmt, data=data)
+    m.header.stamp = convert.to_stamp(t[0]); t[0] += 0.1
+    pz.publish(m)
+    return spin_until(lambda: len(acks) > n, 30)
+png = cv2.imencode(".png", img[:, :, ::-1])[1].tobytes()
+jpg = cv2.imencode(".jpg", img[:, :, ::-1])[1].tobytes()
+res = {"png": send("rgb8; png compressed bgr8", png), "torn": send("jpeg", jpg[:100]),
+       "jpeg": send("rgb8; jpeg compressed bgr8", jpg), "acks": len(acks)}
+print("RESULT " + json.dumps(res), flush=True)
+rclpy.try_shutdown()
+'''
+
+
+def test_a_compressed_camera_topic_is_decoded_and_a_wrong_type_is_told(tmp_path):
+    """image_transport's ``/compressed`` topic: the tracker takes CompressedImage there (PNG
+    and JPEG decoded, a torn frame dropped with its reason); a raw Image published on it
+    never connects, and the tracker says so instead of waiting in silence."""
+    need_ros()
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text(FAST_CFG)
+    env = isolated_env()
+    tracker = _node("tracker", env, cfg, tmp_path / "tracker.log",
+                    "ros.image_topic:=/cam/image/compressed", "ros.camera_info_topic:=/cam/info",
+                    "node.input_qos:=reliable", "node.mapping:=false")
+    feeder = start([PY, "-c", COMPRESSED_INPUT], env, tmp_path / "feeder.log")
+    try:
+        assert feeder.wait(timeout=300) == 0, (tmp_path / "feeder.log").read_text()[-3000:]
+        alive = tracker.poll() is None
+    finally:
+        for p in (feeder, tracker):
+            stop(p)
+    r = _result(tmp_path / "feeder.log")
+    tlog = (tmp_path / "tracker.log").read_text()
+    assert alive, tlog[-3000:]
+    assert r == {"png": True, "torn": True, "jpeg": True, "acks": 3}, (r, tlog[-3000:])
+    assert "/cam/image/compressed is published as sensor_msgs/msg/Image, but the tracker " \
+           "takes sensor_msgs/msg/CompressedImage there" in tlog, tlog[-3000:]
+    assert "tracker started on 64x48" in tlog
+    assert "cannot decode the compressed image (100 bytes, format 'jpeg')" in tlog
+    assert tlog.count("dropped") == 1, tlog[-3000:]
 
 
 # A node whose spin loses the race between a SIGTERM's shutdown and the executor's wait-set

@@ -114,7 +114,9 @@ class Player:
                       for r in ROLE_TOPICS}
         if self.roles["image"] not in reader.types:
             raise PlayerError(f"bag has no image topic {self.roles['image']!r} "
-                              f"(topics: {', '.join(sorted(reader.types))})")
+                              f"(topics: {', '.join(sorted(reader.types))}); pass "
+                              "--image-topic, or convert a bag recorded elsewhere first: "
+                              "splat-slam-convert BAG --out NEW [--image-topic TOPIC]")
         roles = ("image", "camera_info") if args.topics == "camera" else ROLE_TOPICS
         self.topics = [self.roles[r] for r in roles if self.roles[r] in reader.types]
         self.remap = {self.roles["image"]: args.out_image or self.roles["image"],

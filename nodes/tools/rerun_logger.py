@@ -81,7 +81,12 @@ class RerunLogger(SplatNode):
         self.subscribe(PathMsg, TOPICS["trajectory"], Q.status_qos(), self._path, "Path")
         self.subscribe(CameraInfo, self.cfg.ros.camera_info_topic, Q.sensor_qos(), self._info,
                        "CameraInfo")
-        self.subscribe(Image, self.cfg.ros.image_topic, Q.sensor_qos(), self._input, "Image")
+        from sensor_msgs.msg import CompressedImage
+
+        from splat_slam_ros.io.sensor_codec import is_compressed_topic
+        img_type = CompressedImage if is_compressed_topic(self.cfg.ros.image_topic) else Image
+        self.subscribe(img_type, self.cfg.ros.image_topic, Q.sensor_qos(), self._input,
+                       img_type.__name__)
         self.subscribe(Image, TOPICS["rendered_rgb"], Q.rendered_qos(),
                        lambda m, raw: self._image(m, "rendered/rgb"), "Image")
         self.subscribe(Image, TOPICS["rendered_depth"], Q.rendered_qos(),

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import sys
-from typing import Callable, Dict, List, Tuple, Type
+from typing import Callable, Dict, List, Optional, Tuple, Type
 
 import yaml
 
@@ -66,3 +66,20 @@ def parse_overrides(items: List[str]) -> Dict[str, object]:
         k, v = it.split("=", 1)
         out[k.strip()] = yaml.safe_load(v)
     return out
+
+
+def bag_topics(image_topic: Optional[str] = None, camera_info_topic: Optional[str] = None
+               ) -> dict:
+    """``open_dataset`` options of the CLIs' ``--image-topic`` / ``--camera-info-topic``."""
+    t = {k: v for k, v in (("image", image_topic), ("camera_info", camera_info_topic)) if v}
+    return {"topics": t} if t else {}
+
+
+def add_topic_arguments(ap) -> None:
+    """The CLIs' bag topic options (a bag not written by splat-slam-convert)."""
+    ap.add_argument("--image-topic", metavar="TOPIC",
+                    help="a bag's image topic (sensor_msgs/Image or CompressedImage; default: "
+                         "the bag's only image topic)")
+    ap.add_argument("--camera-info-topic", metavar="TOPIC",
+                    help="a bag's camera_info topic (default: the image topic's sibling "
+                         "camera_info, or the bag's only one)")

@@ -4,13 +4,15 @@
     splat-slam-convert BAG --recover --out NEW   (repair a bag whose recorder was killed)
     splat-slam-convert INPUT --out BAG_DIR [--format auto|tum|replica|scannet|euroc|folder|
         video|posefolder] [--intrinsics FILE] [--max-frames N] [--stride K] [--fps F]
-        [--depth-scale S] [--overwrite] [--compress] [--quiet]
+        [--depth-scale S] [--image-topic T] [--camera-info-topic T] [--overwrite]
+        [--compress] [--quiet]
 """
 from __future__ import annotations
 
 import argparse
 import sys
 
+from splat_slam_ros.cli.common import add_topic_arguments, bag_topics
 from splat_slam_ros.io.datasets import FORMATS, DatasetError, open_dataset
 
 
@@ -18,7 +20,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="splat-slam-convert",
         description="Convert a dataset (TUM, Replica, ScanNet, EuRoC, ICL/slambook pose folder, "
-                    "image folder, video) into a rosbag2 MCAP bag for the splat_slam nodes.")
+                    "image folder, video) or another rosbag2 bag (a robot's recording: raw, "
+                    "compressed, Bayer or YUV images) into a rosbag2 MCAP bag for the "
+                    "splat_slam nodes.")
     ap.add_argument("input", help="dataset folder, video file, or bag")
     ap.add_argument("--out", help="output bag folder (must not exist)")
     ap.add_argument("--info", action="store_true",
@@ -34,6 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--fps", type=float, help="frame rate for layouts without timestamps "
                     "(folder, replica, scannet, posefolder; default 30) or to override a "
                     "video's timestamps")
+    add_topic_arguments(ap)
     ap.add_argument("--depth-scale", type=float,
                     help="raw depth units per metre (default per format: TUM/ICL 5000, "
                     "Replica 6553.5, ScanNet 1000)")
@@ -109,15 +114,16 @@ def main(argv=None) -> int:
     if args.recover:
         return recover(args.input, args.out)
     from splat_slam_ros.io.bagio import write_bag
+    topics = bag_topics(args.image_topic, args.camera_info_topic)
     try:
         if args.info:
             with open_dataset(args.input, fmt=args.format, intrinsics=args.intrinsics,
-                              fps=args.fps, depth_scale=args.depth_scale) as ds:
+                              fps=args.fps, depth_scale=args.depth_scale, **topics) as ds:
                 describe(ds)
             return 0
         ds = open_dataset(args.input, fmt=args.format, intrinsics=args.intrinsics,
                           max_frames=args.max_frames, stride=args.stride, fps=args.fps,
-                          depth_scale=args.depth_scale)
+                          depth_scale=args.depth_scale, **topics)
         K = ds.intrinsics
         print(f"{ds.format} dataset '{ds.name}': {len(ds)} frames {K.width}x{K.height}, "
               f"fx={K.fx:g} fy={K.fy:g} cx={K.cx:g} cy={K.cy:g}"

@@ -5,7 +5,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from splat_slam_ros.cli.common import parse_overrides, run_main
+from splat_slam_ros.cli.common import (add_topic_arguments, bag_topics, parse_overrides,
+                                       run_main)
 
 EPILOG = """\
 modes:
@@ -76,6 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "map is not changed (copied to --out)")
     p.add_argument("--format", default="auto", help="input format (see splat-slam-convert)")
     p.add_argument("--intrinsics", help="intrinsics YAML when the input has none")
+    add_topic_arguments(p)
     p.add_argument("--skip-frames", metavar="FILE",
                    help="replay a live run's tracker: the frames whose timestamps FILE lists "
                         "(the frames_skipped.txt a live splat-slam-launch run writes) are "
@@ -157,7 +159,8 @@ def main(argv=None) -> int:
         if args.load_map:
             from splat_slam_ros.io.session import load_session
             session = load_session(Path(args.load_map))     # validated before any frame
-        ds = open_dataset(args.input, fmt=args.format, intrinsics=args.intrinsics)
+        ds = open_dataset(args.input, fmt=args.format, intrinsics=args.intrinsics,
+                          **bag_topics(args.image_topic, args.camera_info_topic))
         if args.start_frame:
             from splat_slam_ros.io.datasets import FromFrame
             ds = FromFrame(ds, args.start_frame)

@@ -39,8 +39,8 @@ from splat_slam_ros.geometry import pose_from_tq, pose_to_tq
 from splat_slam_ros.io import mcap_recover
 from splat_slam_ros.io.bag_reader import INFO_FILE, BagFile, is_bag_dir, make_typestore
 from splat_slam_ros.io.bag_reader import register_project_types  # noqa: F401 (public re-export)
-from splat_slam_ros.io.sensor_codec import (camera_info_to_intrinsics, decode_depth, decode_rgb,
-                                           encode_image)
+from splat_slam_ros.io.sensor_codec import (ConversionError, camera_info_to_intrinsics,
+                                           decode_depth, decode_rgb, encode_image)
 from splat_slam_ros.types import Frame, Intrinsics
 
 DEFAULT_TOPICS: Dict[str, Optional[str]] = {
@@ -53,8 +53,62 @@ CAMERA_FRAME = "camera"
 WORLD_FRAME = "world"
 
 T_IMAGE = "sensor_msgs/msg/Image"
+T_COMPRESSED = "sensor_msgs/msg/CompressedImage"
 T_INFO = "sensor_msgs/msg/CameraInfo"
 T_POSE = "geometry_msgs/msg/PoseStamped"
+IMAGE_TYPES = (T_IMAGE, T_COMPRESSED)
+
+
+def _listing(topics: Dict[str, Tuple[str, int]]) -> str:
+    return ", ".join(sorted(topics)) or "none"
+
+
+def camera_topics(path, avail: Dict[str, Tuple[str, int]], tp: Dict[str, Optional[str]],
+                  given: Dict[str, Optional[str]], intrinsics_given: bool
+                  ) -> Tuple[str, Optional[str]]:
+    """(image topic, camera_info topic or None) of a bag. ``given``: the user's choice
+    (``--image-topic`` / ``--camera-info-topic``); ``tp``: the bag info's or the defaults. A bag
+    not written by ``splat-slam-convert`` has its own names: its one image topic
+    (sensor_msgs/Image or CompressedImage; topics named "depth" aside) and that camera's
+    camera_info (image_transport's sibling ``.../camera_info``, else the bag's only one). No
+    camera_info is needed when intrinsics are given."""
+    def check(role, topic, types):
+        if topic not in avail:
+            raise DatasetError(f"{path}: bag has no {role} topic {topic!r} "
+                               f"(topics: {_listing(avail)})")
+        if avail[topic][0] not in types:
+            raise DatasetError(f"{path}: topic {topic} is a {avail[topic][0]}, not a "
+                               f"{' or '.join(types)}")
+        return topic
+
+    if given.get("image"):
+        image = check("image", given["image"], IMAGE_TYPES)
+    elif tp.get("image") in avail:
+        image = check("image", tp["image"], IMAGE_TYPES)
+    else:
+        cands = sorted(t for t, (ty, n) in avail.items()
+                       if ty in IMAGE_TYPES and n > 0 and "depth" not in t.lower())
+        if len(cands) != 1:
+            raise DatasetError(
+                f"{path}: " + (f"bag has {len(cands)} image topics ({', '.join(cands)}): choose "
+                               "one with --image-topic TOPIC" if cands else
+                               f"bag has no image topic (sensor_msgs/Image or CompressedImage; "
+                               f"topics: {_listing(avail)})"))
+        image = cands[0]
+    if given.get("camera_info"):
+        return image, check("camera_info", given["camera_info"], (T_INFO,))
+    base = image[:-len("/compressed")] if image.endswith("/compressed") else image
+    infos = sorted(t for t, (ty, n) in avail.items() if ty == T_INFO and n > 0)
+    for t in (base.rsplit("/", 1)[0] + "/camera_info", tp.get("camera_info")):
+        if t in infos:
+            return image, t
+    if len(infos) == 1:
+        return image, infos[0]
+    if intrinsics_given:
+        return image, None
+    raise DatasetError(f"{path}: no camera_info topic for {image} (camera_info topics: "
+                       f"{', '.join(infos) or 'none'}): choose one with --camera-info-topic "
+                       "TOPIC, or give the calibration with --intrinsics FILE")
 
 
 # ------------------------------------------------------------ message builders
@@ -235,7 +289,7 @@ class BagDataset(Dataset):
 
     def __init__(self, path, max_frames: Optional[int] = None, stride: int = 1,
                  keep_mono: bool = False, topics: Optional[Dict[str, Optional[str]]] = None,
-                 backend: str = "auto"):
+                 backend: str = "auto", intrinsics: Optional[Intrinsics] = None):
         check_selection(stride, max_frames)
         p = Path(path)
         self._bag = bag = BagFile(p, backend)
@@ -243,29 +297,31 @@ class BagDataset(Dataset):
         info, custom, bag_dir = bag.info, bag.custom, bag.bag_dir
         tp = dict(DEFAULT_TOPICS)
         tp.update(info.get("topics") or {})
-        tp.update(topics or {})
-        self.topics = tp
+        tp.update({k: v for k, v in (topics or {}).items() if k not in ("image", "camera_info")})
         self.info_file = info
         name = info.get("name") or custom.get("splat_slam.name") or \
             (bag_dir.name if bag_dir is not None else p.stem)
         self.source_format = info.get("format") or custom.get("splat_slam.format")
         avail = bag.topics()
-        for role in ("image", "camera_info"):
-            if tp.get(role) not in avail:
-                raise DatasetError(f"{p}: bag has no {role} topic {tp.get(role)!r} "
-                                   f"(topics: {', '.join(sorted(avail)) or 'none'})")
+        tp["image"], tp["camera_info"] = camera_topics(p, avail, tp, topics or {},
+                                                       intrinsics is not None)
+        self.topics = tp
         # First pass: small topics decoded, image topic only counted (log times).
-        K = None
+        K = copy_intrinsics(intrinsics) if intrinsics is not None else None
         img_ns: List[int] = []
         gt: Dict[int, np.ndarray] = {}
-        want = [tp["image"], tp["camera_info"]] + ([tp["gt_pose"]] if tp.get("gt_pose") in avail
-                                                    else [])
+        want = [tp["image"]] + ([tp["camera_info"]] if K is None else []) + \
+            ([tp["gt_pose"]] if tp.get("gt_pose") in avail else [])
         for topic, t, dec in bag.messages(want):
             if topic == tp["image"]:
                 img_ns.append(t)
             elif topic == tp["camera_info"]:
                 if K is None:
-                    K = camera_info_to_intrinsics(dec())
+                    try:
+                        K = camera_info_to_intrinsics(dec())
+                    except ConversionError as e:
+                        raise DatasetError(f"{p}: {topic}: {e} (give the calibration with "
+                                           "--intrinsics FILE)") from None
             else:
                 m = dec()
                 gt[msg_stamp_ns(m)] = pose_from_msg(m)
@@ -345,10 +401,13 @@ class BagDataset(Dataset):
                     if msg_stamp_ns(dm) == ns:
                         depth = decode_depth(dm)
                         break
-                img = decode_rgb(m, keep)
+                try:
+                    img = decode_rgb(m, keep)
+                except ConversionError as e:
+                    raise DatasetError(f"image {ordinal} on {tp['image']}: {e}") from None
                 if (img.shape[1], img.shape[0]) != (self.intrinsics.width, self.intrinsics.height):
                     raise DatasetError(f"image {ordinal} in the bag is {img.shape[1]}x"
-                                       f"{img.shape[0]} but camera_info says "
+                                       f"{img.shape[0]} but the calibration says "
                                        f"{self.intrinsics.width}x{self.intrinsics.height}")
                 yield Frame(index=out, timestamp=ns_to_stamp(ns), image=img,
                             intrinsics=copy_intrinsics(self.intrinsics),

@@ -20,6 +20,7 @@ import yaml
 from splat_slam_ros.geometry import interpolate_pose
 from splat_slam_ros.io.trajectory_io import TrajectoryFormatError, read_trajectory
 from splat_slam_ros.types import DatasetError, Frame, Intrinsics, IntrinsicsError
+from splat_slam_ros.io.sensor_codec import to_8bit
 
 
 FORMATS = ("tum", "replica", "scannet", "euroc", "folder", "video", "posefolder", "bag")
@@ -130,7 +131,7 @@ def read_image(path: Path, keep_mono: bool = False) -> np.ndarray:
 
 def _to_rgb8(img: np.ndarray, src, keep_mono: bool, bgr: bool = True) -> np.ndarray:
     if img.dtype == np.uint16:
-        img = ((img.astype(np.uint32) + 128) // 257).astype(np.uint8)
+        img = to_8bit(img)
     elif img.dtype != np.uint8:
         raise DatasetError(f"unsupported image pixel type {img.dtype} in {src} (need 8/16-bit)")
     if img.ndim == 3 and img.shape[2] == 1:

@@ -110,7 +110,8 @@ def open_dataset(path, fmt: str = "auto", intrinsics: Union[None, str, Path, Int
     ``fps``: frame rate for layouts without timestamps (folder, replica, scannet,
     posefolder; default 30) and to override a video's stamps. ``depth_scale``: raw depth
     units per metre (overrides the format default and ``depth_scale`` in intrinsics YAML).
-    ``options``: format-specific (``camera="cam1"`` for EuRoC, ``topics={...}`` for bags).
+    ``options``: format-specific (``camera="cam1"`` for EuRoC, ``topics={"image": ...,
+    "camera_info": ...}`` for bags: see ``bagio.camera_topics``).
     """
     p = Path(path)
     if not p.exists():
@@ -119,11 +120,15 @@ def open_dataset(path, fmt: str = "auto", intrinsics: Union[None, str, Path, Int
         fmt = detect_format(p)
     if fmt not in FORMATS:
         raise DatasetError(f"unknown format {fmt!r}; use one of auto, {', '.join(FORMATS)}")
+    K, extra = as_intrinsics(intrinsics)
     if fmt == "bag":      # imported here: the mcap/zstd/lz4 readers cost 0.7 MB of RSS
         from splat_slam_ros.io.bagio import BagDataset
         return BagDataset(p, max_frames=max_frames, stride=stride, keep_mono=keep_mono,
-                          **options)
-    K, extra = as_intrinsics(intrinsics)
+                          intrinsics=K, **options)
+    if options.get("topics"):
+        raise DatasetError(f"{p}: --image-topic / --camera-info-topic apply to bags only "
+                           f"(this input is '{fmt}')")
+    options.pop("topics", None)
     if fmt == "video":
         if not p.is_file():
             raise DatasetError(f"{p}: format 'video' needs a video file")

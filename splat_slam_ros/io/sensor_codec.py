@@ -6,13 +6,22 @@ expose the same fields (``encoding``, ``height``, ``width``, ``step``, ``is_bige
 ``data``; ``k``, ``d``, ``distortion_model``), so the decoders only read those.
 
 Encodings (case-insensitive on input, canonical names on output): rgb8, bgr8, rgba8, bgra8,
-mono8, 8UC1, mono16, 16UC1, 32FC1. Depth: 32FC1 metres or 16UC1/mono16 millimetres (REP-118).
+mono8, 8UC1, the 16-bit colour ones (rgb16, bgr16, rgba16, bgra16: scaled to 8 bits),
+the 8-bit Bayer mosaics (bayer_rggb8, bayer_bggr8, bayer_gbrg8, bayer_grbg8: demosaicked with
+OpenCV), packed YUV 4:2:2 (yuv422 = uyvy, yuv422_yuy2 = yuyv), mono16, 16UC1, 32FC1. Depth:
+32FC1 metres or 16UC1/mono16 millimetres (REP-118).
+
+``sensor_msgs/CompressedImage`` (``format``, ``data``: image_transport's "compressed"
+transport, e.g. "rgb8; jpeg compressed bgr8", or a bare "jpeg" / "png") is decoded with
+OpenCV by :func:`decode_rgb` as well; its compressedDepth variant is refused.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+import re
 from typing import Optional
 
+import cv2
 import numpy as np
 
 from splat_slam_ros.types import Intrinsics
@@ -34,12 +43,28 @@ ENCODINGS = {
     "bgra8": (np.uint8, 4),
     "mono8": (np.uint8, 1),
     "8UC1": (np.uint8, 1),
+    "rgb16": (np.uint16, 3),
+    "bgr16": (np.uint16, 3),
+    "rgba16": (np.uint16, 4),
+    "bgra16": (np.uint16, 4),
+    "bayer_rggb8": (np.uint8, 1),
+    "bayer_bggr8": (np.uint8, 1),
+    "bayer_gbrg8": (np.uint8, 1),
+    "bayer_grbg8": (np.uint8, 1),
+    "yuv422": (np.uint8, 2),
+    "yuv422_yuy2": (np.uint8, 2),
     "mono16": (np.uint16, 1),
     "16UC1": (np.uint16, 1),
     "32FC1": (np.float32, 1),
 }
 _CANONICAL = {k.lower(): k for k in ENCODINGS}
-COLOUR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8UC1")
+_CANONICAL.update(uyvy="yuv422", yuyv="yuv422_yuy2")      # the names ROS 2 Jazzy adds
+# encoding -> OpenCV conversion to RGB (OpenCV names a Bayer mosaic by its second row)
+_TO_RGB = {"bayer_rggb8": cv2.COLOR_BayerBG2RGB, "bayer_bggr8": cv2.COLOR_BayerRG2RGB,
+           "bayer_gbrg8": cv2.COLOR_BayerGR2RGB, "bayer_grbg8": cv2.COLOR_BayerGB2RGB,
+           "yuv422": cv2.COLOR_YUV2RGB_UYVY, "yuv422_yuy2": cv2.COLOR_YUV2RGB_YUY2}
+COLOUR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8UC1", "rgb16", "bgr16",
+                    "rgba16", "bgra16") + tuple(_TO_RGB)
 
 
 def canonical_encoding(encoding: str) -> str:
@@ -92,10 +117,22 @@ def decode_image(msg, copy: bool = True) -> np.ndarray:
     return a.copy() if copy and not copied else a
 
 
+def to_8bit(a: np.ndarray) -> np.ndarray:
+    """16-bit intensities -> 8-bit (x / 257, rounded)."""
+    return ((a.astype(np.uint32) + 128) // 257).astype(np.uint8)
+
+
 def to_rgb(a: np.ndarray, encoding: str, keep_mono: bool = False) -> np.ndarray:
-    """A decoded 8-bit colour/mono image -> H x W x 3 uint8 RGB (a new array); with
-    ``keep_mono`` a mono image stays H x W."""
+    """A decoded colour/mono camera image -> H x W x 3 uint8 RGB (a new array); with
+    ``keep_mono`` a mono image stays H x W (a Bayer mosaic is a colour image)."""
     enc = canonical_encoding(encoding)
+    if enc in _TO_RGB:
+        if a.shape[0] < 2 or a.shape[1] < 2 or (enc.startswith("yuv") and a.shape[1] % 2):
+            raise ConversionError(f"a {a.shape[1]}x{a.shape[0]} image cannot be {enc} (a "
+                                  "Bayer mosaic needs 2x2 pixels, packed YUV an even width)")
+        return cv2.cvtColor(np.ascontiguousarray(a), _TO_RGB[enc])
+    if enc.endswith("16") and enc[:-2] in ("rgb", "bgr", "rgba", "bgra"):
+        a, enc = to_8bit(a), enc[:-2] + "8"
     if enc == "rgb8":
         return a.copy()
     if enc == "bgr8":
@@ -107,11 +144,51 @@ def to_rgb(a: np.ndarray, encoding: str, keep_mono: bool = False) -> np.ndarray:
     if enc in ("mono8", "8UC1"):
         return a.copy() if keep_mono else np.repeat(a[:, :, None], 3, axis=2)
     raise UnsupportedEncoding(f"image encoding {encoding!r} is not a colour image "
-                              "(expected rgb8, bgr8, rgba8, bgra8 or mono8)")
+                              f"(expected one of {', '.join(COLOUR_ENCODINGS)})")
+
+
+def is_compressed(msg) -> bool:
+    """A sensor_msgs/CompressedImage (``format`` + ``data``, no ``encoding``)?"""
+    return hasattr(msg, "format") and not hasattr(msg, "encoding")
+
+
+def is_compressed_topic(topic: str) -> bool:
+    """image_transport's naming: the compressed transport of BASE is ``BASE/compressed``."""
+    return str(topic).rstrip("/").endswith("/compressed")
+
+
+def decode_compressed(msg, keep_mono: bool = False) -> np.ndarray:
+    """CompressedImage fields (``format``, ``data``) -> H x W x 3 uint8 RGB (H x W for a mono
+    image with ``keep_mono``). The format is image_transport's ("<encoding>; jpeg compressed
+    <encoding>", the second being the order of the compressed colours: OpenCV writes and
+    reads BGR) or just the codec ("jpeg", "png")."""
+    fmt = str(msg.format).strip()
+    if "compresseddepth" in fmt.lower():
+        raise UnsupportedEncoding(f"compressed image format {fmt!r} is a depth image "
+                                  "(compressedDepth), not a camera image")
+    buf = _bytes(msg.data)
+    a = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+    if a is None:
+        raise ConversionError(f"cannot decode the compressed image ({buf.size} bytes, format "
+                              f"{fmt or 'not given'!r})")
+    if a.dtype == np.uint16:
+        a = to_8bit(a)
+    elif a.dtype != np.uint8:
+        raise UnsupportedEncoding(f"compressed image of pixel type {a.dtype} (format {fmt!r})")
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[:, :, 0]
+    if a.ndim == 2:
+        return to_rgb(a, "mono8", keep_mono)
+    m = re.search(r"compressed\s+(\w+)", fmt.lower())
+    order = "rgb" if m and m.group(1).startswith("rgb") else "bgr"
+    return to_rgb(a, order + ("a8" if a.shape[2] == 4 else "8"), keep_mono)
 
 
 def decode_rgb(msg, keep_mono: bool = False) -> np.ndarray:
-    """Image fields of a colour/mono 8-bit encoding -> H x W x 3 uint8 RGB (a copy)."""
+    """Image fields of a colour/mono camera encoding (or CompressedImage fields) -> H x W x 3
+    uint8 RGB (a copy)."""
+    if is_compressed(msg):
+        return decode_compressed(msg, keep_mono)
     return to_rgb(decode_image(msg, copy=False), msg.encoding, keep_mono)
 
 
