@@ -1,6 +1,7 @@
 """tracker_node: camera frames -> TrackerRole (flow + dense BA, §3.1) -> keyframes, poses, updates.
 
-Subscribes  ros.image_topic (sensor_msgs/Image: rgb8, bgr8, mono8, rgba8, bgra8) and
+Subscribes  ros.image_topic (sensor_msgs/Image: rgb8, bgr8, mono8, rgba8, bgra8, 16-bit
+            colour, Bayer, YUV 4:2:2; CompressedImage when it ends in /compressed) and
             ros.camera_info_topic (sensor_msgs/CameraInfo) — remap with ``--set`` / ``-p``;
             /splat/pose_graph_updates (loop closure / global BA updates);
             /splat/graph_events (end_of_stream -> finalize; the loop closer's ``finalized``).

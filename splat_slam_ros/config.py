@@ -394,7 +394,7 @@ class RosConfig:
     odom_frame: str = "odom"             # map -> odom: loop closure / global BA corrections
     camera_frame: str = "camera"         # odom -> camera: tracking (ROS body axes, REP-103)
     optical_frame: str = "camera_optical"  # static camera -> optical (OpenCV axes, images)
-    image_topic: str = "image"           # input sensor_msgs/Image topic
+    image_topic: str = "image"           # input sensor_msgs/Image (CompressedImage: ends in /compressed)
     camera_info_topic: str = "camera_info"  # input sensor_msgs/CameraInfo topic
 
 

@@ -307,7 +307,15 @@ def test_launcher_keeps_the_mapper_at_pace_on_realtime_input(tmp_path, monkeypat
     assert not steps.cfg.mapping.time_budget and steps.cfg.mapping.keep_up == 0
     assert not steps.keep_up_note
     from splat_slam_nodes.tools import bag_player            # a bag (its reader stubbed)
-    monkeypatch.setattr(bag_player, "BagReader", lambda path: object())
+
+    class Bag:                        # this project's layout
+        info = {}
+        types = {"/camera/image_raw": "sensor_msgs/msg/Image",
+                 "/camera/camera_info": "sensor_msgs/msg/CameraInfo"}
+
+        def topics(self):
+            return {t: (ty, 1) for t, ty in self.types.items()}
+    monkeypatch.setattr(bag_player, "BagReader", lambda path: Bag())
     lock = planned("--bag", str(tmp_path / "b.mcap"))         # lockstep replay: steps
     assert not lock.cfg.mapping.time_budget and lock.cfg.mapping.keep_up == 0
     assert not lock.keep_up_note

@@ -117,12 +117,12 @@ def test_compressed_images_as_image_transport_writes_them():
         not is_compressed_topic("/cam/image_raw")
 
 
-def write_robot_bag(path, cameras, n=4, extra=True, info=True):
+def write_robot_bag(path, cameras, n=4, extra=True, info=True, storage="MCAP"):
     """A bag as a robot records it: per camera (namespace, kind) an image topic — "png" /
     "jpeg": ``NS/image_raw/compressed`` (CompressedImage), "bayer": ``NS/image_raw``
     (bayer_rggb8) — with ``NS/camera_info`` (``info``), and an unrelated String topic."""
     from rosbags.rosbag2 import StoragePlugin, Writer
-    w = Writer(path, version=8, storage_plugin=StoragePlugin.MCAP)
+    w = Writer(path, version=8, storage_plugin=getattr(StoragePlugin, storage))
     w.open()
     conns = {}
 
@@ -148,8 +148,12 @@ def write_robot_bag(path, cameras, n=4, extra=True, info=True):
     return path
 
 
-def test_a_robots_bag_is_read_with_its_own_topics(tmp_path, capsys):
-    bag = write_robot_bag(tmp_path / "robot", [("/cam0", "png")])
+@pytest.mark.parametrize("storage", ["MCAP", "SQLITE3"])
+def test_a_robots_bag_is_read_with_its_own_topics(tmp_path, capsys, storage):
+    bag = write_robot_bag(tmp_path / "robot", [("/cam0", "png")], storage=storage)
+    assert convert_main([str(bag), "--info"]) == 0
+    assert "camera: /cam0/image_raw/compressed, calibration from /cam0/camera_info" in \
+        capsys.readouterr().out
     ds = open_dataset(bag)
     assert ds.topics["image"] == "/cam0/image_raw/compressed"
     assert ds.topics["camera_info"] == "/cam0/camera_info"

@@ -61,7 +61,8 @@ def tiny_bag(tmp_path_factory):
 
 def compressed_copy(bag: Path, out: Path) -> Path:
     """``bag``'s frames as a camera driver with image_transport records them: PNG
-    CompressedImage on /camera/image_raw/compressed beside /camera/camera_info."""
+    CompressedImage on /camera/image_raw/compressed beside /camera/camera_info (and the
+    ground truth on /ground_truth/pose)."""
     import cv2
     from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -71,6 +72,7 @@ def compressed_copy(bag: Path, out: Path) -> Path:
     w.open()
     ci = w.add_connection("/camera/camera_info", bagio.T_INFO, typestore=ts)
     im = w.add_connection("/camera/image_raw/compressed", bagio.T_COMPRESSED, typestore=ts)
+    gt = w.add_connection("/ground_truth/pose", bagio.T_POSE, typestore=ts)
     for f in bagio.BagDataset(bag):
         ns = bagio.stamp_to_ns(f.timestamp)
         png = cv2.imencode(".png", np.ascontiguousarray(f.image[:, :, ::-1]))[1].reshape(-1)
@@ -79,8 +81,32 @@ def compressed_copy(bag: Path, out: Path) -> Path:
         w.write(ci, ns, ts.serialize_cdr(bagio.camera_info_msg(ts, f.intrinsics, ns),
                                          bagio.T_INFO))
         w.write(im, ns, ts.serialize_cdr(m, bagio.T_COMPRESSED))
+        w.write(gt, ns, ts.serialize_cdr(bagio.pose_msg(ts, f.gt_pose, ns), bagio.T_POSE))
     w.close()
     return out
+
+
+def test_a_bag_recorded_elsewhere_plays_with_its_own_topics(tiny_bag, tmp_path):
+    """``--bag`` on a bag in image_transport's layout (compressed images, not this project's
+    topic names): the launcher plays its camera topics, the tracker decodes them; every frame
+    posed. A topic choice that cannot connect is an error before any node starts."""
+    bag, cfg = tiny_bag
+    robot = compressed_copy(bag, tmp_path / "robot")
+    env = isolated_env()
+    out = tmp_path / "out"
+    r = run_launch(_launch_args(robot, cfg, out) + ["--tracking-only"], env,
+                   tmp_path / "launch.log", timeout=600)
+    log = (tmp_path / "launch.log").read_text(errors="replace")
+    assert r == 0, log[-4000:]
+    assert "on /camera/image_raw/compressed, /camera/camera_info" in log, log[-3000:]
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["frames_tracked"] == 40 and m["frames_posed"] == 40, m
+    assert m["ate_rmse_cm_full"] < 3.0, m
+    bad = subprocess.run(_launch_args(robot, cfg, tmp_path / "o2") + [
+        "--set", "ros.image_topic=/cam/image"], env=env, capture_output=True, text=True,
+        timeout=120)
+    assert bad.returncode == 2 and "the bag's images (/camera/image_raw/compressed) are " \
+        "CompressedImage: ros.image_topic must end in /compressed" in bad.stderr, bad.stderr
 
 
 def _launch_args(bag, cfg, out):

@@ -69,6 +69,8 @@ def describe(ds) -> None:
     print(f"  gt_pose={ds.has_gt_pose} gt_depth={ds.has_gt_depth}")
     if ds.format == "bag":
         print(f"  converted from: {ds.source_format or 'unknown'}")
+        print(f"  camera: {ds.topics['image']}, calibration from "
+              f"{ds.topics['camera_info'] or '--intrinsics'}")
         for h in ds.health():
             print(f"  {'DAMAGED ' if h.damaged else ''}{h.describe()}"
                   + ("; repair: splat-slam-convert --recover BAG --out NEW" if h.damaged else ""))
