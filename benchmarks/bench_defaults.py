@@ -78,12 +78,15 @@ def ensure_sequence(data_dir: Path, name: str, frames: int, clean: bool = False)
     return out
 
 
-def ensure_bag(seq: Path) -> Path:
-    bag = seq.with_name(seq.name + "_bag")
+def ensure_bag(seq: Path, jpeg: int = 0) -> Path:
+    """The sequence's bag (converted once): raw images, or JPEG CompressedImage at quality
+    ``jpeg`` (``splat-slam-convert --jpeg``)."""
+    bag = seq.with_name(seq.name + "_bag" + (f"_jpeg{jpeg}" if jpeg else ""))
     if not (bag / "metadata.yaml").is_file():
         from splat_slam_ros.io.bagio import write_bag
         from splat_slam_ros.io.datasets import open_dataset
-        write_bag(open_dataset(seq), bag, progress=True, overwrite=True)
+        write_bag(open_dataset(seq), bag, progress=True, overwrite=True,
+                  jpeg_quality=jpeg or None)
     return bag
 
 

@@ -2,7 +2,7 @@
 """A live camera through the whole default graph: realtime replay vs lockstep, same frames.
 
     .venv/bin/python benchmarks/bench_live.py [--sequences fr2desk,v102] [--data-dir DIR]
-        [--no-lockstep] [--set KEY=VALUE ...] [--json benchmarks/results/live.json]
+        [--no-lockstep] [--jpeg Q] [--set KEY=VALUE ...] [--json benchmarks/results/live.json]
 
 Sequences (640x480, ``--realism realistic``, rendered with ``splat-slam-synth`` into
 ``--data-dir`` when missing, converted once to a bag): ``fr2desk`` along the real TUM fr2/desk
@@ -91,6 +91,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-lockstep", action="store_true", help="realtime runs only")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for every run")
+    ap.add_argument("--jpeg", type=int, default=0, metavar="Q",
+                    help="play the frames as a compressed camera does: JPEG CompressedImage at "
+                         "quality Q on /camera/image_raw/compressed (the tracker decodes them)")
     ap.add_argument("--work", default=str(REPO / "benchmarks" / "results" / "live_work"))
     ap.add_argument("--json", default=str(REPO / "benchmarks" / "results" / "live.json"))
     a = ap.parse_args(argv)
@@ -103,7 +106,7 @@ def main(argv=None) -> int:
     env = dict(os.environ)
     results = {}
     for name in names:
-        bag = ensure_bag(ensure_sequence(data, name))
+        bag = ensure_bag(ensure_sequence(data, name), a.jpeg)
         for mode in (["realtime"] + ([] if a.no_lockstep else ["lockstep"])):
             r = run_one(mode, bag, work / f"{name}_{mode}", a.set, env)
             results[f"{name}/{mode}"] = r

@@ -222,3 +222,19 @@ def test_a_frame_that_does_not_decode_is_a_one_line_error(tmp_path, capsys):
     assert "error: image 2 on /cam/image_raw/compressed: cannot decode the compressed image " \
            "(100 bytes, format 'jpeg')" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_converted_with_jpeg_images(tmp_path, capsys):
+    """``splat-slam-convert --jpeg Q``: image_transport's compressed layout, read back like
+    any bag (the bag info names the topic), close to the source at quality 95."""
+    src = write_robot_bag(tmp_path / "robot", [("/cam0", "png")], n=3)
+    out = tmp_path / "small"
+    assert convert_main([str(src), "--out", str(out), "--quiet", "--jpeg", "95"]) == 0
+    assert "/camera/image_raw/compressed: 3 messages" in capsys.readouterr().out
+    ds = BagDataset(out)
+    assert ds.topics["image"] == "/camera/image_raw/compressed"
+    assert ds.topic_counts()["/camera/image_raw/compressed"][0] == bagio.T_COMPRESSED
+    for i, f in enumerate(ds):
+        assert np.abs(f.image.astype(int) - scene(i)).mean() < 3
+    assert convert_main([str(src), "--out", str(tmp_path / "q"), "--quiet", "--jpeg", "0"]) == 2
+    assert "JPEG quality 0 is outside 1..100" in capsys.readouterr().err

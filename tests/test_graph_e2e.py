@@ -60,29 +60,12 @@ def tiny_bag(tmp_path_factory):
 
 
 def compressed_copy(bag: Path, out: Path) -> Path:
-    """``bag``'s frames as a camera driver with image_transport records them: PNG
+    """``bag``'s frames as a camera driver with image_transport records them: JPEG
     CompressedImage on /camera/image_raw/compressed beside /camera/camera_info (and the
-    ground truth on /ground_truth/pose)."""
-    import cv2
-    from rosbags.rosbag2 import StoragePlugin, Writer
-
+    ground truth), without this project's bag info (a bag recorded elsewhere)."""
     from splat_slam_ros.io import bagio
-    ts = bagio.make_typestore(project_types=False)
-    w = Writer(out, version=8, storage_plugin=StoragePlugin.MCAP)
-    w.open()
-    ci = w.add_connection("/camera/camera_info", bagio.T_INFO, typestore=ts)
-    im = w.add_connection("/camera/image_raw/compressed", bagio.T_COMPRESSED, typestore=ts)
-    gt = w.add_connection("/ground_truth/pose", bagio.T_POSE, typestore=ts)
-    for f in bagio.BagDataset(bag):
-        ns = bagio.stamp_to_ns(f.timestamp)
-        png = cv2.imencode(".png", np.ascontiguousarray(f.image[:, :, ::-1]))[1].reshape(-1)
-        m = ts.types[bagio.T_COMPRESSED](header=bagio._header(ts, ns, "camera"),
-                                         format="rgb8; png compressed bgr8", data=png)
-        w.write(ci, ns, ts.serialize_cdr(bagio.camera_info_msg(ts, f.intrinsics, ns),
-                                         bagio.T_INFO))
-        w.write(im, ns, ts.serialize_cdr(m, bagio.T_COMPRESSED))
-        w.write(gt, ns, ts.serialize_cdr(bagio.pose_msg(ts, f.gt_pose, ns), bagio.T_POSE))
-    w.close()
+    bagio.write_bag(bagio.BagDataset(bag), out, progress=False, jpeg_quality=95)
+    (out / bagio.INFO_FILE).unlink()
     return out
 
 

@@ -5,7 +5,7 @@
     splat-slam-convert INPUT --out BAG_DIR [--format auto|tum|replica|scannet|euroc|folder|
         video|posefolder] [--intrinsics FILE] [--max-frames N] [--stride K] [--fps F]
         [--depth-scale S] [--image-topic T] [--camera-info-topic T] [--overwrite]
-        [--compress] [--quiet]
+        [--compress] [--jpeg Q] [--quiet]
 """
 from __future__ import annotations
 
@@ -48,6 +48,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--overwrite", action="store_true", help="replace an existing bag folder")
     ap.add_argument("--compress", action="store_true",
                     help="zstd-compress the MCAP chunks (smaller, slower to write)")
+    ap.add_argument("--jpeg", type=int, metavar="Q",
+                    help="store the images as JPEG CompressedImage at quality Q (1-100) on "
+                         "/camera/image_raw/compressed: about 15x smaller, lossy")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     return ap
 
@@ -134,7 +137,7 @@ def main(argv=None) -> int:
         for note in ds.notes:
             print(f"  note: {note}")
         s = write_bag(ds, args.out, progress=not args.quiet, overwrite=args.overwrite,
-                      compress=args.compress)
+                      compress=args.compress, jpeg_quality=args.jpeg)
     except DatasetError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -8,6 +8,8 @@ topic                  type                          content
 =====================  ============================  =========================================
 /camera/camera_info    sensor_msgs/msg/CameraInfo    K, P, distortion model + coefficients
 /camera/image_raw      sensor_msgs/msg/Image         original encoding: rgb8 (colour) / mono8
+                                                     (``jpeg_quality``: CompressedImage JPEG on
+                                                     /camera/image_raw/compressed instead)
 /camera/depth          sensor_msgs/msg/Image         32FC1 metres, 0 = unknown (REP-118);
                                                      only when the dataset has depth (eval only)
 /ground_truth/pose     geometry_msgs/msg/PoseStamped camera-to-world, frame_id "world";
@@ -40,7 +42,7 @@ from splat_slam_ros.io import mcap_recover
 from splat_slam_ros.io.bag_reader import INFO_FILE, BagFile, is_bag_dir, make_typestore
 from splat_slam_ros.io.bag_reader import register_project_types  # noqa: F401 (public re-export)
 from splat_slam_ros.io.sensor_codec import (ConversionError, camera_info_to_intrinsics,
-                                           decode_depth, decode_rgb, encode_image)
+                                           decode_depth, decode_rgb, encode_image, encode_jpeg)
 from splat_slam_ros.types import Frame, Intrinsics
 
 DEFAULT_TOPICS: Dict[str, Optional[str]] = {
@@ -132,6 +134,12 @@ def image_msg(ts, img: np.ndarray, ns: int, frame_id: str = CAMERA_FRAME):
     return _image(ts, img, ns, frame_id, "mono8" if img.ndim == 2 else "rgb8")
 
 
+def jpeg_msg(ts, img: np.ndarray, ns: int, quality: int, frame_id: str = CAMERA_FRAME):
+    """uint8 HxW or HxWx3 RGB -> sensor_msgs/CompressedImage (JPEG, image_transport's format)."""
+    fmt, data = encode_jpeg(np.asarray(img), quality)
+    return ts.types[T_COMPRESSED](header=_header(ts, ns, frame_id), format=fmt, data=data)
+
+
 def depth_msg(ts, depth: np.ndarray, ns: int, frame_id: str = CAMERA_FRAME):
     """float32 metres HxW -> sensor_msgs/Image 32FC1 (little endian)."""
     return _image(ts, np.asarray(depth, dtype=np.float32), ns, frame_id, "32FC1")
@@ -188,18 +196,25 @@ def _prepare_out(out: Path, overwrite: bool) -> None:
 
 def write_bag(dataset: Dataset, out_dir, progress: bool = True,
               topics: Optional[Dict[str, Optional[str]]] = None,
-              overwrite: bool = False, compress: bool = False) -> dict:
+              overwrite: bool = False, compress: bool = False,
+              jpeg_quality: Optional[int] = None) -> dict:
     """Write ``dataset`` as a rosbag2 folder (MCAP, CDR). Returns a summary dict
     (path, frames, topics {name: count}, duration_s, size_bytes).
 
     ``topics`` overrides DEFAULT_TOPICS per role (image, camera_info, depth, gt_pose); a
     role mapped to None is not written. ``compress``: zstd-compressed MCAP chunks (about
-    2x smaller for raw images, slower to write; every MCAP reader decodes them). A failure
-    removes the partial bag.
+    2x smaller for raw images, slower to write; every MCAP reader decodes them).
+    ``jpeg_quality``: the images as JPEG CompressedImage at that quality (lossy, about 15x
+    smaller) on image_transport's ``/camera/image_raw/compressed``. A failure removes the
+    partial bag.
     """
     from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 
     tp = dict(DEFAULT_TOPICS)
+    if jpeg_quality is not None:
+        if not 1 <= int(jpeg_quality) <= 100:
+            raise DatasetError(f"JPEG quality {jpeg_quality} is outside 1..100")
+        tp["image"] += "/compressed"
     tp.update(topics or {})
     if not tp.get("image"):
         raise DatasetError("write_bag needs an image topic")
@@ -227,7 +242,7 @@ def write_bag(dataset: Dataset, out_dir, progress: bool = True,
             return conns.get(role)
 
         conn("camera_info", T_INFO)
-        conn("image", T_IMAGE)
+        conn("image", T_IMAGE if jpeg_quality is None else T_COMPRESSED)
         if dataset.has_gt_depth:
             conn("depth", T_IMAGE)
         if dataset.has_gt_pose:
@@ -250,7 +265,8 @@ def write_bag(dataset: Dataset, out_dir, progress: bool = True,
             first_ns = ns if first_ns is None else first_ns
             last_ns = ns
             put("camera_info", camera_info_msg(ts, f.intrinsics, ns))
-            put("image", image_msg(ts, f.image, ns))
+            put("image", image_msg(ts, f.image, ns) if jpeg_quality is None else
+                jpeg_msg(ts, f.image, ns, jpeg_quality))
             if f.gt_depth is not None:
                 put("depth", depth_msg(ts, f.gt_depth, ns))
             if f.gt_pose is not None:

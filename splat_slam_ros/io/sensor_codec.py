@@ -184,6 +184,20 @@ def decode_compressed(msg, keep_mono: bool = False) -> np.ndarray:
     return to_rgb(a, order + ("a8" if a.shape[2] == 4 else "8"), keep_mono)
 
 
+def encode_jpeg(img: np.ndarray, quality: int) -> tuple:
+    """uint8 RGB (H x W x 3) or mono (H x W) -> (format, bytes) of a CompressedImage as
+    image_transport writes it (the inverse of :func:`decode_compressed`)."""
+    if not 1 <= int(quality) <= 100:
+        raise ConversionError(f"JPEG quality {quality} is outside 1..100")
+    mono = img.ndim == 2
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(img if mono else img[:, :, ::-1]),
+                           [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise ConversionError(f"cannot JPEG-encode an image of shape {img.shape}")
+    enc = "mono8" if mono else "rgb8"
+    return f"{enc}; jpeg compressed {'mono8' if mono else 'bgr8'}", buf.reshape(-1)
+
+
 def decode_rgb(msg, keep_mono: bool = False) -> np.ndarray:
     """Image fields of a colour/mono camera encoding (or CompressedImage fields) -> H x W x 3
     uint8 RGB (a copy)."""
