@@ -245,25 +245,30 @@ def test_depth_and_mapper_nodes(tmp_path):
     assert r["render_empty"][0] is False and "empty" in r["render_empty"][1]
 
 
-BAD_INPUT = r'''
-import json, sys, time, array
+# The start of a script that feeds the tracker: ROS environment, imports, a node ``node``
+# collecting the tracker's FrameAcks in ``acks``, and spin_until.
+ACK_FEEDER = r'''
+import array, json, sys, time
 from splat_slam_ros.ros_env import apply_ros_environment
 apply_ros_environment()
-import numpy as np, rclpy
-from sensor_msgs.msg import Image, CameraInfo
-from splat_slam_msgs.msg import Keyframe, FrameAck, ProxyDepth
+import cv2, numpy as np, rclpy
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from splat_slam_msgs.msg import FrameAck, Keyframe, ProxyDepth
 from splat_slam_nodes import convert, qos as Q
 from splat_slam_nodes.node_common import TOPICS
 from splat_slam_ros.types import Intrinsics
 rclpy.init()
-node = rclpy.create_node("bad_input")
+node = rclpy.create_node("feeder")
 acks = []
 node.create_subscription(FrameAck, TOPICS["ack"], lambda m: acks.append(m), Q.ack_qos())
+''' + SPIN_UNTIL
+
+BAD_INPUT = ACK_FEEDER + r'''
 pi = node.create_publisher(Image, "/cam/image", Q.image_qos())
 pc = node.create_publisher(CameraInfo, "/cam/info", Q.image_qos())
 pk = node.create_publisher(Keyframe, TOPICS["keyframes"], Q.keyframe_qos())
 pd = node.create_publisher(ProxyDepth, TOPICS["proxy_depth"], Q.proxy_depth_qos())
-''' + SPIN_UNTIL + r'''spin_until(lambda: pi.get_subscription_count() and pc.get_subscription_count() and
+spin_until(lambda: pi.get_subscription_count() and pc.get_subscription_count() and
            pk.get_subscription_count() >= 2 and pd.get_subscription_count(), 120)
 spin_until(lambda: False, 0.5)
 rng = np.random.default_rng(0)
@@ -345,23 +350,10 @@ def test_bad_input_is_logged_and_nodes_keep_running(tmp_path):
     assert "cannot be deserialised" in mlog and "ProxyDepth" in mlog
 
 
-COMPRESSED_INPUT = r'''
-import json, sys, time
-from splat_slam_ros.ros_env import apply_ros_environment
-apply_ros_environment()
-import cv2, numpy as np, rclpy
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image
-from splat_slam_msgs.msg import FrameAck
-from splat_slam_nodes import convert, qos as Q
-from splat_slam_nodes.node_common import TOPICS
-from splat_slam_ros.types import Intrinsics
-rclpy.init()
-node = rclpy.create_node("compressed_input")
-acks = []
-node.create_subscription(FrameAck, TOPICS["ack"], lambda m: acks.append(m), Q.ack_qos())
+COMPRESSED_INPUT = ACK_FEEDER + r'''
 raw = node.create_publisher(Image, "/cam/image/compressed", Q.image_qos())   # the wrong type
 pc = node.create_publisher(CameraInfo, "/cam/info", Q.image_qos())
-''' + SPIN_UNTIL + r'''spin_until(lambda: pc.get_subscription_count(), 120)
+spin_until(lambda: pc.get_subscription_count(), 120)
 rng = np.random.default_rng(0)
 img = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
 raw.publish(convert.image_to_msg(img, "rgb8"))         # never reaches the tracker

@@ -135,12 +135,15 @@ class Launcher:
             raise LaunchError(str(e)) from None
         self.bag = None
         if a.bag:
-            from .bag_player import BagReader, PlayerError
+            from .bag_player import BagReader, PlayerError, graph_topics
             try:
                 self.bag = BagReader(a.bag)
             except PlayerError as e:
                 raise LaunchError(str(e)) from None
-            self.bag_topics = self._bag_topics()
+            try:
+                self.bag_topics = graph_topics(self.bag, a.bag, self.overrides)
+            except PlayerError as e:
+                raise LaunchError(str(e)) from None
         self._realtime_keep_up()
         tc = self.cfg.tracking
         localize = bool(a.localize)     # --load-map RUN --localize: the tracker alone
@@ -224,36 +227,6 @@ class Launcher:
                 notes.append(f"mapping.{key} {cap}")
         if notes:
             self.keep_up_note = "realtime input: " + ", ".join(notes)
-
-    def _bag_topics(self) -> Dict[str, str]:
-        """The bag's camera topics ({role: topic in the bag}) and the graph's (``image_out``,
-        ``info_out``): this project's layout, or a bag recorded elsewhere (its one image topic
-        and that camera's camera_info, ``bagio.camera_topics``). Compressed images go out on a
-        ``.../compressed`` name, where the tracker takes CompressedImage."""
-        from splat_slam_ros.io.bagio import DEFAULT_TOPICS, T_COMPRESSED, camera_topics
-        from splat_slam_ros.io.sensor_codec import is_compressed_topic
-        from splat_slam_ros.types import DatasetError
-        roles = dict(DEFAULT_TOPICS)
-        roles.update(self.bag.info.get("topics") or {})
-        try:
-            image, info = camera_topics(self.args.bag, self.bag.topics(), roles, {}, False)
-        except DatasetError as e:
-            raise LaunchError(f"{e} (options of splat-slam-convert and splat-slam-run: for the "
-                              "graph, convert the bag with that choice first: splat-slam-convert "
-                              "BAG --out NEW [--image-topic T] [--camera-info-topic T] "
-                              "[--intrinsics FILE])") from None
-        compressed = self.bag.types[image] == T_COMPRESSED
-        out = str(self.overrides.get("ros.image_topic") or image)
-        if compressed and not is_compressed_topic(out):
-            if "ros.image_topic" in self.overrides:
-                raise LaunchError(f"the bag's images ({image}) are CompressedImage: "
-                                  "ros.image_topic must end in /compressed")
-            out = out.rstrip("/") + "/compressed"
-        elif not compressed and is_compressed_topic(out):
-            raise LaunchError(f"{out} ends in /compressed, but the bag's images ({image}) are "
-                              "raw sensor_msgs/Image")
-        return {"image": image, "camera_info": info, "image_out": out,
-                "info_out": str(self.overrides.get("ros.camera_info_topic") or info)}
 
     def _node_args(self, name: str) -> List[str]:
         a = self.args
