@@ -117,10 +117,12 @@ def test_compressed_images_as_image_transport_writes_them():
         not is_compressed_topic("/cam/image_raw")
 
 
-def write_robot_bag(path, cameras, n=4, extra=True, info=True, storage="MCAP"):
+def write_robot_bag(path, cameras, n=4, extra=True, info=True, storage="MCAP",
+                    stamped=True):
     """A bag as a robot records it: per camera (namespace, kind) an image topic — "png" /
     "jpeg": ``NS/image_raw/compressed`` (CompressedImage), "bayer": ``NS/image_raw``
-    (bayer_rggb8) — with ``NS/camera_info`` (``info``), and an unrelated String topic."""
+    (bayer_rggb8) — with ``NS/camera_info`` (``info``), and an unrelated String topic;
+    ``stamped`` False: a driver that leaves the images' header stamps at 0."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     w = Writer(path, version=8, storage_plugin=getattr(StoragePlugin, storage))
     w.open()
@@ -139,8 +141,8 @@ def write_robot_bag(path, cameras, n=4, extra=True, info=True, storage="MCAP"):
                 m = bagio._image(TS, mosaic(scene(i), "rggb"), ns, "camera", "bayer_rggb8")
                 put(f"{cam}/image_raw", bagio.T_IMAGE, m, ns)
             else:
-                m = compressed(TS, scene(i), "rgb8; {} compressed bgr8".format(kind), ns,
-                               ".png" if kind == "png" else ".jpg")
+                m = compressed(TS, scene(i), "rgb8; {} compressed bgr8".format(kind),
+                               ns if stamped else 0, ".png" if kind == "png" else ".jpg")
                 put(f"{cam}/image_raw/compressed", bagio.T_COMPRESSED, m, ns)
         if extra:
             put("/status", "std_msgs/msg/String", TS.types["std_msgs/msg/String"](data="ok"), ns)
@@ -238,3 +240,19 @@ def test_converted_with_jpeg_images(tmp_path, capsys):
         assert np.abs(f.image.astype(int) - scene(i)).mean() < 3
     assert convert_main([str(src), "--out", str(tmp_path / "q"), "--quiet", "--jpeg", "0"]) == 2
     assert "JPEG quality 0 is outside 1..100" in capsys.readouterr().err
+
+
+def test_images_without_a_stamp_take_the_bags_log_time(tmp_path, capsys):
+    """A driver that never set the header stamp: read (and replayed by the player) with the
+    recorder's log time, so the frames keep their order and spacing."""
+    from splat_slam_nodes.tools.bag_player import BagReader, cdr_stamp_ns, frames
+    bag = write_robot_bag(tmp_path / "nostamp", [("/cam", "png")], n=3, stamped=False)
+    ds = open_dataset(bag)
+    assert [f.timestamp for f in ds] == pytest.approx([1.0, 1.05, 1.1])
+    assert capsys.readouterr().err.count("images without a header stamp: stamped with the " \
+                                         "bag's log time") == 1
+    groups = list(frames(BagReader(bag), ["/cam/image_raw/compressed", "/cam/camera_info"],
+                         "/cam/image_raw/compressed"))
+    assert [cdr_stamp_ns(dict(g)["/cam/image_raw/compressed"]) for _t, g in groups] == \
+        [10**9, 10**9 + 5 * 10**7, 10**9 + 10**8]
+    assert convert_main([str(bag), "--out", str(tmp_path / "c"), "--quiet"]) == 0

@@ -3,6 +3,7 @@ and a pose-graph update (deformation, renders, point cloud, status, services), a
 tracker / depth / mapper nodes fed bad input (they log a clear error and keep running)."""
 import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -373,7 +374,12 @@ def send(fmt, data):
 png = cv2.imencode(".png", img[:, :, ::-1])[1].tobytes()
 jpg = cv2.imencode(".jpg", img[:, :, ::-1])[1].tobytes()
 res = {"png": send("rgb8; png compressed bgr8", png), "torn": send("jpeg", jpg[:100]),
-       "jpeg": send("rgb8; jpeg compressed bgr8", jpg), "acks": len(acks)}
+       "jpeg": send("rgb8; jpeg compressed bgr8", jpg)}
+n = len(acks)                                           # a driver that never stamps
+pz.publish(CompressedImage(format="png", data=png))
+res["unstamped"] = spin_until(lambda: len(acks) > n, 30)
+res["unstamped_ack_s"] = acks[-1].header.stamp.sec if len(acks) > n else None
+res["acks"] = len(acks)
 print("RESULT " + json.dumps(res), flush=True)
 rclpy.try_shutdown()
 '''
@@ -400,7 +406,11 @@ def test_a_compressed_camera_topic_is_decoded_and_a_wrong_type_is_told(tmp_path)
     r = _result(tmp_path / "feeder.log")
     tlog = (tmp_path / "tracker.log").read_text()
     assert alive, tlog[-3000:]
-    assert r == {"png": True, "torn": True, "jpeg": True, "acks": 3}, (r, tlog[-3000:])
+    now = time.time()
+    assert abs(r.pop("unstamped_ack_s") - now) < 300, (r, tlog[-3000:])   # the arrival time
+    assert r == {"png": True, "torn": True, "jpeg": True, "unstamped": True, "acks": 4}, \
+        (r, tlog[-3000:])
+    assert "frames on /cam/image/compressed have no header stamp: stamped at arrival" in tlog
     assert "/cam/image/compressed is published as sensor_msgs/msg/Image, but the tracker " \
            "takes sensor_msgs/msg/CompressedImage there" in tlog, tlog[-3000:]
     assert "tracker started on 64x48" in tlog

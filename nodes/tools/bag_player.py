@@ -113,7 +113,9 @@ def graph_topics(reader: BagReader, path, overrides: Dict) -> Dict[str, str]:
 
 
 def frames(reader: BagReader, topics: List[str], image_topic: str):
-    """Groups of (topic, raw) with one image each, in log-time order."""
+    """Groups of (topic, raw) with one image each, in log-time order. A message without a
+    header stamp (0: a camera driver that never set it) gets its log time, as the bag's
+    frames do when read (``bagio.BagDataset``): the tracker and the acks go by stamps."""
     group: List[Tuple[str, bytes]] = []
     group_t = None
     for topic, t, raw in reader.raw_messages(topics):
@@ -121,7 +123,7 @@ def frames(reader: BagReader, topics: List[str], image_topic: str):
             yield group_t, group
             group = []
         group_t = t
-        group.append((topic, raw))
+        group.append((topic, shift_stamp(raw, t) if cdr_stamp_ns(raw) == 0 else raw))
     if any(tp == image_topic for tp, _ in group):
         yield group_t, group
 

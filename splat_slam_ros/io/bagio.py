@@ -28,6 +28,7 @@ objects (``open_dataset(path, fmt="bag")``), with the rosbags reader or, for a b
 from __future__ import annotations
 
 import shutil
+import sys
 from pathlib import Path
 from typing import Dict, Iterator, List, Optional, Tuple
 
@@ -352,6 +353,7 @@ class BagDataset(Dataset):
         self._gt_ns = np.array(sorted(gt), dtype=np.int64)
         self._gt = gt
         self._has_depth = tp.get("depth") in avail and avail[tp["depth"]][1] > 0
+        self._unstamped = False
         if self._has_depth:
             self.depth_scale = 1.0
 
@@ -411,6 +413,12 @@ class BagDataset(Dataset):
             for ordinal, dec in imgs:
                 m = dec()
                 ns = msg_stamp_ns(m)
+                if ns == 0:           # a driver that never stamped: the recorder's time
+                    ns = group_t
+                    if not self._unstamped:
+                        self._unstamped = True
+                        print(f"warning: {tp['image']}: images without a header stamp: "
+                              "stamped with the bag's log time", file=sys.stderr, flush=True)
                 depth = None
                 for dd in depths:
                     dm = dd()
