@@ -1050,3 +1050,24 @@ def test_the_prediction_gate_leaves_the_weights_when_the_prediction_is_what_miss
     assert tr._gate_by_prediction(ref, f, w, index) is w
     tr.tc.flow_pred_gate = 0.0          # off
     assert tr._gate_by_prediction(ref, ind + 3.0, w, index) is w
+
+
+def test_stamps_that_do_not_advance_are_reported_once(caplog):
+    """Frames stamped a microsecond apart (a clock in the wrong unit): the keyframe rate bound
+    counts camera seconds, so the tracker says so, once."""
+    import logging
+
+    from splat_slam_ros.tracking.tracker import Tracker
+    frames, _ = sequence()
+    tr = Tracker(small_cfg(), INTR)
+    with caplog.at_level(logging.WARNING, logger="splat_slam_ros.tracking.tracker"):
+        for i, f in enumerate(frames[:4]):
+            tr.track(Frame(f.index, 1.0 + 1e-6 * i, f.image, f.intrinsics))
+    said = [r.getMessage() for r in caplog.records if "counts camera seconds" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("frame 1 is stamped 0.000001 s after"), said
+    caplog.clear()
+    tr2 = Tracker(small_cfg(), INTR)
+    with caplog.at_level(logging.WARNING, logger="splat_slam_ros.tracking.tracker"):
+        for f in frames[:4]:
+            tr2.track(f)
+    assert not [r for r in caplog.records if "counts camera seconds" in r.getMessage()]

@@ -46,6 +46,7 @@ from splat_slam_ros.types import (TRACKER_SEQ_START, Frame, Intrinsics, Keyframe
                                   UpdateEvent)
 
 log = logging.getLogger(__name__)
+MIN_FRAME_INTERVAL_S = 1e-3     # camera stamps closer than this (over 1000 frames/s): a bad clock
 
 
 class TrackingError(ValueError):
@@ -125,6 +126,8 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
         self._last_input = None         # (frame, image, prep) of the newest non-keyframe
         self.final_keyframes: List[KeyframeData] = []   # published by a late initialisation
         self.timings: Dict[str, float] = defaultdict(float)
+        self._last_stamp: Optional[float] = None      # the stamps' check (_check_stamp)
+        self._stamp_warned = False
         self.depth_prior = depth_prior if depth_prior is not None else self._default_prior(
             intrinsics)
 
@@ -149,8 +152,21 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
         return k
 
     def track(self, frame: Frame) -> TrackStep:
+        self._check_stamp(frame)
         with limit_threads(self.tc.threads):
             return self._track_frame(frame)
+
+    def _check_stamp(self, frame: Frame) -> None:
+        """Camera stamps that do not advance (a clock in the wrong unit, a driver that stamps
+        every frame alike) leave the keyframe rate bound, which counts camera seconds, with
+        no keyframe after the warm-up: said once."""
+        t, prev = float(frame.timestamp), self._last_stamp
+        self._last_stamp = t
+        if prev is not None and t - prev < MIN_FRAME_INTERVAL_S and not self._stamp_warned:
+            self._stamp_warned = True
+            log.warning("frame %d is stamped %.6f s after the frame before it: the keyframe "
+                        "rate bound (tracking.max_keyframe_rate, min_keyframe_interval) counts "
+                        "camera seconds; check the camera's clock", frame.index, t - prev)
 
     def _track_frame(self, frame: Frame) -> TrackStep:
         t0 = time.perf_counter()
