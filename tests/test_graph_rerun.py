@@ -1,5 +1,6 @@
-"""rerun logger node: a feed process publishes every kind of message it logs; the .rrd it
-writes is read back with rerun's own reader and holds the expected entities and data."""
+"""rerun logger node: a feed process publishes every kind of message it logs (the camera as
+image_transport's compressed topic); the .rrd it writes is read back with rerun's own reader
+and holds the expected entities and data."""
 import socket
 import time
 from pathlib import Path
@@ -17,7 +18,8 @@ apply_ros_environment()
 import numpy as np, rclpy
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+import cv2
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from splat_slam_msgs.msg import Keyframe, PoseGraphUpdate
 from splat_slam_nodes import convert, qos as Q
 from splat_slam_nodes.node_common import TOPICS, path_msg, pointcloud2, pose_stamped
@@ -30,7 +32,7 @@ pt = n.create_publisher(Path, TOPICS["trajectory"], Q.status_qos())
 pc = n.create_publisher(PointCloud2, TOPICS["points"], Q.status_qos())
 pr = n.create_publisher(Image, TOPICS["rendered_rgb"], Q.rendered_qos())
 pd = n.create_publisher(Image, TOPICS["rendered_depth"], Q.rendered_qos())
-pi = n.create_publisher(Image, "/cam/image", Q.image_qos())
+pi = n.create_publisher(CompressedImage, "/cam/image/compressed", Q.image_qos())
 pn = n.create_publisher(CameraInfo, "/cam/info", Q.image_qos())
 t0 = time.monotonic()
 while (pk.get_subscription_count() == 0 or pi.get_subscription_count() == 0 or
@@ -45,7 +47,10 @@ for i, T in enumerate(poses):
     T[0, 3] = 0.1 * i
 for i in range(4):
     pn.publish(convert.intrinsics_to_camera_info(K, 1.0 + i, "camera_optical"))
-    pi.publish(convert.image_to_msg(img, "rgb8", 1.0 + i, "camera_optical"))
+    m = CompressedImage(format="rgb8; png compressed bgr8",
+                        data=cv2.imencode(".png", img[:, :, ::-1])[1].tobytes())
+    m.header.stamp = convert.to_stamp(1.0 + i)
+    pi.publish(m)
     pp.publish(pose_stamped(poses[i], 1.0 + i, "map"))
     time.sleep(0.05)
 pk.publish(convert.keyframe_to_msg(KeyframeData(0, 0, 1.0, np.eye(4), img, K,
@@ -95,7 +100,7 @@ def test_rerun_logger_writes_a_readable_rrd(tmp_path):
     time.sleep(2.0)
     node = start([PY, "-m", "splat_slam_nodes.tools.rerun_logger", "--ros-args", "-p",
                   f"node.rrd:={rrd}", "-p", f"node.connect:=rerun+http://127.0.0.1:{port}/proxy",
-                  "-p", "node.image_every:=2", "-p", "ros.image_topic:=/cam/image",
+                  "-p", "node.image_every:=2", "-p", "ros.image_topic:=/cam/image/compressed",
                   "-p", "ros.camera_info_topic:=/cam/info"], env, tmp_path / "rerun.log")
     feed = start([PY, "-c", FEED], env, tmp_path / "feed.log")
     try:
