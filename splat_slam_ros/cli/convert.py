@@ -71,7 +71,8 @@ def describe(ds) -> None:
           f"{K.distortion_model} {list(K.distortion)}")
     print(f"  gt_pose={ds.has_gt_pose} gt_depth={ds.has_gt_depth}")
     if ds.format == "bag":
-        print(f"  converted from: {ds.source_format or 'unknown'}")
+        print(f"  converted from: {ds.source_format}" if ds.source_format else
+              "  recorded elsewhere (not by splat-slam-convert)")
         print(f"  camera: {ds.topics['image']}, calibration from "
               f"{ds.topics['camera_info'] or '--intrinsics'}")
         for h in ds.health():
