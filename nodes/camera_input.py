@@ -1,5 +1,6 @@
 """The tracker node's camera intake: sensor_msgs/Image (or CompressedImage on a topic ending in
-``/compressed``, image_transport's name) + CameraInfo -> core Frames.
+``/compressed``, image_transport's name, or wherever the camera publishes that type:
+``SplatNode.follow_image_type``) + CameraInfo -> core Frames.
 
 Decodes every image on the executor-independent worker, checks it against the calibration
 (camera_info, or ``node.intrinsics_file`` when no camera_info is published) and the size the
@@ -23,7 +24,6 @@ from collections import OrderedDict
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 ARRIVALS_KEPT = 1024        # frames whose arrival a keyframe made later still looks up
-TYPE_CHECK_S = 5.0          # period of the image topic's type check until the first frame
 
 
 def spread(values: Sequence[float], ndigits: int = 2) -> Dict[str, float]:
@@ -75,25 +75,10 @@ class CameraInput:
         o.subscribe(CameraInfo, self.cfg.ros.camera_info_topic, in_qos, self._on_info,
                     "CameraInfo")
         img_type = CompressedImage if is_compressed_topic(self.cfg.ros.image_topic) else Image
-        o.subscribe(img_type, self.cfg.ros.image_topic, in_qos, self._on_image, img_type.__name__)
-        self.img_type = f"sensor_msgs/msg/{img_type.__name__}"
-        self._type_timer = o.node.create_timer(TYPE_CHECK_S, self._check_topic_type)
-
-    def _check_topic_type(self) -> None:
-        """Until the first frame: a camera publishing the image topic as another type (raw
-        Image where ``/compressed`` says CompressedImage, or the reverse) never connects;
-        say so instead of waiting in silence."""
-        if self.n_frames:
-            self._type_timer.cancel()
-            return
-        topic = self.cfg.ros.image_topic
-        types = dict(self.owner.node.get_topic_names_and_types()).get(topic, [])
-        types = [t for t in types if t != self.img_type]
-        if types:
-            self.owner.warn_throttled(
-                "image-type", f"{topic} is published as {', '.join(types)}, but the tracker "
-                f"takes {self.img_type} there (CompressedImage exactly when the topic ends in "
-                "/compressed, image_transport's name): no frame arrives", error=True)
+        sub = o.subscribe(img_type, self.cfg.ros.image_topic, in_qos, self._on_image,
+                          img_type.__name__)
+        o.follow_image_type(self.cfg.ros.image_topic, sub, in_qos, self._on_image,
+                            lambda: self.n_frames > 0)
 
     # ------------------------------------------------------------ callbacks (executor)
     def _on_info(self, msg, raw) -> None:

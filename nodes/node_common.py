@@ -58,6 +58,7 @@ SERVICES = {
 }
 NODE_NAMES = ("tracker", "depth", "loop_closure", "mapper")
 TRIM_EVERY_S = 1.0        # free heap pages go back to the OS at most this often (after work)
+IMAGE_TYPE_CHECK_S = 5.0  # a camera topic's type is checked this often until its first image
 
 
 
@@ -220,6 +221,37 @@ class SplatNode:
                 self.warn_throttled(f"cb:{topic}", f"error handling a {what} message on {topic}: "
                                     f"{type(e).__name__}: {e}")
         return self.node.create_subscription(msg_type, topic, cb, qos_profile, raw=True)
+
+    def follow_image_type(self, topic: str, sub, qos_profile, callback: Callable,
+                          received: Callable[[], bool]) -> None:
+        """A camera image subscription ``sub`` (Image or CompressedImage, chosen by the topic's
+        name) that follows the camera: until ``received()``, every ``IMAGE_TYPE_CHECK_S`` the
+        topic's type in the graph; published as the other image type only (CompressedImage on
+        a name without ``/compressed``, or the reverse), which would never connect, the
+        subscription is made again with that type, and said; a topic with several types is an
+        error in the log."""
+        from sensor_msgs.msg import CompressedImage, Image
+        kinds = {"sensor_msgs/msg/Image": Image, "sensor_msgs/msg/CompressedImage": CompressedImage}
+        state = {"sub": sub}
+
+        def check():
+            if received():
+                timer.cancel()
+                return
+            types = sorted({i.topic_type for i in self.node.get_publishers_info_by_topic(topic)})
+            mine = f"sensor_msgs/msg/{state['sub'].msg_type.__name__}"
+            if not [t for t in types if t != mine]:
+                return
+            if len(types) == 1 and types[0] in kinds:
+                self.node.destroy_subscription(state["sub"])
+                new = kinds[types[0]]
+                state["sub"] = self.subscribe(new, topic, qos_profile, callback, new.__name__)
+                self.log.warning(f"{topic} is published as {types[0]}, not {mine}: subscribed "
+                                 "as that")
+                return
+            self.warn_throttled("image-type", f"{topic} is published as {', '.join(types)}; "
+                                f"this node takes {mine} there: some cameras never connect")
+        timer = self.node.create_timer(IMAGE_TYPE_CHECK_S, check)
 
     # ------------------------------------------------------------ stage roles
     def publishers(self, *kinds: str) -> None:

@@ -85,8 +85,10 @@ class RerunLogger(SplatNode):
 
         from splat_slam_ros.io.sensor_codec import is_compressed_topic
         img_type = CompressedImage if is_compressed_topic(self.cfg.ros.image_topic) else Image
-        self.subscribe(img_type, self.cfg.ros.image_topic, Q.sensor_qos(), self._input,
-                       img_type.__name__)
+        sub = self.subscribe(img_type, self.cfg.ros.image_topic, Q.sensor_qos(), self._input,
+                             img_type.__name__)
+        self.follow_image_type(self.cfg.ros.image_topic, sub, Q.sensor_qos(), self._input,
+                               lambda: self.n_images > 0)
         self.subscribe(Image, TOPICS["rendered_rgb"], Q.rendered_qos(),
                        lambda m, raw: self._image(m, "rendered/rgb"), "Image")
         self.subscribe(Image, TOPICS["rendered_depth"], Q.rendered_qos(),
