@@ -456,3 +456,31 @@ def test_live_steps_yield_to_waiting_input_but_offline_steps_never_do():
             assert mp.background(5, lambda: False) == 5
             assert mp.stats()["background_iterations"] == 5
 
+
+
+def test_launcher_calibrates_live_topics_from_camera_info_file(tmp_path, monkeypatch):
+    """``--camera-info FILE`` without ``--camera`` (live topics from a driver without a
+    calibration): the tracker gets it as ``node.intrinsics_file``, in the project's format
+    whatever the file's (here OpenCV's); the file is checked before anything starts."""
+    import cv2
+
+    from splat_slam_nodes.tools import launch
+    from splat_slam_ros.types import Intrinsics
+    monkeypatch.setenv("SPLAT_SLAM_DDS_RANGE", "localhost")
+    fs = cv2.FileStorage(str(tmp_path / "cv.yaml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", 640)
+    fs.write("image_height", 480)
+    fs.write("camera_matrix", np.array([[500.0, 0, 319.5], [0, 501.0, 239.5], [0, 0, 1]]))
+    fs.write("distortion_coefficients", np.zeros((1, 5)))
+    fs.release()
+    L = launch.Launcher(launch.build_parser().parse_args(
+        ["--out", str(tmp_path / "o"), "--camera-info", str(tmp_path / "cv.yaml")]))
+    L.plan()
+    arg = next(a for a in L._node_args("tracker") if a.startswith("node.intrinsics_file:="))
+    K = Intrinsics.from_yaml(arg.split(":=", 1)[1])
+    assert (K.fx, K.fy, K.cx, K.width, K.height) == (500.0, 501.0, 319.5, 640, 480)
+    assert not any(a.startswith("node.intrinsics_file") for a in L._node_args("mapper"))
+    bad = launch.Launcher(launch.build_parser().parse_args(
+        ["--out", str(tmp_path / "o2"), "--camera-info", str(tmp_path / "none.yaml")]))
+    with pytest.raises(launch.LaunchError, match="camera info file not found"):
+        bad.plan()

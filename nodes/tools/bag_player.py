@@ -81,23 +81,25 @@ class BagReader(BagFile):
         self.counts: Dict[str, int] = {t: n for t, (_ty, n) in topics.items()}
 
 
-def graph_topics(reader: BagReader, path, overrides: Dict) -> Dict[str, str]:
+def graph_topics(reader: BagReader, path, overrides: Dict, calibrated: bool = False
+                 ) -> Dict[str, Optional[str]]:
     """For ``splat-slam-launch --bag``: the bag's camera topics ({role: topic in the bag}) and
     the graph's (``image_out``, ``info_out``; ``ros.*_topic`` in ``overrides`` win): this
     project's layout, or a bag recorded elsewhere (its one image topic and that camera's
-    camera_info, ``bagio.camera_topics``). Compressed images go out on a ``.../compressed``
-    name, where the tracker takes CompressedImage."""
+    camera_info, ``bagio.camera_topics``; none needed when ``calibrated``: the tracker has a
+    calibration file). Compressed images go out on a ``.../compressed`` name, where the
+    tracker takes CompressedImage."""
     from splat_slam_ros.io.bagio import DEFAULT_TOPICS, T_COMPRESSED, camera_topics
     from splat_slam_ros.io.sensor_codec import is_compressed_topic
     roles = dict(DEFAULT_TOPICS)
     roles.update(reader.info.get("topics") or {})
     try:
-        image, info = camera_topics(path, reader.topics(), roles, {}, False)
+        image, info = camera_topics(path, reader.topics(), roles, {}, calibrated)
     except DatasetError as e:
-        raise PlayerError(f"{e} (options of splat-slam-convert and splat-slam-run: for the "
-                          "graph, convert the bag with that choice first: splat-slam-convert "
-                          "BAG --out NEW [--image-topic T] [--camera-info-topic T] "
-                          "[--intrinsics FILE])") from None
+        raise PlayerError(f"{e} (options of splat-slam-convert and splat-slam-run; the graph "
+                          "takes a calibration with --camera-info FILE, and the topic choice "
+                          "from a converted bag: splat-slam-convert BAG --out NEW "
+                          "[--image-topic T] [--camera-info-topic T] [--intrinsics FILE])") from None
     compressed = reader.types[image] == T_COMPRESSED
     out = str(overrides.get("ros.image_topic") or image)
     if compressed and not is_compressed_topic(out):
@@ -109,7 +111,7 @@ def graph_topics(reader: BagReader, path, overrides: Dict) -> Dict[str, str]:
         raise PlayerError(f"{out} ends in /compressed, but the bag's images ({image}) are raw "
                           "sensor_msgs/Image")
     return {"image": image, "camera_info": info, "image_out": out,
-            "info_out": str(overrides.get("ros.camera_info_topic") or info)}
+            "info_out": overrides.get("ros.camera_info_topic") or info}
 
 
 def frames(reader: BagReader, topics: List[str], image_topic: str):

@@ -266,6 +266,18 @@ class CameraNode:
 
 
 # --------------------------------------------------------------------------- launcher side
+def calibration_yaml(path: str) -> str:
+    """A camera calibration file in any format :func:`load_camera_info` reads, as the
+    project's intrinsics YAML in a new temporary file (the tracker's ``node.intrinsics_file``
+    reads that format): its path."""
+    import tempfile
+    K = load_camera_info(path)
+    fd, name = tempfile.mkstemp(prefix="splat_camera_", suffix=".yaml")
+    os.close(fd)
+    K.to_yaml(name)
+    return name
+
+
 def check_camera_args(source: str, camera_info: Optional[str]) -> None:
     """What splat-slam-launch checks before starting anything (devices are not opened)."""
     if camera_info:

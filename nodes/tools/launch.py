@@ -133,6 +133,13 @@ class Launcher:
             self.session = launch_map.plan(a, self.cfg, self.overrides, self.out_dir)
         except launch_map.LoadMapError as e:
             raise LaunchError(str(e)) from None
+        self.intrinsics_file = None     # --camera-info on topics or a bag: the tracker's own
+        if a.camera_info and not a.camera:
+            from .camera_node import CameraError, calibration_yaml
+            try:
+                self.intrinsics_file = calibration_yaml(a.camera_info)
+            except CameraError as e:
+                raise LaunchError(str(e)) from None
         self.bag = None
         if a.bag:
             from .bag_player import BagReader, PlayerError, graph_topics
@@ -141,7 +148,8 @@ class Launcher:
             except PlayerError as e:
                 raise LaunchError(str(e)) from None
             try:
-                self.bag_topics = graph_topics(self.bag, a.bag, self.overrides)
+                self.bag_topics = graph_topics(self.bag, a.bag, self.overrides,
+                                               self.intrinsics_file is not None)
             except PlayerError as e:
                 raise LaunchError(str(e)) from None
         self._realtime_keep_up()
@@ -251,8 +259,10 @@ class Launcher:
                 bt = self.bag_topics
                 if "ros.image_topic" not in self.overrides:
                     param("ros.image_topic", bt["image_out"])
-                if "ros.camera_info_topic" not in self.overrides:
+                if "ros.camera_info_topic" not in self.overrides and bt["info_out"]:
                     param("ros.camera_info_topic", bt["info_out"])
+            if name == "tracker" and self.intrinsics_file:
+                param("node.intrinsics_file", self.intrinsics_file)
             if self.bag is not None and name == "tracker":
                 param("node.input_qos", "reliable")
                 param("node.max_queue", 0 if a.mode == "lockstep" else 1)
@@ -282,8 +292,9 @@ class Launcher:
         if a.loop_bag > 1:
             args += ["--loop", str(a.loop_bag)]
         bt = self.bag_topics
-        args += ["--image-topic", bt["image"], "--out-image", bt["image_out"],
-                 "--camera-info-topic", bt["camera_info"], "--out-camera-info", bt["info_out"]]
+        args += ["--image-topic", bt["image"], "--out-image", bt["image_out"]]
+        if bt["camera_info"]:
+            args += ["--camera-info-topic", bt["camera_info"], "--out-camera-info", bt["info_out"]]
         return args
 
     def input_waits_for(self) -> List[str]:
@@ -493,8 +504,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="play the bag N times in a row, shifted in time (long soak runs)")
     ap.add_argument("--camera", metavar="SOURCE", help="start splat-slam-camera on SOURCE (device "
                     "index, /dev/videoN, video file or image folder) instead of a bag")
-    ap.add_argument("--camera-info", metavar="YAML", help="--camera intrinsics (ROS camera_info "
-                    "/ OpenCV YAML)")
+    ap.add_argument("--camera-info", metavar="YAML", help="the camera's calibration (ROS "
+                    "camera_info / OpenCV / intrinsics YAML): what --camera publishes; on live "
+                    "topics or a bag, the tracker's while the camera publishes none (or an "
+                    "uncalibrated one)")
     ap.add_argument("--camera-rate", type=float, default=0.0, metavar="HZ",
                     help="--camera frame rate (default: the source's own)")
     ap.add_argument("--network", choices=["localhost", "subnet"], default=None,
@@ -562,6 +575,9 @@ def main(argv: Optional[List[str]] = None) -> int:
             print(f"error: {L.failed}", file=sys.stderr)
     finally:
         L.stop_children()
+        for f in (L.intrinsics_file, L.config_file if args.preset else None):
+            if f:                                   # the temporary files of plan()
+                Path(f).unlink(missing_ok=True)
         try:
             if L.services is not None:
                 L.services.close()

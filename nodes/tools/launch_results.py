@@ -79,7 +79,9 @@ def evaluate(L, m: dict) -> None:
     try:
         from splat_slam_ros.io.bagio import BagDataset
         from splat_slam_ros.evaluation.run import evaluate_map_depth, evaluate_trajectories
-        ds = BagDataset(L.args.bag)
+        from splat_slam_ros.types import Intrinsics
+        K = Intrinsics.from_yaml(L.intrinsics_file) if L.intrinsics_file else None
+        ds = BagDataset(L.args.bag, topics={"image": L.bag_topics["image"]}, intrinsics=K)
         if ds.gt_trajectory() is None:
             m["evaluation_skipped"] = "no ground truth in the bag"
             return
