@@ -108,14 +108,14 @@ class CameraInput:
         self.dedup = True
 
     def _on_image(self, msg, raw) -> None:
-        ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        if ns == 0:            # a driver that never sets the stamp: the arrival time
+        if msg.header.stamp.sec == 0 and msg.header.stamp.nanosec == 0:
+            # a driver that never sets the stamp: the arrival time
             msg.header.stamp = self.owner.node.get_clock().now().to_msg()
-            ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
             self.owner.warn_throttled("unstamped", f"frames on {self.cfg.ros.image_topic} have "
                                       "no header stamp: stamped at arrival (set the stamp in "
                                       "the camera driver: the trajectory and the keyframe rate "
                                       "go by camera time)", error=False)
+        ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         if self.last_ns is not None and ns <= self.last_ns + 1000:
             # a replay (the player resumed from its last acknowledged frame, or the tracker
             # from a checkpoint after it): acknowledged, not tracked twice

@@ -43,7 +43,8 @@ from splat_slam_ros.io import mcap_recover
 from splat_slam_ros.io.bag_reader import INFO_FILE, BagFile, is_bag_dir, make_typestore
 from splat_slam_ros.io.bag_reader import register_project_types  # noqa: F401 (public re-export)
 from splat_slam_ros.io.sensor_codec import (ConversionError, camera_info_to_intrinsics,
-                                           decode_depth, decode_rgb, encode_image, encode_jpeg)
+                                           decode_depth, decode_rgb, encode_image, encode_jpeg,
+                                           is_compressed_topic)
 from splat_slam_ros.types import Frame, Intrinsics
 
 DEFAULT_TOPICS: Dict[str, Optional[str]] = {
@@ -100,7 +101,7 @@ def camera_topics(path, avail: Dict[str, Tuple[str, int]], tp: Dict[str, Optiona
         image = cands[0]
     if given.get("camera_info"):
         return image, check("camera_info", given["camera_info"], (T_INFO,))
-    base = image[:-len("/compressed")] if image.endswith("/compressed") else image
+    base = image.rstrip("/").rsplit("/", 1)[0] if is_compressed_topic(image) else image
     infos = sorted(t for t, (ty, n) in avail.items() if ty == T_INFO and n > 0)
     for t in (base.rsplit("/", 1)[0] + "/camera_info", tp.get("camera_info")):
         if t in infos:

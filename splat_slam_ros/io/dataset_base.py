@@ -18,9 +18,9 @@ import torch
 import yaml
 
 from splat_slam_ros.geometry import interpolate_pose
+from splat_slam_ros.io.sensor_codec import to_8bit
 from splat_slam_ros.io.trajectory_io import TrajectoryFormatError, read_trajectory
 from splat_slam_ros.types import DatasetError, Frame, Intrinsics, IntrinsicsError
-from splat_slam_ros.io.sensor_codec import to_8bit
 
 
 FORMATS = ("tum", "replica", "scannet", "euroc", "folder", "video", "posefolder", "bag")

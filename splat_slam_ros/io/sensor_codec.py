@@ -17,8 +17,8 @@ OpenCV by :func:`decode_rgb` as well; its compressedDepth variant is refused.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 import re
+from dataclasses import dataclass
 from typing import Optional
 
 import cv2
