@@ -21,13 +21,14 @@ from __future__ import annotations
 import sys
 
 from .node_common import SplatNode, run_node
+from .node_options import NODE_OPTIONS
 
 RESEND_MAX = 64           # keyframes re-sent per resend_depth request (bounded bursts)
 
 
 class DepthNode(SplatNode):
     def __init__(self):
-        super().__init__("depth", {"loop_closure": True, "mapping": True})
+        super().__init__("depth", NODE_OPTIONS["depth"])
         from splat_slam_ros.roles import DepthRole
         if self.cfg.depth.mono_model:      # a bad path / sidecar stops the node now (exit 2)
             from splat_slam_ros.config import ConfigError

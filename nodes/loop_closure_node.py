@@ -18,12 +18,12 @@ import sys
 
 from .map_requests import answer_save, load_request, loaded_by_tracker, reply
 from .node_common import SplatNode, run_node
+from .node_options import NODE_OPTIONS
 
 
 class LoopClosureNode(SplatNode):
     def __init__(self):
-        super().__init__("loop_closure", {"loop_closure": True, "mapping": True,
-                                          "load_map": ""})
+        super().__init__("loop_closure", NODE_OPTIONS["loop_closure"])
         from splat_slam_ros.roles import LoopRole
         self.publishers("updates", "ack")
         self.role = LoopRole(self.cfg, store=self.store())

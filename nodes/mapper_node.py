@@ -36,6 +36,7 @@ import torch
 from .map_requests import answer_save, load_request, loaded_by_tracker, reply
 from .map_services import MapServices
 from .node_common import TOPICS, SplatNode, run_node
+from .node_options import NODE_OPTIONS
 
 MAX_QUEUED = 32           # live: queued jobs beyond which any input cuts the mapping steps
 RESYNC_S = 2.0            # how often a mapper waiting on the final digest checks for lost depth
@@ -43,10 +44,7 @@ RESYNC_S = 2.0            # how often a mapper waiting on the final digest check
 
 class MapperNode(SplatNode):
     def __init__(self):
-        super().__init__("mapper", {"loop_closure": True, "mapping": True, "snapshot_every": 1,
-                                    "points_every": 1, "render_width": 0, "render_height": 0,
-                                    "allow_reset": False, "max_render_pixels": 0,
-                                    "load_map": ""})
+        super().__init__("mapper", NODE_OPTIONS["mapper"])
         from geometry_msgs.msg import PoseStamped
         from sensor_msgs.msg import CameraInfo, Image, PointCloud2
         from splat_slam_msgs.msg import MapperStatus

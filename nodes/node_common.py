@@ -25,6 +25,7 @@ from splat_slam_ros.config import ConfigError
 from splat_slam_ros.heap import bound_heap, release_free_memory
 from splat_slam_ros.ros_env import RosEnvError, apply_ros_environment
 
+from .node_options import COMMON_OPTIONS
 from .tool_runner import is_shutdown_race
 from .worker import NewestWaiting, Worker  # noqa: F401  (re-exported)
 
@@ -158,7 +159,7 @@ class SplatNode:
                 raise SystemExit(2)
         self.cfg = cfg
         self.opts: Dict[str, Any] = {}
-        for key, default in {"output_dir": "", "state_dir": "", **options}.items():
+        for key, default in {**COMMON_OPTIONS, **options}.items():
             self.opts[key] = self.node.declare_parameter(f"node.{key}", default, dyn).value
         self.frame_id = cfg.ros.map_frame
         self._events_pub = self.node.create_publisher(String, TOPICS["events"], events_qos())

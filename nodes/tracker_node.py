@@ -33,14 +33,12 @@ from splat_slam_ros.types import TRACKER_REASONS
 
 from .map_requests import answer_save, load_request, reply
 from .node_common import TOPICS, SplatNode, run_node, takes_update
+from .node_options import NODE_OPTIONS
 
 
 class TrackerNode(SplatNode):
     def __init__(self):
-        super().__init__("tracker", {"input_qos": "sensor", "max_queue": 1, "max_backlog": 60,
-                                     "camera_info_timeout": 2.0, "intrinsics_file": "",
-                                     "loop_closure": True, "mapping": True, "path_every": 10,
-                                     "load_map": "", "localize": False})
+        super().__init__("tracker", NODE_OPTIONS["tracker"])
         from geometry_msgs.msg import PoseStamped
         from nav_msgs.msg import Path as PathMsg
         from splat_slam_msgs.msg import PoseGraphUpdate

@@ -484,3 +484,55 @@ def test_launcher_calibrates_live_topics_from_camera_info_file(tmp_path, monkeyp
         ["--out", str(tmp_path / "o2"), "--camera-info", str(tmp_path / "none.yaml")]))
     with pytest.raises(launch.LaunchError, match="camera info file not found"):
         bad.plan()
+
+
+def test_launcher_sets_the_nodes_own_parameters(tmp_path, monkeypatch):
+    """--set node.KEY=V reaches the started nodes that declare KEY (the user's value over the
+    launcher's), typed; an unknown option, one of a node not started, one a launcher flag sets
+    and a wrong type are errors before any node starts."""
+    from splat_slam_nodes.tools import launch
+    monkeypatch.setenv("SPLAT_SLAM_DDS_RANGE", "localhost")
+
+    def planned(*extra):
+        L = launch.Launcher(launch.build_parser().parse_args(["--out", str(tmp_path), *extra]))
+        L.plan()
+        return L
+    L = planned("--set", "node.max_backlog=120", "--set", "node.camera_info_timeout=5",
+                "--set", "node.max_queue=2", "--set", "tracking.keyframe_thresh=3")
+    tracker = L._node_args("tracker")
+    assert "node.max_backlog:=120" in tracker and "node.camera_info_timeout:=5.0" in tracker
+    assert "node.max_queue:=2" in tracker and "tracking.keyframe_thresh:=3" in tracker
+    assert not any(a.startswith("node.max_backlog") for a in L._node_args("mapper"))
+    assert L.cfg.tracking.keyframe_thresh == 3
+    mapper = planned("--set", "node.points_every=4")._node_args("mapper")
+    assert mapper.count("node.points_every:=4") == 1
+    for extra, msg in (
+            (["--set", "node.max_backlg=1"], "unknown node option node.max_backlg"),
+            (["--tracking-only", "--set", "node.points_every=4"],
+             "option of the mapper node, which this launch does not start"),
+            (["--set", "node.image_every=2"], "option of the rerun node"),
+            (["--set", "node.output_dir=/x"], "set by splat-slam-launch --out"),
+            (["--set", "node.intrinsics_file=a.yaml"], "--camera-info"),
+            (["--set", "node.max_backlog=many"], "node.max_backlog takes a int"),
+            (["--set", "node.max_backlog=-1"], "must not be negative"),
+            (["--set", "node.input_qos=fast"], "one of sensor, reliable")):
+        with pytest.raises(launch.LaunchError, match=msg):
+            planned(*extra)
+    rr = planned("--rerun", str(tmp_path / "r.rrd"), "--set", "node.image_every=2")
+    assert "node.image_every:=2" in rr._node_args("rerun")
+    from splat_slam_nodes.tools import bag_player            # a bag (its reader stubbed)
+
+    class Bag:
+        info = {}
+        types = {"/camera/image_raw": "sensor_msgs/msg/Image",
+                 "/camera/camera_info": "sensor_msgs/msg/CameraInfo"}
+
+        def topics(self):
+            return {t: (ty, 1) for t, ty in self.types.items()}
+    monkeypatch.setattr(bag_player, "BagReader", lambda path: Bag())
+    rt = planned("--bag", str(tmp_path / "b.mcap"), "--mode", "realtime",
+                 "--set", "node.max_queue=3")
+    tracker = rt._node_args("tracker")           # the user's max_queue instead of the launcher's
+    assert "node.max_queue:=3" in tracker and "node.max_queue:=1" not in tracker
+    with pytest.raises(launch.LaunchError, match="player's reliable input"):
+        planned("--bag", str(tmp_path / "b.mcap"), "--set", "node.input_qos=sensor")

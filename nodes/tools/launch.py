@@ -50,6 +50,7 @@ import time
 from pathlib import Path
 from typing import Dict, List, Optional
 
+from ..node_options import NodeOptionError, ros_param, split_node_overrides
 from ..tool_runner import usage_error
 from .launch_proc import Child
 from .launch_results import finish
@@ -106,7 +107,8 @@ class Launcher:
         from splat_slam_ros.ros_env import RosEnvError, ros_environment
         a = self.args
         try:
-            self.overrides = parse_overrides(a.set)
+            sets = parse_overrides(a.set)       # node.* keys: the nodes' own, checked below
+            self.overrides = {k: v for k, v in sets.items() if not k.startswith("node.")}
             self.cfg = load_config(a.config, self.overrides, preset=a.preset)
             self.config_file = a.config
             if a.preset:                 # the nodes read one file: preset + --config merged
@@ -170,8 +172,12 @@ class Launcher:
         from .launch_net import select_nodes
         try:
             self.local_nodes = select_nodes(a.nodes, self.nodes)   # --nodes: this host's share
-        except NetworkArgError as e:
+            self.node_sets = split_node_overrides(sets, self.input_waits_for())[1]
+        except (NetworkArgError, NodeOptionError) as e:
             raise LaunchError(str(e)) from None
+        if self.bag is not None and "node.input_qos" in self.node_sets["tracker"]:
+            raise LaunchError("node.input_qos: with --bag the tracker takes the player's "
+                              "reliable input (the setting is for live topics)")
         if a.camera:
             from .camera_node import CameraError, check_camera_args
             try:
@@ -240,9 +246,11 @@ class Launcher:
         a = self.args
         py = [sys.executable, "-m", NODE_MODULES[name]]
         p = ["--ros-args", "-r", f"__node:={name}"]
+        mine = self.node_sets.get(name, {})       # --set node.KEY=V: the user's over ours
 
         def param(k, v):
-            p.extend(["-p", f"{k}:={_ros_value(v)}"])
+            if k not in mine:
+                p.extend(ros_param(k, v))
         if self.config_file:
             param("config_file", str(Path(self.config_file).resolve()))
         for k, v in self.overrides.items():
@@ -276,6 +284,8 @@ class Launcher:
                 param("node.rrd", str(Path(a.rerun).resolve()))
             if a.rerun_connect:
                 param("node.connect", a.rerun_connect)
+        for k, v in mine.items():
+            p.extend(ros_param(k, v))
         return py + p
 
     def _player_args(self) -> List[str]:
@@ -471,16 +481,6 @@ def _no_signal_handlers():
         return None
 
 
-def _ros_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (list, tuple)):
-        return "[" + ",".join(_ros_value(x) for x in v) + "]"
-    if isinstance(v, str):
-        return v if v else "''"
-    return str(v)
-
-
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="splat-slam-launch", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -490,8 +490,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--preset", metavar="NAME", help="start from the shipped config/NAME.yaml "
                     "(e.g. paper); --config and --set apply on top")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="override a config value / ROS parameter, e.g. --set "
-                         "ros.image_topic=/cam/image_raw")
+                    help="override a config value, e.g. --set ros.image_topic=/cam/image_raw, "
+                         "or a node's own parameter, e.g. --set node.max_backlog=120")
     ap.add_argument("--mode", choices=["lockstep", "realtime"], default="lockstep",
                     help="bag playback: lockstep (no frame dropped, default) or realtime")
     ap.add_argument("--rate", type=float, default=1.0, help="realtime playback speed factor")

@@ -25,6 +25,7 @@ import numpy as np
 from splat_slam_ros.extras import MissingExtra
 
 from ..node_common import TOPICS, SplatNode, pointcloud2_to_arrays, run_node
+from ..node_options import NODE_OPTIONS
 
 MAX_ELLIPSOIDS = 50_000
 rr = None      # the rerun module: rerun-sdk is the optional [rerun] extra, see _import_rerun
@@ -44,8 +45,7 @@ def _import_rerun():
 
 class RerunLogger(SplatNode):
     def __init__(self):
-        super().__init__("rerun", {"rrd": "", "connect": "", "loop_closure": True,
-                                   "mapping": True, "image_every": 5, "jpeg_quality": 85})
+        super().__init__("rerun", NODE_OPTIONS["rerun"])
         try:
             _import_rerun()
         except MissingExtra as e:
