@@ -86,6 +86,14 @@ def test_packed_yuv_422_and_16_bit_colour():
     np.testing.assert_array_equal(C.msg_to_rgb(C.image_to_msg(wide, "rgb16")), rgb)
     np.testing.assert_array_equal(
         C.msg_to_rgb(C.image_to_msg(np.ascontiguousarray(wide[:, :, ::-1]), "bgr16")), rgb)
+    # a 16-bit mono camera (machine vision, thermal): full range to 8 bits, grey in RGB; the
+    # same values as 16UC1 are depth (REP-118), never a camera image
+    grey = wide[:, :, 1]
+    out = C.msg_to_rgb(C.image_to_msg(grey, "mono16"))
+    assert out.shape == rgb.shape and (out == rgb[:, :, 1:2]).all()
+    assert (decode_rgb(C.image_to_msg(grey, "mono16"), keep_mono=True) == rgb[:, :, 1]).all()
+    with pytest.raises(UnsupportedEncoding, match="'16UC1' is not a colour image"):
+        C.msg_to_rgb(C.image_to_msg(grey, "16UC1"))
 
 
 def test_compressed_images_as_image_transport_writes_them():

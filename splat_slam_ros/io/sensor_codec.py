@@ -6,7 +6,8 @@ expose the same fields (``encoding``, ``height``, ``width``, ``step``, ``is_bige
 ``data``; ``k``, ``d``, ``distortion_model``), so the decoders only read those.
 
 Encodings (case-insensitive on input, canonical names on output): rgb8, bgr8, rgba8, bgra8,
-mono8, 8UC1, the 16-bit colour ones (rgb16, bgr16, rgba16, bgra16: scaled to 8 bits),
+mono8, 8UC1, the 16-bit ones (rgb16, bgr16, rgba16, bgra16 and, as a camera image, mono16:
+the full 16-bit range scaled to 8 bits, as cv_bridge does),
 the 8-bit Bayer mosaics (bayer_rggb8, bayer_bggr8, bayer_gbrg8, bayer_grbg8: demosaicked with
 OpenCV), packed YUV 4:2:2 (yuv422 = uyvy, yuv422_yuy2 = yuyv), mono16, 16UC1, 32FC1. Depth:
 32FC1 metres or 16UC1/mono16 millimetres (REP-118).
@@ -63,8 +64,8 @@ _CANONICAL.update(uyvy="yuv422", yuyv="yuv422_yuy2")      # the names ROS 2 Jazz
 _TO_RGB = {"bayer_rggb8": cv2.COLOR_BayerBG2RGB, "bayer_bggr8": cv2.COLOR_BayerRG2RGB,
            "bayer_gbrg8": cv2.COLOR_BayerGR2RGB, "bayer_grbg8": cv2.COLOR_BayerGB2RGB,
            "yuv422": cv2.COLOR_YUV2RGB_UYVY, "yuv422_yuy2": cv2.COLOR_YUV2RGB_YUY2}
-COLOUR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8UC1", "rgb16", "bgr16",
-                    "rgba16", "bgra16") + tuple(_TO_RGB)
+COLOUR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8UC1", "mono16", "rgb16",
+                    "bgr16", "rgba16", "bgra16") + tuple(_TO_RGB)
 
 
 def canonical_encoding(encoding: str) -> str:
@@ -131,7 +132,7 @@ def to_rgb(a: np.ndarray, encoding: str, keep_mono: bool = False) -> np.ndarray:
             raise ConversionError(f"a {a.shape[1]}x{a.shape[0]} image cannot be {enc} (a "
                                   "Bayer mosaic needs 2x2 pixels, packed YUV an even width)")
         return cv2.cvtColor(np.ascontiguousarray(a), _TO_RGB[enc])
-    if enc.endswith("16") and enc[:-2] in ("rgb", "bgr", "rgba", "bgra"):
+    if enc.endswith("16") and enc[:-2] in ("rgb", "bgr", "rgba", "bgra", "mono"):
         a, enc = to_8bit(a), enc[:-2] + "8"
     if enc == "rgb8":
         return a.copy()
