@@ -283,6 +283,20 @@ def test_launcher_preset_gives_the_nodes_one_merged_file(tmp_path, monkeypatch):
         bad.plan()
 
 
+def _stub_bag_reader(monkeypatch):
+    """splat-slam-launch --bag without a bag file: a reader of this project's topic layout."""
+    from splat_slam_nodes.tools import bag_player
+
+    class Bag:
+        info = {}
+        types = {"/camera/image_raw": "sensor_msgs/msg/Image",
+                 "/camera/camera_info": "sensor_msgs/msg/CameraInfo"}
+
+        def topics(self):
+            return {t: (ty, 1) for t, ty in self.types.items()}
+    monkeypatch.setattr(bag_player, "BagReader", lambda path: Bag())
+
+
 def test_launcher_keeps_the_mapper_at_pace_on_realtime_input(tmp_path, monkeypatch):
     """Live topics (and --mode realtime): wall-clock budgets (mapping.time_budget) and
     mapping.keep_up default on (steps skipped, never keyframes); an explicit --set wins;
@@ -306,16 +320,7 @@ def test_launcher_keeps_the_mapper_at_pace_on_realtime_input(tmp_path, monkeypat
     steps = planned("--set", "mapping.time_budget=false")     # step budgets on live input
     assert not steps.cfg.mapping.time_budget and steps.cfg.mapping.keep_up == 0
     assert not steps.keep_up_note
-    from splat_slam_nodes.tools import bag_player            # a bag (its reader stubbed)
-
-    class Bag:                        # this project's layout
-        info = {}
-        types = {"/camera/image_raw": "sensor_msgs/msg/Image",
-                 "/camera/camera_info": "sensor_msgs/msg/CameraInfo"}
-
-        def topics(self):
-            return {t: (ty, 1) for t, ty in self.types.items()}
-    monkeypatch.setattr(bag_player, "BagReader", lambda path: Bag())
+    _stub_bag_reader(monkeypatch)                            # a bag (its reader stubbed)
     lock = planned("--bag", str(tmp_path / "b.mcap"))         # lockstep replay: steps
     assert not lock.cfg.mapping.time_budget and lock.cfg.mapping.keep_up == 0
     assert not lock.keep_up_note
@@ -520,16 +525,7 @@ def test_launcher_sets_the_nodes_own_parameters(tmp_path, monkeypatch):
             planned(*extra)
     rr = planned("--rerun", str(tmp_path / "r.rrd"), "--set", "node.image_every=2")
     assert "node.image_every:=2" in rr._node_args("rerun")
-    from splat_slam_nodes.tools import bag_player            # a bag (its reader stubbed)
-
-    class Bag:
-        info = {}
-        types = {"/camera/image_raw": "sensor_msgs/msg/Image",
-                 "/camera/camera_info": "sensor_msgs/msg/CameraInfo"}
-
-        def topics(self):
-            return {t: (ty, 1) for t, ty in self.types.items()}
-    monkeypatch.setattr(bag_player, "BagReader", lambda path: Bag())
+    _stub_bag_reader(monkeypatch)
     rt = planned("--bag", str(tmp_path / "b.mcap"), "--mode", "realtime",
                  "--set", "node.max_queue=3")
     tracker = rt._node_args("tracker")           # the user's max_queue instead of the launcher's
