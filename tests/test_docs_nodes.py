@@ -4,8 +4,8 @@ Everything is read from the sources with :mod:`ast` (no ROS, nothing started): f
 the topics its node publishes and subscribes (``TOPICS``/``SERVICES`` keys resolved to names,
 literal names, ``ros.*`` topic keys, command-line topic defaults, and what the SplatNode
 helpers ``publishers``/``route``/``on_events`` add), with message type and QoS (the presets of
-nodes/qos.py, ``events_qos``, ``tf_qos``...); its services; its node options (``node.*``, the
-dict passed to ``SplatNode.__init__`` and literal ``declare_parameter`` names); the
+nodes/qos.py, ``events_qos``, ``tf_qos``...); its services; its node options (``node.*``, its
+``NODE_OPTIONS`` entry in nodes/node_options.py and literal ``declare_parameter`` names); the
 ``ros.*_frame`` keys it uses; its exit statuses; and the command-line options of
 ``build_parser``. Each must appear, backticked, in the right section and table row of the
 page: a new topic, option or QoS change without documentation fails here.
@@ -366,19 +366,20 @@ class Extractor:
                     code.endpoints.add(Endpoint("sub", name, t, q))
 
     def _splat_node(self, cls: ast.ClassDef, code: NodeCode) -> None:
-        """Options of ``super().__init__(name, {...})`` + what SplatNode.__init__ declares."""
+        """Options of ``super().__init__(name, NODE_OPTIONS[name])`` (node_options.py) + what
+        SplatNode.__init__ declares (``{**COMMON_OPTIONS, **options}``)."""
+        from splat_slam_nodes.node_options import COMMON_OPTIONS, NODE_OPTIONS
         code.splat_node = True
         for n in ast.walk(cls):
             if isinstance(n, ast.Call) and getattr(n.func, "attr", "") == "__init__" and \
-                    len(n.args) == 2 and isinstance(n.args[1], ast.Dict):
-                for k, v in zip(n.args[1].keys, n.args[1].values):
-                    code.options[k.value] = ast.literal_eval(v)
+                    len(n.args) == 2 and isinstance(n.args[1], ast.Subscript) and \
+                    getattr(n.args[1].value, "id", "") == "NODE_OPTIONS":
+                code.options.update(NODE_OPTIONS[n.args[1].slice.value])
         init = self.splat_init
         for n in ast.walk(init):
-            if isinstance(n, ast.Dict) and n.keys and None in n.keys:      # {..., **options}
-                for k, v in zip(n.keys, n.values):
-                    if k is not None:
-                        code.options[k.value] = ast.literal_eval(v)
+            if isinstance(n, ast.Dict) and n.keys and None in n.keys and any(
+                    getattr(v, "id", "") == "COMMON_OPTIONS" for v in n.values):
+                code.options.update(COMMON_OPTIONS)
             if isinstance(n, ast.Call) and getattr(n.func, "attr", "") == "declare_parameter" \
                     and isinstance(n.args[0], ast.Constant):
                 code.params.add(n.args[0].value)
