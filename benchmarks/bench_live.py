@@ -38,6 +38,8 @@ SEQUENCES = {   # name: (folder, trajectory file, frames, fps, extra splat-slam-
     "fr2desk": ("fr2desk_300_real", "fr2_desk_groundtruth.txt", 300, 30,
                 ["--start", "47", "--exposure", "20"]),
     "v102": ("v102_200_20hz_real", "V102_groundtruth.csv", 200, 20, []),
+    # bench_defaults.py's fr1xyz render: faster hand-held motion, 300 frames at 30 Hz
+    "fr1xyz": ("fr1xyz_300_real", "freiburg1_xyz-groundtruth.txt", 300, 30, []),
 }
 TARGETS = {"posed_frac": 0.95, "latency_p95_ms": 100.0, "map_done_s": 15.0,
            "ate_rmse_cm_full": 1.0, "psnr_drop_db": 1.0}

@@ -38,6 +38,7 @@ TOPICS = {
     "ack": f"{NS}/frame_ack",                        # splat_slam_msgs/FrameAck
     "events": f"{NS}/graph_events",                  # std_msgs/String (JSON)
     "camera_pose": f"{NS}/camera_pose",              # geometry_msgs/PoseStamped
+    "odometry": f"{NS}/odometry",                    # nav_msgs/Odometry (odom -> camera)
     "trajectory": f"{NS}/trajectory",                # nav_msgs/Path
     "keyframe_markers": f"{NS}/keyframe_markers",    # visualization_msgs/MarkerArray
     "rendered_rgb": f"{NS}/map/rendered_rgb",        # sensor_msgs/Image rgb8 (latest keyframe)

@@ -1,5 +1,6 @@
 """REP-105 TF frames of the tracker: ``map -> odom -> camera`` on /tf, ``camera ->
-camera_optical`` on /tf_static, and the keyframe poses as a ``visualization_msgs/MarkerArray``.
+camera_optical`` on /tf_static, the same ``odom -> camera`` with its velocity as
+``nav_msgs/Odometry``, and the keyframe poses as a ``visualization_msgs/MarkerArray``.
 
 Frames (names from ``ros.map_frame``, ``ros.odom_frame``, ``ros.camera_frame``,
 ``ros.optical_frame``):
@@ -24,7 +25,7 @@ from typing import List, Optional, Sequence
 import numpy as np
 import torch
 
-from splat_slam_ros.geometry import rotation_to_quat_np, se3_inverse
+from splat_slam_ros.geometry import rotation_to_quat_np, se3_inverse, so3_log
 
 # T_camera_optical: the optical frame's axes in the camera body frame (REP-103):
 # optical x (right) = -y body, optical y (down) = -z body, optical z (forward) = +x body.
@@ -97,6 +98,18 @@ def camera_body_pose(T_x_optical) -> np.ndarray:
     return np.asarray(T_x_optical, np.float64) @ CAMERA_IN_OPTICAL
 
 
+def body_twist(T_prev, T_cur, dt: float):
+    """(linear, angular) velocity, each (3,), of a body that moved from pose ``T_prev`` to
+    ``T_cur`` (4x4, one parent frame) in ``dt`` seconds, in ``T_cur``'s axes (the twist of a
+    nav_msgs/Odometry, given in its child frame)."""
+    T_prev, T_cur = np.asarray(T_prev, np.float64), np.asarray(T_cur, np.float64)
+    R = T_cur[:3, :3]
+    linear = R.T @ (T_cur[:3, 3] - T_prev[:3, 3]) / dt
+    dR = T_prev[:3, :3].T @ R                   # its axis is the same in both bodies' axes
+    angular = so3_log(torch.as_tensor(dR)).numpy() / dt
+    return linear, angular
+
+
 # --------------------------------------------------------------------------- ROS messages
 def transform_stamped(T, stamp: float, parent: str, child: str):
     """geometry_msgs/TransformStamped of ``child`` in ``parent`` (4x4 parent_T_child)."""
@@ -120,6 +133,23 @@ def tf_qos():
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                       reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
+
+
+def odometry_msg(T_odom_child, linear, angular, stamp: float, odom: str, child: str):
+    """nav_msgs/Odometry: the pose of ``child`` in ``odom`` and its velocity in ``child``'s
+    axes; the covariances are not estimated (zeros)."""
+    from nav_msgs.msg import Odometry
+
+    from .convert import pose_to_msg, to_stamp
+    m = Odometry()
+    m.header.stamp = to_stamp(stamp)
+    m.header.frame_id = odom
+    m.child_frame_id = child
+    m.pose.pose = pose_to_msg(T_odom_child)
+    tw = m.twist.twist
+    tw.linear.x, tw.linear.y, tw.linear.z = (float(v) for v in linear)
+    tw.angular.x, tw.angular.y, tw.angular.z = (float(v) for v in angular)
+    return m
 
 
 def tf_static_qos():
@@ -168,11 +198,12 @@ class TrackerFrames:
     """
 
     def __init__(self, owner, tracker_reasons: Sequence[str]):
+        from nav_msgs.msg import Odometry
         from tf2_msgs.msg import TFMessage
         from visualization_msgs.msg import MarkerArray
 
         from .node_common import TOPICS
-        from .qos import status_qos
+        from .qos import pose_qos, status_qos
         n = owner.node
         r = owner.cfg.ros
         self.map, self.odom, self.camera, self.optical = (
@@ -183,6 +214,8 @@ class TrackerFrames:
         self.pub_static = n.create_publisher(TFMessage, "/tf_static", tf_static_qos())
         self.pub_markers = n.create_publisher(MarkerArray, TOPICS["keyframe_markers"],
                                               status_qos())
+        self.pub_odom = n.create_publisher(Odometry, TOPICS["odometry"], pose_qos())
+        self.last_odom = None                # (stamp, odom -> camera) of the newest Odometry
         self.split = MapOdomSplit()
         self.last_stamp: Optional[float] = None
         self.last_map_pose: Optional[np.ndarray] = None     # of the newest on_pose
@@ -190,11 +223,19 @@ class TrackerFrames:
             OPTICAL_IN_CAMERA, owner.now(), self.camera, self.optical)]))
 
     def on_pose(self, T_map_optical, stamp: float) -> None:
-        """map -> odom and odom -> camera at a tracked frame's stamp."""
+        """map -> odom and odom -> camera at a tracked frame's stamp; the odometry when the
+        stamp is newer than the last one's (its velocity from that one's pose)."""
         T_odom_cam = camera_body_pose(self.split.odom_pose(T_map_optical))
         self.pub.publish(self.TFMessage(transforms=[
             transform_stamped(self.split.map_odom, stamp, self.map, self.odom),
             transform_stamped(T_odom_cam, stamp, self.odom, self.camera)]))
+        last = self.last_odom
+        if last is None or stamp > last[0]:
+            lin, ang = body_twist(last[1], T_odom_cam, stamp - last[0]) if last is not None \
+                else (np.zeros(3), np.zeros(3))
+            self.pub_odom.publish(odometry_msg(T_odom_cam, lin, ang, stamp, self.odom,
+                                               self.camera))
+            self.last_odom = (stamp, T_odom_cam)
         self.last_stamp = stamp
         self.last_map_pose = np.asarray(T_map_optical, np.float64).copy()
 

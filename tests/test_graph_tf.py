@@ -105,6 +105,18 @@ def test_tf_tree_from_the_running_graph(loop_bag, tmp_path):
     st = sorted(odom_cam)
     steps = [np.linalg.norm(odom_cam[b][:3, 3] - odom_cam[a][:3, 3]) for a, b in zip(st, st[1:])]
     assert max(steps) < 0.2, max(steps)
+    # odometry: odom -> camera of /tf at increasing stamps, its twist the motion between them
+    odo = [r for r in recs if r.get("topic") == "odom"]
+    assert len(odo) >= 30 and {(r["frame"], r["child"]) for r in odo} == {("odom_test", "camera")}
+    stamps = [r["stamp"] for r in odo]
+    assert stamps == sorted(set(stamps)) and set(stamps) <= set(odom_cam)
+    for r in odo:
+        np.testing.assert_allclose(_mat(r["p"]), odom_cam[r["stamp"]], atol=1e-5)
+    from splat_slam_nodes.tf_frames import body_twist
+    assert not any(odo[0]["v"])
+    for a, b in zip(odo, odo[1:]):
+        lin, ang = body_twist(_mat(a["p"]), _mat(b["p"]), (b["stamp"] - a["stamp"]) * 1e-9)
+        np.testing.assert_allclose(b["v"], np.concatenate([lin, ang]), atol=1e-4)
     # rviz: keyframe poses as a MarkerArray (DELETEALL, arrows, path)
     marks = [r for r in recs if r.get("topic") == "markers"]
     m = json.loads((tmp_path / "out" / "metrics.json").read_text())

@@ -110,6 +110,30 @@ def test_transform_and_marker_messages():
     assert len(arr.markers[5].points) == 4 and np.isclose(arr.markers[5].points[3].x, P[3][0, 3])
 
 
+
+def test_odometry_twist_is_the_motion_in_the_body_axes():
+    """A body turning about its z axis at 0.5 rad/s while moving forward (its x) at 2 units/s:
+    the twist in its own axes is (2, 0, 0) / (0, 0, 0.5), whatever its pose in odom."""
+    from splat_slam_nodes.convert import msg_to_pose
+
+    def at(t):                       # rotate about z by 0.5 t, move along the rotated x
+        xi = torch.tensor([2.0 * t, 0.0, 0.0, 0.0, 0.0, 0.5 * t], dtype=torch.float64)
+        return se3_exp(xi).numpy()
+    start = _poses(1, seed=6)[0]
+    lin, ang = F.body_twist(start @ at(1.0), start @ at(1.1), 0.1)
+    np.testing.assert_allclose(lin, [2.0, 0, 0], atol=0.06)     # chord of the arc
+    np.testing.assert_allclose(ang, [0, 0, 0.5], atol=1e-9)
+    lin, ang = F.body_twist(start @ at(1.0), start @ at(1.001), 0.001)
+    np.testing.assert_allclose(lin, [2.0, 0, 0], atol=1e-3)
+    m = F.odometry_msg(start, lin, ang, 7.25, "odom", "camera")
+    assert (m.header.frame_id, m.child_frame_id) == ("odom", "camera")
+    assert m.header.stamp.sec == 7 and m.header.stamp.nanosec == 250_000_000
+    np.testing.assert_allclose(msg_to_pose(m.pose.pose), start, atol=1e-9)
+    assert np.isclose(m.twist.twist.linear.x, lin[0]) and np.isclose(m.twist.twist.angular.z,
+                                                                     ang[2])
+    assert not any(m.pose.covariance) and not any(m.twist.covariance)     # not estimated
+
+
 # RIHS01 type hashes of the published ROS 2 Jazzy tf2_msgs (what `ros2 topic info -v /tf`
 # shows on a stock installation): equal hashes = same names, fields and types on the wire.
 JAZZY_HASHES = {

@@ -1,6 +1,7 @@
 """A subscriber for tests/test_graph_tf.py: decodes /tf, /tf_static, /splat/camera_pose,
-/splat/pose_graph_updates and /splat/keyframe_markers of a running graph and prints one JSON
-line per message (transforms as [parent, child, stamp_ns, tx, ty, tz, qx, qy, qz, qw])."""
+/splat/odometry, /splat/pose_graph_updates and /splat/keyframe_markers of a running graph and
+prints one JSON line per message (transforms as [parent, child, stamp_ns, tx, ty, tz, qx, qy,
+qz, qw])."""
 import json
 import sys
 import time
@@ -10,6 +11,7 @@ from splat_slam_ros.ros_env import apply_ros_environment
 apply_ros_environment()
 import rclpy  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
 from splat_slam_msgs.msg import PoseGraphUpdate  # noqa: E402
 from tf2_msgs.msg import TFMessage  # noqa: E402
 from visualization_msgs.msg import MarkerArray  # noqa: E402
@@ -51,6 +53,15 @@ def main() -> None:
               "p": [p.position.x, p.position.y, p.position.z, p.orientation.x, p.orientation.y,
                     p.orientation.z, p.orientation.w]})
     node.create_subscription(PoseStamped, TOPICS["camera_pose"], on_pose, Q.pose_qos())
+
+    def on_odom(m):
+        p, v = m.pose.pose, m.twist.twist
+        emit({"topic": "odom", "frame": m.header.frame_id, "child": m.child_frame_id,
+              "stamp": ns(m.header.stamp),
+              "p": [p.position.x, p.position.y, p.position.z, p.orientation.x, p.orientation.y,
+                    p.orientation.z, p.orientation.w],
+              "v": [v.linear.x, v.linear.y, v.linear.z, v.angular.x, v.angular.y, v.angular.z]})
+    node.create_subscription(Odometry, TOPICS["odometry"], on_odom, Q.pose_qos())
     node.create_subscription(PoseGraphUpdate, TOPICS["updates"],
                              lambda m: emit({"topic": "update", "reason": m.reason,
                                              "seq": int(m.seq)}), Q.pose_graph_qos())
