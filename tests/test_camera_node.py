@@ -94,16 +94,21 @@ def test_user_mistakes_are_one_line_errors(video, tmp_path, args, msg):
     assert "Traceback" not in r.stderr
 
 
-def test_camera_publishes_images_and_infos_at_the_rate(video, tmp_path):
+@pytest.mark.parametrize("jpeg", [0, 80])
+def test_camera_publishes_images_and_infos_at_the_rate(video, tmp_path, jpeg):
+    """Raw rgb8 Images, or with --jpeg JPEG CompressedImages on image_transport's
+    .../compressed name (a fraction of the bytes)."""
     avi, cam_yaml, K = video
     env = isolated_env()
-    subs = [["/camera/image_raw", "sensor_msgs/msg/Image", "sensor"],
+    topic, kind = (("/camera/image_raw/compressed", "CompressedImage") if jpeg else
+                   ("/camera/image_raw", "Image"))
+    subs = [[topic, f"sensor_msgs/msg/{kind}", "sensor"],
             ["/camera/camera_info", "sensor_msgs/msg/CameraInfo", "sensor"]]
     probe = start_probe({"name": "probe", "subs": subs, "duration": 300}, env,
                         tmp_path / "probe.log")
     cam = start([PY, "-m", "splat_slam_nodes.tools.camera_node", str(avi), "--camera-info",
-                 str(cam_yaml), "--rate", "8", "--min-subscribers", "1", "--no-progress"], env,
-                tmp_path / "camera.log")
+                 str(cam_yaml), "--rate", "8", "--min-subscribers", "1", "--no-progress",
+                 "--jpeg", str(jpeg)], env, tmp_path / "camera.log")
     try:
         rc = cam.wait(timeout=300)
         import time
@@ -113,9 +118,11 @@ def test_camera_publishes_images_and_infos_at_the_rate(video, tmp_path):
         stop(probe)
     assert rc == 0, (tmp_path / "camera.log").read_text()[-3000:]
     recs = read_jsonl(tmp_path / "probe.log")
-    img = [r for r in recs if r.get("topic") == "/camera/image_raw"]
+    img = [r for r in recs if r.get("topic") == topic]
     info = [r for r in recs if r.get("topic") == "/camera/camera_info"]
     assert len(img) == N and len(info) == N
+    raw = 192 * 144 * 3
+    assert all(r["bytes"] < raw / 3 for r in img) if jpeg else all(r["bytes"] > raw for r in img)
     assert [r["stamp"] for r in img] == [r["stamp"] for r in info]      # paired by stamp
     dt = np.diff([r["stamp"] for r in img]) * 1e-9
     print(f"camera period: median {np.median(dt):.4f} s, mean {dt.mean():.4f} s, "
@@ -126,7 +133,10 @@ def test_camera_publishes_images_and_infos_at_the_rate(video, tmp_path):
 CFG = TINY_TRACKING_CFG
 
 
-def test_launch_with_camera_tracks_the_video(video, tmp_path):
+@pytest.mark.parametrize("jpeg", [0, 85])
+def test_launch_with_camera_tracks_the_video(video, tmp_path, jpeg):
+    """The camera's raw images, or its JPEG ones (--camera-jpeg: the tracker and the rerun
+    logger subscribe to the compressed transport's name)."""
     avi, cam_yaml, K = video
     (tmp_path / "cfg.yaml").write_text(CFG)
     env = isolated_env()
@@ -134,8 +144,10 @@ def test_launch_with_camera_tracks_the_video(video, tmp_path):
     log = launch_ok([PY, "-m", "splat_slam_nodes.tools.launch", "--camera", str(avi),
                      "--camera-info", str(cam_yaml), "--camera-rate", "4", "--out", str(out), "--config",
                      str(tmp_path / "cfg.yaml"), "--tracking-only", "--rerun",
-                     str(tmp_path / "run.rrd")], env, tmp_path / "launch.log", timeout=600)
+                     str(tmp_path / "run.rrd"), "--camera-jpeg", str(jpeg)], env,
+                    tmp_path / "launch.log", timeout=600)
     assert "[camera]" in log and "published 24 frames" in log
+    assert ("image/compressed (JPEG quality 85)" in log) == bool(jpeg)
     m = json.loads((out / "metrics.json").read_text())
     # a live camera: how many frames the busy tracker drops depends on the machine's speed;
     # the counts must agree whatever it is
@@ -159,7 +171,11 @@ def test_launch_rejects_bad_camera_arguments(video, tmp_path):
     avi, cam_yaml, _ = video
     for extra, msg in ((["--camera", "/nonexistent.avi"], "not found"),
                        (["--camera", str(avi), "--bag", str(tmp_path)], "exclude each other"),
-                       (["--camera", str(avi), "--camera-info", str(avi)], "not a YAML text")):
+                       (["--camera", str(avi), "--camera-info", str(avi)], "not a YAML text"),
+                       (["--camera-jpeg", "90"], "--camera-jpeg needs --camera"),
+                       (["--camera", str(avi), "--camera-jpeg", "101"], "quality from 1 to 100"),
+                       (["--camera", str(avi), "--set", "ros.image_topic=/c/image/compressed"],
+                        "add --camera-jpeg Q")):
         r = subprocess.run([PY, "-m", "splat_slam_nodes.tools.launch", "--out", str(tmp_path / "o")]
                            + extra, capture_output=True, text=True, timeout=120,
                            env=isolated_env())

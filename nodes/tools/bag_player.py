@@ -114,6 +114,28 @@ def graph_topics(reader: BagReader, path, overrides: Dict, calibrated: bool = Fa
             "info_out": overrides.get("ros.camera_info_topic") or info}
 
 
+def launch_args(a, bag_topics: Dict, nodes: List[str], wait_nodes: List[str], out_dir
+                ) -> List[str]:
+    """Command line of the player child of splat-slam-launch ``--bag`` (``bag_topics``:
+    :func:`graph_topics`; ``nodes``: the graph's, whose acks lockstep waits for)."""
+    from pathlib import Path
+    acks = [n for n in ("loop_closure", "mapper") if n in nodes]
+    args = [sys.executable, "-m", "splat_slam_nodes.tools.bag_player", str(Path(a.bag).resolve()),
+            "--mode", a.mode, "--rate", str(a.rate), "--wait-nodes", ",".join(wait_nodes),
+            "--wait-acks", ",".join(acks), "--start-timeout", str(a.start_timeout)]
+    if a.max_frames:
+        args += ["--max-frames", str(a.max_frames)]
+    if out_dir is not None:
+        args += ["--state", str(Path(out_dir) / "state" / "player")]
+    if a.loop_bag > 1:
+        args += ["--loop", str(a.loop_bag)]
+    bt = bag_topics
+    args += ["--image-topic", bt["image"], "--out-image", bt["image_out"]]
+    if bt["camera_info"]:
+        args += ["--camera-info-topic", bt["camera_info"], "--out-camera-info", bt["info_out"]]
+    return args
+
+
 def frames(reader: BagReader, topics: List[str], image_topic: str):
     """Groups of (topic, raw) with one image each, in log-time order. A message without a
     header stamp (0: a camera driver that never set it) gets its log time, as the bag's

@@ -1,8 +1,11 @@
 """splat-slam-camera: a camera driver node — a V4L2 device, a video file or an image folder
-published as ``sensor_msgs/Image`` (rgb8) + ``sensor_msgs/CameraInfo``.
+published as ``sensor_msgs/Image`` (rgb8) + ``sensor_msgs/CameraInfo``, or with ``--jpeg Q`` as
+``sensor_msgs/CompressedImage`` on ``IMAGE_TOPIC/compressed`` (image_transport's compressed
+transport: about a tenth of the bandwidth, for a camera on another host).
 
     splat-slam-camera SOURCE [--camera-info CAM.yaml] [--rate HZ] [--loop] [--max-frames N]
-                      [--image-topic /camera/image_raw] [--camera-info-topic /camera/camera_info]
+                      [--jpeg Q] [--image-topic /camera/image_raw]
+                      [--camera-info-topic /camera/camera_info]
 
 SOURCE: a device index (``0``) or path (``/dev/video0``), a video file (anything OpenCV's
 FFmpeg back end reads) or a folder of images (png/jpg/jpeg/bmp/tif, sorted by name).
@@ -31,6 +34,7 @@ from typing import Iterator, List, Optional
 import cv2
 import numpy as np
 
+from splat_slam_ros.io.sensor_codec import encode_jpeg, is_compressed_topic
 from splat_slam_ros.types import Intrinsics, IntrinsicsError
 
 from ..node_common import TOPICS, events_qos, graph_event, init_process
@@ -176,14 +180,18 @@ class CameraNode:
     def __init__(self, args, source: FrameSource, intr: Optional[Intrinsics]):
         import rclpy
         from rclpy.qos import qos_profile_sensor_data
-        from sensor_msgs.msg import CameraInfo, Image
+        from sensor_msgs.msg import CameraInfo, CompressedImage, Image
         from std_msgs.msg import String
         self.args = args
         self.source = source
         self.intr = intr
         self.node = rclpy.create_node(args.name)
         self.log = self.node.get_logger()
-        self.pub_img = self.node.create_publisher(Image, args.image_topic, qos_profile_sensor_data)
+        # (with --jpeg, main() made args.image_topic the compressed transport's name)
+        img_type = CompressedImage if args.jpeg else Image
+        self.pub_img = self.node.create_publisher(img_type, args.image_topic,
+                                                  qos_profile_sensor_data)
+        self.CompressedImage = CompressedImage
         self.pub_info = self.node.create_publisher(CameraInfo, args.camera_info_topic,
                                                    qos_profile_sensor_data)
         self.pub_ev = self.node.create_publisher(String, TOPICS["events"], events_qos())
@@ -233,7 +241,8 @@ class CameraNode:
         self.wait_for_graph()
         rate = a.rate or self.source.fps or 30.0
         period = 1.0 / rate
-        self.log.info(f"publishing {self.source.kind} {self.source.spec} on {a.image_topic} + "
+        self.log.info(f"publishing {self.source.kind} {self.source.spec} on {a.image_topic} "
+                      f"({f'JPEG quality {a.jpeg}' if a.jpeg else 'rgb8'}) + "
                       f"{a.camera_info_topic} at {rate:g} Hz (SensorData QoS)")
         n = 0
         t_next = time.monotonic()
@@ -252,7 +261,8 @@ class CameraNode:
             t_next = max(t_next + period, time.monotonic() - period)   # no burst after a stall
             stamp = self.node.get_clock().now().nanoseconds * 1e-9
             self.pub_info.publish(intrinsics_to_camera_info(self.intr, stamp, a.frame_id))
-            self.pub_img.publish(image_to_msg(rgb, "rgb8", stamp, a.frame_id))
+            self.pub_img.publish(self._jpeg_msg(rgb, stamp) if a.jpeg else
+                                 image_to_msg(rgb, "rgb8", stamp, a.frame_id))
             n += 1
             bar.update(1)
             if a.max_frames and n >= a.max_frames:
@@ -265,7 +275,37 @@ class CameraNode:
         return 0
 
 
+    def _jpeg_msg(self, rgb: np.ndarray, stamp: float):
+        """sensor_msgs/CompressedImage of ``rgb`` as image_transport's compressed transport
+        writes it (JPEG at ``--jpeg``)."""
+        from ..convert import to_stamp
+        fmt, data = encode_jpeg(rgb, self.args.jpeg)
+        m = self.CompressedImage(format=fmt, data=data.tobytes())
+        m.header.stamp, m.header.frame_id = to_stamp(stamp), self.args.frame_id
+        return m
+
+
+def compressed_topic(topic: str) -> str:
+    """image_transport's name of a base image topic's compressed transport (a name that
+    already ends in ``/compressed`` stays)."""
+    return topic if is_compressed_topic(topic) else topic.rstrip("/") + "/compressed"
+
+
 # --------------------------------------------------------------------------- launcher side
+def camera_topic(jpeg: int, cfg, overrides: dict) -> None:
+    """splat-slam-launch --camera: with ``--camera-jpeg`` the camera publishes on the compressed
+    name of ``ros.image_topic``, which the tracker (and rerun logger) then subscribe to (set in
+    ``cfg`` and ``overrides``); a ``/compressed`` image topic without it is an error."""
+    topic = cfg.ros.image_topic
+    if jpeg:
+        if not 1 <= jpeg <= 100:
+            raise CameraError(f"--camera-jpeg takes a quality from 1 to 100, got {jpeg}")
+        cfg.ros.image_topic = overrides["ros.image_topic"] = compressed_topic(topic)
+    elif is_compressed_topic(topic):
+        raise CameraError(f"ros.image_topic {topic} is a compressed transport's name: add "
+                          "--camera-jpeg Q for the camera to publish JPEG there")
+
+
 def calibration_yaml(path: str) -> str:
     """A camera calibration file in any format :func:`load_camera_info` reads, as the
     project's intrinsics YAML in a new temporary file (the tracker's ``node.intrinsics_file``
@@ -297,6 +337,8 @@ def launch_args(a, cfg, wait_nodes: List[str], end_of_stream: bool) -> List[str]
         args += ["--camera-info", str(Path(a.camera_info).resolve())]
     if a.camera_rate:
         args += ["--rate", str(a.camera_rate)]
+    if a.camera_jpeg:
+        args += ["--jpeg", str(a.camera_jpeg)]
     if a.max_frames:
         args += ["--max-frames", str(a.max_frames)]
     if end_of_stream:
@@ -316,6 +358,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--max-frames", type=int, default=0, help="stop after N frames")
     ap.add_argument("--fov", type=float, default=60.0,
                     help="horizontal field of view (deg) for guessed intrinsics without a file")
+    ap.add_argument("--jpeg", type=int, default=0, metavar="Q",
+                    help="publish JPEG sensor_msgs/CompressedImage at quality Q (1-100) on "
+                         "IMAGE_TOPIC/compressed, image_transport's name (for a network link; "
+                         "default: raw rgb8 Image)")
     ap.add_argument("--image-topic", default="/camera/image_raw")
     ap.add_argument("--camera-info-topic", default="/camera/camera_info")
     ap.add_argument("--frame-id", default="camera_optical", help="header frame_id")
@@ -337,9 +383,13 @@ def main(argv: Optional[List[str]] = None) -> int:
     from rclpy.utilities import remove_ros_args
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(remove_ros_args(["x"] + argv)[1:])
-    if args.rate < 0 or args.max_frames < 0 or not 1.0 <= args.fov < 180.0:
-        print("error: --rate and --max-frames must be >= 0, --fov in [1, 180)", file=sys.stderr)
+    if args.rate < 0 or args.max_frames < 0 or not 1.0 <= args.fov < 180.0 or \
+            not 0 <= args.jpeg <= 100:
+        print("error: --rate and --max-frames must be >= 0, --fov in [1, 180), --jpeg in "
+              "[1, 100] (0 = raw images)", file=sys.stderr)
         return 2
+    if args.jpeg:
+        args.image_topic = compressed_topic(args.image_topic)
     try:
         intr = load_camera_info(args.camera_info) if args.camera_info else None
         source = FrameSource(args.source, loop=args.loop)

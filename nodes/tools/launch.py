@@ -3,7 +3,8 @@
     splat-slam-launch --bag BAG_DIR --out DIR [--config FILE] [--mode lockstep|realtime]
                       [--rate R] [--rerun FILE.rrd] [--set KEY=VALUE ...]
     splat-slam-launch --out DIR [--config FILE] [--set ros.image_topic=/cam/image ...]
-    splat-slam-launch --camera SOURCE [--camera-info CAM.yaml] [--camera-rate HZ] --out DIR
+    splat-slam-launch --camera SOURCE [--camera-info CAM.yaml] [--camera-rate HZ]
+                      [--camera-jpeg Q] --out DIR
 
 Each node runs as its own process with the project's DDS profile (ros_env) and a prefix on
 every log line. With ``--bag`` the bag player feeds the graph; at the end of the bag the
@@ -22,11 +23,11 @@ was killed continues the same run from these stores. A node that exits with stat
 on a configuration error (e.g. a ``depth.mono_model`` that is not a model): no restart, the
 launcher stops the graph and names the node and its error.
 
-Exit status: 0 done; 2 configuration or usage error (of the launcher or of a node); 3 no
-result (no keyframe, or an empty map); 1 any other failure (a node died more than
-``--max-restarts`` times, finalisation timed out, the evaluation against the bag's ground
-truth failed: metrics.json then holds ``evaluation_error``; a bag without ground truth is no
-failure: ``evaluation_skipped``); 130 interrupted.
+Exit status: 0 done; 2 configuration or usage error (of the launcher or of a node); 3 no result
+(no keyframe, or an empty map); 1 any other failure (a node died more than ``--max-restarts``
+times, finalisation timed out, the evaluation against the bag's ground truth failed:
+metrics.json then holds ``evaluation_error``; a bag without ground truth is no failure:
+``evaluation_skipped``); 130 interrupted.
 
 End-of-stream / finalisation protocol (graph events on /splat/graph_events; the rules are
 the stage roles' in splat_slam_ros/roles.py, the same the in-process coordinator runs):
@@ -179,9 +180,10 @@ class Launcher:
             raise LaunchError("node.input_qos: with --bag the tracker takes the player's "
                               "reliable input (the setting is for live topics)")
         if a.camera:
-            from .camera_node import CameraError, check_camera_args
+            from .camera_node import CameraError, camera_topic, check_camera_args
             try:
                 check_camera_args(a.camera, a.camera_info)
+                camera_topic(a.camera_jpeg, self.cfg, self.overrides)
             except CameraError as e:
                 raise LaunchError(str(e)) from None
 
@@ -288,25 +290,6 @@ class Launcher:
             p.extend(ros_param(k, v))
         return py + p
 
-    def _player_args(self) -> List[str]:
-        a = self.args
-        acks = [n for n in ("loop_closure", "mapper") if n in self.nodes]
-        args = [sys.executable, "-m", NODE_MODULES["player"], str(Path(a.bag).resolve()),
-                "--mode", a.mode, "--rate", str(a.rate),
-                "--wait-nodes", ",".join(self.input_waits_for()),
-                "--wait-acks", ",".join(acks), "--start-timeout", str(a.start_timeout)]
-        if a.max_frames:
-            args += ["--max-frames", str(a.max_frames)]
-        if self.out_dir is not None:
-            args += ["--state", str(self.out_dir / "state" / "player")]
-        if a.loop_bag > 1:
-            args += ["--loop", str(a.loop_bag)]
-        bt = self.bag_topics
-        args += ["--image-topic", bt["image"], "--out-image", bt["image_out"]]
-        if bt["camera_info"]:
-            args += ["--camera-info-topic", bt["camera_info"], "--out-camera-info", bt["info_out"]]
-        return args
-
     def input_waits_for(self) -> List[str]:
         """The nodes whose ``ready`` the player or camera waits for before the first frame:
         the graph's and the rerun logger when one records (niced on realtime input, it
@@ -314,16 +297,21 @@ class Launcher:
         return self.nodes + (["rerun"] if self.args.rerun or self.args.rerun_connect else [])
 
     def start_all(self) -> None:
+        from .bag_player import launch_args as player_args
         from .camera_node import launch_args
         names = list(self.local_nodes) + (["rerun"] if self.args.rerun or self.args.rerun_connect
                                     else []) + \
             (["player"] if self.bag is not None else []) + (["camera"] if self.args.camera else [])
         w = max(len(n) for n in names)
         for n in names:
-            args = self._player_args() if n == "player" else self._node_args(n)
-            if n == "camera":
+            if n == "player":
+                args = player_args(self.args, self.bag_topics, self.nodes, self.input_waits_for(),
+                                   self.out_dir)
+            elif n == "camera":
                 args = launch_args(self.args, self.cfg, self.input_waits_for(),
                                    self.out_dir is not None)
+            else:
+                args = self._node_args(n)
             c = Child(n, args, self.env, self.out, w, nice=self.nice_of(n))
             self.children[n] = c
         for n in names:
@@ -510,6 +498,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "uncalibrated one)")
     ap.add_argument("--camera-rate", type=float, default=0.0, metavar="HZ",
                     help="--camera frame rate (default: the source's own)")
+    ap.add_argument("--camera-jpeg", type=int, default=0, metavar="Q", help="--camera publishes "
+                    "JPEG CompressedImage at quality Q on ros.image_topic/compressed")
     ap.add_argument("--network", choices=["localhost", "subnet"], default=None,
                     help="DDS discovery range: localhost (default, this machine only) or subnet "
                          "(every interface, for nodes on several hosts; sets SPLAT_SLAM_DDS_RANGE)")
@@ -550,7 +540,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                     "--camera and --bag exclude each other (one input at a time)"),
                    (args.bag and not args.out, "--bag needs --out (where the outputs go)"),
                    (args.rate <= 0, "--rate must be positive"),
-                   (args.loop_bag < 1, "--loop-bag must be at least 1")):
+                   (args.loop_bag < 1, "--loop-bag must be at least 1"),
+                   (args.camera_jpeg and not args.camera, "--camera-jpeg needs --camera")):
         return 2
     from splat_slam_ros.report.recording import WarningTee
     L = Launcher(args, out=WarningTee(sys.stdout))        # keeps warnings for the report
