@@ -1,13 +1,14 @@
 #!/usr/bin/env python
 """A live camera through the whole default graph: realtime replay vs lockstep, same frames.
 
-    .venv/bin/python benchmarks/bench_live.py [--sequences fr2desk,v102] [--data-dir DIR]
+    .venv/bin/python benchmarks/bench_live.py [--sequences fr2desk,v102,fr1xyz] [--data-dir DIR]
         [--no-lockstep] [--jpeg Q] [--set KEY=VALUE ...] [--json benchmarks/results/live.json]
 
 Sequences (640x480, ``--realism realistic``, rendered with ``splat-slam-synth`` into
 ``--data-dir`` when missing, converted once to a bag): ``fr2desk`` along the real TUM fr2/desk
 hand-held motion from t0 + 47 s, 300 frames at 30 Hz; ``v102`` along EuRoC V1_02 drone motion,
-200 frames at 20 Hz. Each is played by ``splat-slam-launch --bag B --mode realtime`` (frames at
+200 frames at 20 Hz; ``fr1xyz`` (not in the default list) the faster fr1/xyz hand-held motion,
+300 frames at 30 Hz, ``bench_defaults.py``'s render. Each is played by ``splat-slam-launch --bag B --mode realtime`` (frames at
 the camera's rate; the tracker skips what it has no time for, the mapper runs wall-clock
 budgets, the stages that work per keyframe at a lower OS priority) and, unless
 ``--no-lockstep``, by ``--mode lockstep`` (every frame tracked, step budgets) for the PSNR
