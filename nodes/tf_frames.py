@@ -20,6 +20,7 @@ The split itself (:class:`MapOdomSplit`) is pure math, tested without ROS.
 """
 from __future__ import annotations
 
+import threading
 from typing import List, Optional, Sequence
 
 import numpy as np
@@ -216,6 +217,8 @@ class TrackerFrames:
                                               status_qos())
         self.pub_odom = n.create_publisher(Odometry, TOPICS["odometry"], pose_qos())
         self.last_odom = None                # (stamp, odom -> camera) of the newest Odometry
+        # poses come from the worker (tracked frames) and the executor (skipped ones, at once)
+        self._odom_lock = threading.Lock()
         self.split = MapOdomSplit()
         self.last_stamp: Optional[float] = None
         self.last_map_pose: Optional[np.ndarray] = None     # of the newest on_pose
@@ -229,13 +232,14 @@ class TrackerFrames:
         self.pub.publish(self.TFMessage(transforms=[
             transform_stamped(self.split.map_odom, stamp, self.map, self.odom),
             transform_stamped(T_odom_cam, stamp, self.odom, self.camera)]))
-        last = self.last_odom
-        if last is None or stamp > last[0]:
-            lin, ang = body_twist(last[1], T_odom_cam, stamp - last[0]) if last is not None \
-                else (np.zeros(3), np.zeros(3))
-            self.pub_odom.publish(odometry_msg(T_odom_cam, lin, ang, stamp, self.odom,
-                                               self.camera))
-            self.last_odom = (stamp, T_odom_cam)
+        with self._odom_lock:
+            last = self.last_odom
+            if last is None or stamp > last[0]:
+                lin, ang = body_twist(last[1], T_odom_cam, stamp - last[0]) \
+                    if last is not None else (np.zeros(3), np.zeros(3))
+                self.pub_odom.publish(odometry_msg(T_odom_cam, lin, ang, stamp, self.odom,
+                                                   self.camera))
+                self.last_odom = (stamp, T_odom_cam)
         self.last_stamp = stamp
         self.last_map_pose = np.asarray(T_map_optical, np.float64).copy()
 
