@@ -1,7 +1,7 @@
 """splat-slam-camera: a camera driver node — a V4L2 device, a video file or an image folder
 published as ``sensor_msgs/Image`` (rgb8) + ``sensor_msgs/CameraInfo``, or with ``--jpeg Q`` as
 ``sensor_msgs/CompressedImage`` on ``IMAGE_TOPIC/compressed`` (image_transport's compressed
-transport: about a tenth of the bandwidth, for a camera on another host).
+transport: a tenth of the bandwidth or less, for a camera on another host).
 
     splat-slam-camera SOURCE [--camera-info CAM.yaml] [--rate HZ] [--loop] [--max-frames N]
                       [--jpeg Q] [--image-topic /camera/image_raw]
@@ -273,7 +273,6 @@ class CameraNode:
             self.event("end_of_stream", frames=n)
             self._spin(0.5)                 # deliver the event before the process exits
         return 0
-
 
     def _jpeg_msg(self, rgb: np.ndarray, stamp: float):
         """sensor_msgs/CompressedImage of ``rgb`` as image_transport's compressed transport
