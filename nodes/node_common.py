@@ -19,7 +19,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional
 
 from splat_slam_ros.config import ConfigError
 from splat_slam_ros.heap import bound_heap, release_free_memory

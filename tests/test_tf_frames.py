@@ -110,7 +110,6 @@ def test_transform_and_marker_messages():
     assert len(arr.markers[5].points) == 4 and np.isclose(arr.markers[5].points[3].x, P[3][0, 3])
 
 
-
 def test_odometry_twist_is_the_motion_in_the_body_axes():
     """A body turning about its z axis at 0.5 rad/s while moving forward (its x) at 2 units/s:
     the twist in its own axes is (2, 0, 0) / (0, 0, 0.5), whatever its pose in odom."""
