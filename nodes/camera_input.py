@@ -1,6 +1,6 @@
 """The tracker node's camera intake: sensor_msgs/Image (or CompressedImage on a topic ending in
 ``/compressed``, image_transport's name, or wherever the camera publishes that type:
-``SplatNode.follow_image_type``) + CameraInfo -> core Frames.
+``SplatNode.subscribe_image``) + CameraInfo -> core Frames.
 
 Decodes every image on the executor-independent worker, checks it against the calibration
 (camera_info, or ``node.intrinsics_file`` when no camera_info is published) and the size the
@@ -43,9 +43,7 @@ class CameraInput:
         ``on_skip(index, stamp, now, frame=None)``: a skipped frame, once on the executor at
         arrival (``now``: publish its predicted pose) and once on the worker (record it, with
         its decoded ``frame`` when ``tracking.bridge_frames`` keeps skipped frames)."""
-        from sensor_msgs.msg import CameraInfo, CompressedImage, Image
-
-        from splat_slam_ros.io.sensor_codec import is_compressed_topic
+        from sensor_msgs.msg import CameraInfo
 
         from . import qos as Q
         self.owner, self.on_frame, self.on_skip = owner, on_frame, on_skip
@@ -74,11 +72,8 @@ class CameraInput:
         in_qos = Q.image_qos() if self.opts["input_qos"] == "reliable" else Q.sensor_qos()
         o.subscribe(CameraInfo, self.cfg.ros.camera_info_topic, in_qos, self._on_info,
                     "CameraInfo")
-        img_type = CompressedImage if is_compressed_topic(self.cfg.ros.image_topic) else Image
-        sub = o.subscribe(img_type, self.cfg.ros.image_topic, in_qos, self._on_image,
-                          img_type.__name__)
-        o.follow_image_type(self.cfg.ros.image_topic, sub, in_qos, self._on_image,
-                            lambda: self.n_frames > 0)
+        o.subscribe_image(self.cfg.ros.image_topic, in_qos, self._on_image,
+                          lambda: self.n_frames > 0)
 
     # ------------------------------------------------------------ callbacks (executor)
     def _on_info(self, msg, raw) -> None:

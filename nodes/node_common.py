@@ -224,17 +224,19 @@ class SplatNode:
                                     f"{type(e).__name__}: {e}")
         return self.node.create_subscription(msg_type, topic, cb, qos_profile, raw=True)
 
-    def follow_image_type(self, topic: str, sub, qos_profile, callback: Callable,
-                          received: Callable[[], bool]) -> None:
-        """A camera image subscription ``sub`` (Image or CompressedImage, chosen by the topic's
-        name) that follows the camera: until ``received()``, every ``IMAGE_TYPE_CHECK_S`` the
-        topic's type in the graph; published as the other image type only (CompressedImage on
-        a name without ``/compressed``, or the reverse), which would never connect, the
-        subscription is made again with that type, and said; a topic with several types is an
-        error in the log."""
+    def subscribe_image(self, topic: str, qos_profile, callback: Callable,
+                        received: Callable[[], bool]) -> None:
+        """A camera image subscription that follows the camera: CompressedImage on a topic
+        ending in ``/compressed`` (image_transport's name), Image elsewhere; until
+        ``received()``, every ``IMAGE_TYPE_CHECK_S`` the topic's type in the graph. Published
+        as the other image type only (which would never connect), the subscription is made
+        again with that type, and said; a topic with several types is an error in the log."""
         from sensor_msgs.msg import CompressedImage, Image
+
+        from splat_slam_ros.io.sensor_codec import is_compressed_topic
         kinds = {"sensor_msgs/msg/Image": Image, "sensor_msgs/msg/CompressedImage": CompressedImage}
-        state = {"sub": sub}
+        first = CompressedImage if is_compressed_topic(topic) else Image
+        state = {"sub": self.subscribe(first, topic, qos_profile, callback, first.__name__)}
 
         def check():
             if received():

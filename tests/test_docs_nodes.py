@@ -323,6 +323,14 @@ class Extractor:
                                                                        "on_events"):
                 self._helper(attr, n, code)
                 continue
+            if attr == "subscribe_image":      # SplatNode's camera subscription: either type
+                name, qos = self._name_of(n.args[0], cli), self._qos_alts(n.args[1], fn)
+                if name is None or qos is None:
+                    code.unresolved.append(f"{module}:{n.lineno} {attr}")
+                    continue
+                for typ in ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"):
+                    code.endpoints.add(Endpoint("sub", name, typ, qos))
+                continue
             if attr not in CALLS or len(n.args) < 2:
                 continue
             kind, i_name, i_qos = CALLS[attr]

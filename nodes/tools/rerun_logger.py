@@ -81,14 +81,8 @@ class RerunLogger(SplatNode):
         self.subscribe(PathMsg, TOPICS["trajectory"], Q.status_qos(), self._path, "Path")
         self.subscribe(CameraInfo, self.cfg.ros.camera_info_topic, Q.sensor_qos(), self._info,
                        "CameraInfo")
-        from sensor_msgs.msg import CompressedImage
-
-        from splat_slam_ros.io.sensor_codec import is_compressed_topic
-        img_type = CompressedImage if is_compressed_topic(self.cfg.ros.image_topic) else Image
-        sub = self.subscribe(img_type, self.cfg.ros.image_topic, Q.sensor_qos(), self._input,
-                             img_type.__name__)
-        self.follow_image_type(self.cfg.ros.image_topic, sub, Q.sensor_qos(), self._input,
-                               lambda: self.n_images > 0)
+        self.subscribe_image(self.cfg.ros.image_topic, Q.sensor_qos(), self._input,
+                             lambda: self.n_images > 0)
         self.subscribe(Image, TOPICS["rendered_rgb"], Q.rendered_qos(),
                        lambda m, raw: self._image(m, "rendered/rgb"), "Image")
         self.subscribe(Image, TOPICS["rendered_depth"], Q.rendered_qos(),
