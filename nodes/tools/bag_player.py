@@ -90,7 +90,7 @@ def graph_topics(reader: BagReader, path, overrides: Dict, calibrated: bool = Fa
     calibration file). Compressed images go out on a ``.../compressed`` name, where the
     tracker takes CompressedImage."""
     from splat_slam_ros.io.bagio import DEFAULT_TOPICS, T_COMPRESSED, camera_topics
-    from splat_slam_ros.io.sensor_codec import is_compressed_topic
+    from splat_slam_ros.io.sensor_codec import compressed_topic, is_compressed_topic
     roles = dict(DEFAULT_TOPICS)
     roles.update(reader.info.get("topics") or {})
     try:
@@ -106,7 +106,7 @@ def graph_topics(reader: BagReader, path, overrides: Dict, calibrated: bool = Fa
         if "ros.image_topic" in overrides:
             raise PlayerError(f"the bag's images ({image}) are CompressedImage: "
                               "ros.image_topic must end in /compressed")
-        out = out.rstrip("/") + "/compressed"
+        out = compressed_topic(out)
     elif not compressed and is_compressed_topic(out):
         raise PlayerError(f"{out} ends in /compressed, but the bag's images ({image}) are raw "
                           "sensor_msgs/Image")

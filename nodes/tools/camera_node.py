@@ -34,7 +34,7 @@ from typing import Iterator, List, Optional
 import cv2
 import numpy as np
 
-from splat_slam_ros.io.sensor_codec import encode_jpeg, is_compressed_topic
+from splat_slam_ros.io.sensor_codec import compressed_topic, encode_jpeg, is_compressed_topic
 from splat_slam_ros.types import Intrinsics, IntrinsicsError
 
 from ..node_common import TOPICS, events_qos, graph_event, init_process
@@ -282,12 +282,6 @@ class CameraNode:
         m = self.CompressedImage(format=fmt, data=data.tobytes())
         m.header.stamp, m.header.frame_id = to_stamp(stamp), self.args.frame_id
         return m
-
-
-def compressed_topic(topic: str) -> str:
-    """image_transport's name of a base image topic's compressed transport (a name that
-    already ends in ``/compressed`` stays)."""
-    return topic if is_compressed_topic(topic) else topic.rstrip("/") + "/compressed"
 
 
 # --------------------------------------------------------------------------- launcher side

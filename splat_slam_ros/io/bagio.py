@@ -43,8 +43,8 @@ from splat_slam_ros.io import mcap_recover
 from splat_slam_ros.io.bag_reader import INFO_FILE, BagFile, is_bag_dir, make_typestore
 from splat_slam_ros.io.bag_reader import register_project_types  # noqa: F401 (public re-export)
 from splat_slam_ros.io.sensor_codec import (ConversionError, camera_info_to_intrinsics,
-                                           decode_depth, decode_rgb, encode_image, encode_jpeg,
-                                           is_compressed_topic)
+                                           compressed_topic, decode_depth, decode_rgb,
+                                           encode_image, encode_jpeg, is_compressed_topic)
 from splat_slam_ros.types import Frame, Intrinsics
 
 DEFAULT_TOPICS: Dict[str, Optional[str]] = {
@@ -216,7 +216,7 @@ def write_bag(dataset: Dataset, out_dir, progress: bool = True,
     if jpeg_quality is not None:
         if not 1 <= int(jpeg_quality) <= 100:
             raise DatasetError(f"JPEG quality {jpeg_quality} is outside 1..100")
-        tp["image"] += "/compressed"
+        tp["image"] = compressed_topic(tp["image"])
     tp.update(topics or {})
     if not tp.get("image"):
         raise DatasetError("write_bag needs an image topic")

@@ -158,6 +158,12 @@ def is_compressed_topic(topic: str) -> bool:
     return str(topic).rstrip("/").endswith("/compressed")
 
 
+def compressed_topic(topic: str) -> str:
+    """image_transport's name of a base image topic's compressed transport (a name that
+    already ends in ``/compressed`` stays)."""
+    return topic if is_compressed_topic(topic) else topic.rstrip("/") + "/compressed"
+
+
 def decode_compressed(msg, keep_mono: bool = False) -> np.ndarray:
     """CompressedImage fields (``format``, ``data``) -> H x W x 3 uint8 RGB (H x W for a mono
     image with ``keep_mono``). The format is image_transport's ("<encoding>; jpeg compressed
