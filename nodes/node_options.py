@@ -8,7 +8,7 @@ and ``state_dir``.
 """
 from __future__ import annotations
 
-from typing import Any, Dict, Iterable, Tuple
+from typing import Any, Dict, Iterable
 
 COMMON_OPTIONS: Dict[str, Any] = {"output_dir": "", "state_dir": ""}
 
@@ -60,16 +60,13 @@ def _typed(key: str, value, default):
     return value
 
 
-def split_node_overrides(overrides: Dict[str, Any], nodes: Iterable[str]
-                         ) -> Tuple[Dict[str, Any], Dict[str, Dict[str, Any]]]:
-    """``--set`` items -> (the config keys, {node: {"node.KEY": value}} for the ``node.*`` keys
-    of the started ``nodes``). NodeOptionError names what is wrong: an unknown option, one of a
-    node this launch does not start, one a launcher flag sets, a value of the wrong type."""
-    nodes = list(nodes)
-    config, per_node = {}, {n: {} for n in nodes}
+def node_overrides(overrides: Dict[str, Any], nodes: Iterable[str]) -> Dict[str, Dict[str, Any]]:
+    """The ``node.*`` items of ``--set`` (config keys are skipped) -> {node: {"node.KEY": value}}
+    for the started ``nodes``. NodeOptionError names what is wrong: an unknown option, one of
+    a node this launch does not start, one a launcher flag sets, a value of the wrong type."""
+    per_node: Dict[str, Dict[str, Any]] = {n: {} for n in nodes}
     for k, v in overrides.items():
         if not k.startswith("node."):
-            config[k] = v
             continue
         key = k[len("node."):]
         if key in LAUNCHER_FLAGS:
@@ -87,7 +84,7 @@ def split_node_overrides(overrides: Dict[str, Any], nodes: Iterable[str]
                                   "this launch does not start")
         for n in started:
             per_node[n][k] = _typed(key, v, NODE_OPTIONS[n][key])
-    return config, per_node
+    return per_node
 
 
 def ros_value(v) -> str:

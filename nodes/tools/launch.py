@@ -51,7 +51,7 @@ import time
 from pathlib import Path
 from typing import Dict, List, Optional
 
-from ..node_options import NodeOptionError, ros_param, split_node_overrides
+from ..node_options import NodeOptionError, node_overrides, ros_param
 from ..tool_runner import usage_error
 from .launch_proc import Child
 from .launch_results import finish
@@ -173,7 +173,7 @@ class Launcher:
         from .launch_net import select_nodes
         try:
             self.local_nodes = select_nodes(a.nodes, self.nodes)   # --nodes: this host's share
-            self.node_sets = split_node_overrides(sets, self.input_waits_for())[1]
+            self.node_sets = node_overrides(sets, self.input_waits_for())
         except (NetworkArgError, NodeOptionError) as e:
             raise LaunchError(str(e)) from None
         if self.bag is not None and "node.input_qos" in self.node_sets["tracker"]:
