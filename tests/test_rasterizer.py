@@ -19,7 +19,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from splat_slam_ros.mapping.rasterizer import RasterizerInputError, RasterOutput, rasterize
+from splat_slam_ros.mapping.rasterizer import (RasterizerInputError, RasterOutput, rasterize,
+                                               visible_gaussians)
 from splat_slam_ros.mapping.rasterizer import kernel as rkernel
 from splat_slam_ros.mapping.rasterizer.projection import project_gaussians
 
@@ -343,6 +344,33 @@ def test_visibility_follows_transmittance(ext, backend):
     # depth is the alpha-blended centre depth: between 2 and 3 at the image centre
     c = out.depth[24, 32] / out.alpha[24, 32]
     assert 2.0 < float(c) < 3.0
+
+
+@pytest.mark.parametrize("tile_size", [8, 16, 32])
+@pytest.mark.parametrize("seed,n", [(0, 200), (3, 2000)])
+def test_visible_sets_without_the_render_are_the_renders(ext, seed, n, tile_size):
+    # visible_gaussians stops each pixel once T < 0.5 instead of compositing it to the end:
+    # the same flags as the render's, bit for bit; 2000 Gaussians in a 61x45 view hide most
+    # of each other, so a pass that flagged whatever it reached would differ
+    scene = make_scene(n=n, seed=seed)
+    means, quats, scales, opac, cols, viewmat, intr = scene
+    out, _ = render(scene, "cpp", tile_size=tile_size)
+    vis = visible_gaussians(means, quats, scales, opac, viewmat, intr, W, H, backend="cpp",
+                            tile_size=tile_size)
+    assert vis.dtype == torch.bool and vis.shape == (n,)
+    assert torch.equal(vis, out.visible)
+    in_view = int((out.radii > 0).sum())
+    assert 0 < int(vis.sum()) < (in_view if n < 1000 else in_view // 2)
+    ref, _ = render(scene, "torch", tile_size=tile_size)         # other backends: the render's
+    assert torch.equal(visible_gaussians(means, quats, scales, opac, viewmat, intr, W, H,
+                                         backend="torch", tile_size=tile_size), ref.visible)
+
+
+def test_visible_sets_of_the_two_gaussian_scene(ext):
+    for opacity, expected in ((0.99, [True, False]), (0.3, [True, True])):
+        means, quats, scales, opac, _, viewmat, intr = _two_gaussians(opacity)
+        assert visible_gaussians(means, quats, scales, opac, viewmat, intr, W, H,
+                                 backend="cpp").tolist() == expected
 
 
 def test_input_errors():

@@ -37,7 +37,7 @@ from splat_slam_ros.mapping.keyframe_inputs import (MapError, MappedKeyframe,
 from splat_slam_ros.mapping.keyframe_views import history_entry
 from splat_slam_ros.mapping.keyframe_window import KeyframeDecision, KeyframeWindow
 from splat_slam_ros.mapping.map_init import init_gaussians, uncovered
-from splat_slam_ros.mapping.optimise import lattice_steps, optimise, render_map
+from splat_slam_ros.mapping.optimise import lattice_steps, optimise, render_map, visible_in_map
 from splat_slam_ros.mapping.ply_io import PlyError, load_gaussians_ply, save_gaussians_ply
 from splat_slam_ros.mapping.rasterizer import select_backend
 from splat_slam_ros.mapping.rasterizer.projection import LOW_PASS
@@ -125,6 +125,16 @@ class Mapper:
                           self.raster.name, self.device, attrs=attrs, low_pass=low_pass)
 
     @torch.no_grad()
+    def visible_uids(self, pose) -> torch.Tensor:
+        """Uids of the Gaussians a render at ``pose`` composites while T >= 0.5 (the
+        covisibility sets), without rendering the image."""
+        if len(self.map) == 0:
+            return self.map.uid[:0]
+        vis = visible_in_map(self.map, pose, self.intr, self.W, self.H, self.raster.name,
+                             self.device)
+        return self.map.uid[vis]
+
+    @torch.no_grad()
     def render(self, pose, width: Optional[int] = None, height: Optional[int] = None,
                kf_id: Optional[int] = None,
                intrinsics: Optional[Sequence[float]] = None) -> Tuple[np.ndarray, np.ndarray]:
@@ -194,14 +204,16 @@ class Mapper:
         pose = check_pose(pose)
         if self.window.last is None or len(self.map) == 0:
             return KeyframeDecision(True, "first", 0.0, 0.0, 0.0)
-        out = self._raster(pose)
-        vis = self.map.uid[out.visible]
+        vis = self.visible_uids(pose)
         d = np.asarray(depth, dtype=np.float32)
         ok = np.isfinite(d) & (d > 0)
         if valid is not None:
             ok &= np.asarray(valid, bool)
-        med = float(np.median(d[ok])) if ok.any() else float(out.depth[out.alpha > 0.5].median()
-                                                            if (out.alpha > 0.5).any() else 0)
+        if ok.any():
+            med = float(np.median(d[ok]))
+        else:                                   # no depth: the map's, where it covers
+            out = self._raster(pose)
+            med = float(out.depth[out.alpha > 0.5].median()) if (out.alpha > 0.5).any() else 0.0
         poses = {k: kf.pose for k, kf in self.keyframes.items()}
         return self.window.decide(vis, pose, med, poses)
 
@@ -227,10 +239,13 @@ class Mapper:
         if first:
             dec = KeyframeDecision(True, "first", 0.0, 0.0, 0.0)
             vis = self.map.uid[:0]
-        else:
+        elif self.mcfg.seed_uncovered:          # the render's alpha and depth seed below
             with torch.no_grad():
                 out = self._raster(pose)
             vis = self.map.uid[out.visible]
+        else:
+            vis = self.visible_uids(pose)
+        if not first:
             med = float(depth_t[valid_t].median()) if bool(valid_t.any()) else 1.0
             dec = self.window.decide(vis, pose, med,
                                      {k: kf.pose for k, kf in self.keyframes.items()})
@@ -302,8 +317,8 @@ class Mapper:
         """Render keyframes ``kf_ids`` in full: their visible sets (keyframe selection, window
         membership, visibility pruning) as the map is now."""
         for j in kf_ids:
-            out = self._raster(self.keyframes[j].pose)
-            self.window.set_visibility(j, self.map.uid[out.visible], self.seedings)
+            self.window.set_visibility(j, self.visible_uids(self.keyframes[j].pose),
+                                       self.seedings)
 
     def keyframe_budget(self, first: bool, timestamp: float) -> Budget:
         """The steps (and, with ``mapping.time_budget``, wall seconds) of one keyframe's

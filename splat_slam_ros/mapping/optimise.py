@@ -1,7 +1,8 @@
 """Rendering the Gaussian map and the mapping optimisation (§3.2, Eq. 11).
 
 Functional pieces: :func:`viewmat` / :func:`render_map` (rasterise the map at a
-camera-to-world pose), :func:`view_loss` and :func:`isotropy` (the Eq. 11 terms;
+camera-to-world pose; :func:`visible_in_map`: only its visible set), :func:`view_loss` and
+:func:`isotropy` (the Eq. 11 terms;
 :func:`fused_view_loss`: ``view_loss`` in C++, what the CPU backend's steps use),
 :func:`pick_views` (the window keyframes of one step, plus random older ones) and
 :func:`optimise`: Adam steps on the Eq. 11 loss summed over the window keyframes, each step
@@ -19,7 +20,7 @@ import torch
 
 from splat_slam_ros.geometry import se3_inverse
 from splat_slam_ros.mapping.keyframe_inputs import MappedKeyframe, lattice_view
-from splat_slam_ros.mapping.rasterizer import rasterize
+from splat_slam_ros.mapping.rasterizer import rasterize, visible_gaussians
 from splat_slam_ros.mapping.rasterizer.kernel import ViewLossCpp
 from splat_slam_ros.mapping.rasterizer.projection import LOW_PASS
 
@@ -45,6 +46,14 @@ def render_map(g, pose, intr, width: int, height: int, backend: str, device, att
     quats, scales, opacities = activated(g) if attrs is None else attrs
     return rasterize(g.means, quats, scales, opacities, g.colors, viewmat(pose, device), intr,
                      int(width), int(height), backend=backend, low_pass=low_pass)
+
+
+def visible_in_map(g, pose, intr, width: int, height: int, backend: str, device) -> torch.Tensor:
+    """(N,) bool: the Gaussians of ``g`` that :func:`render_map` at ``pose`` would flag
+    visible (composited while T >= 0.5), without rendering the image."""
+    quats, scales, opacities = activated(g)
+    return visible_gaussians(g.means, quats, scales, opacities, viewmat(pose, device), intr,
+                             int(width), int(height), backend=backend)
 
 
 def view_loss(kf: MappedKeyframe, out, expose: Callable, lam: float) -> torch.Tensor:

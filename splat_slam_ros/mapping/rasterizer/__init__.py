@@ -25,7 +25,7 @@ from splat_slam_ros.mapping.rasterizer.kernel import (ProjectCpp, RasterizerBuil
 from splat_slam_ros.mapping.rasterizer.projection import LOW_PASS, Projected, project_gaussians
 from splat_slam_ros.mapping.rasterizer.reference import rasterize_reference
 
-__all__ = ["rasterize", "RasterOutput", "RasterizerError", "RasterizerBuildError",
+__all__ = ["rasterize", "visible_gaussians", "RasterOutput", "RasterizerError", "RasterizerBuildError",
            "RasterizerInputError", "RasterBackendError", "BackendChoice", "select_backend",
            "project_gaussians", "available_backends"]
 
@@ -233,6 +233,33 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
             bg, tile_size=tile_size)
     return RasterOutput(rgb=rgb, depth=depth, alpha=alpha, visible=visible, radii=proj.radii,
                         means2d=proj.means2d)
+
+
+@torch.no_grad()
+def visible_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                      opacities: torch.Tensor, viewmat: torch.Tensor,
+                      intrinsics: Union[Sequence[float], torch.Tensor], width: int, height: int,
+                      backend: str = "auto", near: float = 0.01, tile_size: int = 16,
+                      low_pass: float = LOW_PASS) -> torch.Tensor:
+    """(N,) bool: :func:`rasterize`'s ``visible`` (composited while T >= 0.5: the covisibility
+    sets), without the render. The C++ kernel stops a pixel once T < 0.5, where the render
+    has nothing more to flag, so it skips the pixels' back layers (the same flags to the
+    bit); the other backends render and take them."""
+    zeros = torch.zeros_like(means)
+    _check(means, quats, scales, opacities, zeros, viewmat, width, height, near, tile_size)
+    which = _resolve_backend(backend, means.device)
+    if which != "cpp" or means.device.type != "cpu":
+        return rasterize(means, quats, scales, opacities, zeros, viewmat, intrinsics, width,
+                         height, backend=which, near=near, tile_size=tile_size,
+                         low_pass=low_pass).visible
+    fx, fy, cx, cy = (float(v) for v in (intrinsics.tolist() if torch.is_tensor(intrinsics)
+                                          else intrinsics))
+    proj = _project(which, means, quats, scales, viewmat, fx, fy, cx, cy, int(width),
+                    int(height), near, low_pass)
+    m2d, conics, opac, depths = (t.float().contiguous() for t in
+                                 (proj.means2d, proj.conics, opacities, proj.depths))
+    return load_extension().visible(m2d, conics, opac, depths, proj.ranges.contiguous(),
+                                    int(width), int(height), tile_size).bool()
 
 
 def _project(which, means, quats, scales, viewmat, fx, fy, cx, cy, width, height,

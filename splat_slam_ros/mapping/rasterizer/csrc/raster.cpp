@@ -11,22 +11,22 @@ namespace {
 using namespace splat_raster;
 
 // ------------------------------------------------------------------ bindings
+void check_float32(const torch::Tensor& t) {
+  TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == torch::kFloat32 && t.is_contiguous(),
+              "float32 contiguous CPU tensors expected");
+}
+
 void check_inputs(const torch::Tensor& means2d, const torch::Tensor& conics,
-                  const torch::Tensor& colors, const torch::Tensor& opac,
-                  const torch::Tensor& depths, const torch::Tensor& ranges) {
+                  const torch::Tensor& opac, const torch::Tensor& depths,
+                  const torch::Tensor& ranges) {
   const int64_t n = means2d.size(0);
   TORCH_CHECK(means2d.dim() == 2 && means2d.size(1) == 2, "means2d must be (N, 2)");
   TORCH_CHECK(conics.dim() == 2 && conics.size(0) == n && conics.size(1) == 3, "conics (N, 3)");
-  TORCH_CHECK(colors.dim() == 2 && colors.size(0) == n && colors.size(1) == 3, "colors (N, 3)");
   TORCH_CHECK(opac.dim() == 1 && opac.size(0) == n, "opacities (N,)");
   TORCH_CHECK(depths.dim() == 1 && depths.size(0) == n, "depths (N,)");
   TORCH_CHECK(ranges.dim() == 2 && ranges.size(0) == n && ranges.size(1) == 4, "ranges (N, 4)");
   TORCH_CHECK(n < (int64_t(1) << 31), "too many Gaussians");
-  for (const auto* t : {&means2d, &conics, &colors, &opac, &depths}) {
-    TORCH_CHECK(t->device().is_cpu() && t->scalar_type() == torch::kFloat32 &&
-                    t->is_contiguous(),
-                "float32 contiguous CPU tensors expected");
-  }
+  for (const auto* t : {&means2d, &conics, &opac, &depths}) check_float32(*t);
   TORCH_CHECK(ranges.device().is_cpu() && ranges.scalar_type() == torch::kInt32 &&
                   ranges.is_contiguous(),
               "ranges must be int32 contiguous CPU");
@@ -49,6 +49,39 @@ Packed* packed_ptr(const torch::Tensor& packed) {
     default: TORCH_CHECK(false, "tile_size must be 8, 16 or 32");   \
   }
 
+// The Gaussians with a footprint, binned by tile and packed (what the forward, the
+// visible sets and the backward share).
+struct Binned {
+  int64_t tiles_x, n_tiles;
+  torch::Tensor ids, tile_off, keys, packed;
+};
+
+Binned bin_and_pack(const torch::Tensor& means2d, const torch::Tensor& conics,
+                    const float* colors, const torch::Tensor& opac,
+                    const torch::Tensor& depths, const torch::Tensor& ranges, int64_t width,
+                    int64_t height, int ts) {
+  TORCH_CHECK(width > 0 && height > 0, "image size must be positive");
+  const int64_t n = means2d.size(0);
+  const int64_t tiles_x = (width + ts - 1) / ts, tiles_y = (height + ts - 1) / ts;
+  const int64_t n_tiles = tiles_x * tiles_y;
+  const int32_t* rg = ranges.data_ptr<int32_t>();
+  const std::vector<int32_t> slots = with_footprint(rg, n);
+  const int64_t nc = int64_t(slots.size());
+  const int64_t m = pair_count(rg, slots.data(), nc, ts);
+  auto i64 = torch::TensorOptions().dtype(torch::kInt64);
+  Binned b{tiles_x, n_tiles,
+           torch::from_blob(const_cast<int32_t*>(slots.data()), {nc},
+                            torch::TensorOptions().dtype(torch::kInt32)).clone(),
+           torch::empty({n_tiles + 1}, i64), torch::empty({m}, i64),
+           torch::empty({nc, int64_t(sizeof(Packed))},
+                        torch::TensorOptions().dtype(torch::kUInt8))};
+  bin_gaussians(rg, depths.data_ptr<float>(), slots.data(), nc, ts, tiles_x, tiles_y,
+                m, b.tile_off.data_ptr<int64_t>(), b.keys.data_ptr<int64_t>());
+  pack(slots.data(), nc, means2d.data_ptr<float>(), conics.data_ptr<float>(), colors,
+       opac.data_ptr<float>(), depths.data_ptr<float>(), rg, packed_ptr(b.packed));
+  return b;
+}
+
 // Returns rgb (H,W,3), depth (H,W), alpha (H,W), T_final (H,W), visible (N,) uint8,
 // tile_off (n_tiles+1,) int64, keys (M,) int64, and for the backward the packed Gaussians
 // with a footprint (uint8, 64 bytes each) and their indices ids (int32).
@@ -57,41 +90,44 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
                                              torch::Tensor depths, torch::Tensor ranges,
                                              torch::Tensor bg, int64_t width, int64_t height,
                                              int64_t tile_size) {
-  check_inputs(means2d, conics, colors, opac, depths, ranges);
+  check_inputs(means2d, conics, opac, depths, ranges);
+  TORCH_CHECK(colors.dim() == 2 && colors.size(0) == means2d.size(0) && colors.size(1) == 3,
+              "colors (N, 3)");
+  check_float32(colors);
   TORCH_CHECK(bg.numel() == 3 && bg.scalar_type() == torch::kFloat32 && bg.is_contiguous(),
               "background must be 3 float32");
-  TORCH_CHECK(width > 0 && height > 0, "image size must be positive");
-  const int64_t n = means2d.size(0);
   const int ts = int(tile_size);
-  const int64_t tiles_x = (width + ts - 1) / ts, tiles_y = (height + ts - 1) / ts;
-  const int64_t n_tiles = tiles_x * tiles_y;
-  const int32_t* rg = ranges.data_ptr<int32_t>();
-  const std::vector<int32_t> slots = with_footprint(rg, n);
-  const int64_t nc = int64_t(slots.size());
-  const int64_t m = pair_count(rg, slots.data(), nc, ts);
-  auto i64 = torch::TensorOptions().dtype(torch::kInt64);
+  Binned b = bin_and_pack(means2d, conics, colors.data_ptr<float>(), opac, depths, ranges,
+                          width, height, ts);
   auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
-  torch::Tensor ids = torch::from_blob(const_cast<int32_t*>(slots.data()), {nc},
-                                       torch::TensorOptions().dtype(torch::kInt32)).clone();
-  torch::Tensor tile_off = torch::empty({n_tiles + 1}, i64);
-  torch::Tensor keys = torch::empty({m}, i64);
-  bin_gaussians(rg, depths.data_ptr<float>(), slots.data(), nc, ts, tiles_x, tiles_y,
-                m, tile_off.data_ptr<int64_t>(), keys.data_ptr<int64_t>());
-  torch::Tensor packed = torch::empty({nc, int64_t(sizeof(Packed))},
-                                      torch::TensorOptions().dtype(torch::kUInt8));
-  Packed* gs = packed_ptr(packed);
-  pack(slots.data(), nc, means2d.data_ptr<float>(), conics.data_ptr<float>(),
-       colors.data_ptr<float>(), opac.data_ptr<float>(), depths.data_ptr<float>(), rg, gs);
   torch::Tensor rgb = torch::empty({height, width, 3}, f32);
   torch::Tensor depth = torch::empty({height, width}, f32);
   torch::Tensor alpha = torch::empty({height, width}, f32);
   torch::Tensor tfin = torch::empty({height, width}, f32);
-  torch::Tensor visible = torch::zeros({n}, torch::TensorOptions().dtype(torch::kUInt8));
+  torch::Tensor visible =
+      torch::zeros({means2d.size(0)}, torch::TensorOptions().dtype(torch::kUInt8));
   DISPATCH_TILE(ts, forward_tiles<TS>(
-      width, height, tiles_x, n_tiles, tile_off.data_ptr<int64_t>(), keys.data_ptr<int64_t>(),
-      gs, slots.data(), bg.data_ptr<float>(), rgb.data_ptr<float>(), depth.data_ptr<float>(),
+      width, height, b.tiles_x, b.n_tiles, b.tile_off.data_ptr<int64_t>(),
+      b.keys.data_ptr<int64_t>(), packed_ptr(b.packed), b.ids.data_ptr<int32_t>(),
+      bg.data_ptr<float>(), rgb.data_ptr<float>(), depth.data_ptr<float>(),
       alpha.data_ptr<float>(), tfin.data_ptr<float>(), visible.data_ptr<uint8_t>()));
-  return {rgb, depth, alpha, tfin, visible, tile_off, keys, packed, ids};
+  return {rgb, depth, alpha, tfin, visible, b.tile_off, b.keys, b.packed, b.ids};
+}
+
+// The forward's visible (N,) uint8 alone (visible_tiles: no colour, depth or alpha).
+torch::Tensor rasterize_visible(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
+                                torch::Tensor depths, torch::Tensor ranges, int64_t width,
+                                int64_t height, int64_t tile_size) {
+  check_inputs(means2d, conics, opac, depths, ranges);
+  const int ts = int(tile_size);
+  Binned b = bin_and_pack(means2d, conics, nullptr, opac, depths, ranges, width, height, ts);
+  torch::Tensor visible =
+      torch::zeros({means2d.size(0)}, torch::TensorOptions().dtype(torch::kUInt8));
+  DISPATCH_TILE(ts, visible_tiles<TS>(
+      width, height, b.tiles_x, b.n_tiles, b.tile_off.data_ptr<int64_t>(),
+      b.keys.data_ptr<int64_t>(), packed_ptr(b.packed), b.ids.data_ptr<int32_t>(),
+      visible.data_ptr<uint8_t>()));
+  return visible;
 }
 
 // Returns grads w.r.t. means2d (N,2), conics (N,3), colors (N,3), opacities (N,), depths (N,)
@@ -294,6 +330,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.doc() = "splat_slam_ros CPU Gaussian rasterizer (tile-based, OpenMP)";
   m.def("forward", &rasterize_forward, "rasterize forward");
   m.def("backward", &rasterize_backward, "rasterize backward");
+  m.def("visible", &rasterize_visible, "the forward's visible flags alone");
   m.def("project_forward", &project_fwd, "EWA projection forward");
   m.def("project_backward", &project_bwd, "EWA projection backward");
   m.def("view_loss_forward", &view_loss_fwd, "Eq. 11 data terms of one view");

@@ -189,7 +189,8 @@ struct alignas(64) Packed {
   int32_t pad[2];
 };
 
-// One Packed per slot (``out``: nc of them); the backward reuses the forward's.
+// One Packed per slot (``out``: nc of them); the backward reuses the forward's. ``colors``
+// may be null (visible_tiles reads none).
 inline void pack(const int32_t* ids, int64_t nc, const float* means2d, const float* conics,
                  const float* colors, const float* opac, const float* depths,
                  const int32_t* ranges, Packed* out) {
@@ -203,9 +204,9 @@ inline void pack(const int32_t* ids, int64_t nc, const float* means2d, const flo
     p.cb = conics[3 * g + 1];
     p.cc = conics[3 * g + 2];
     p.op = opac[g];
-    p.c0 = colors[3 * g];
-    p.c1 = colors[3 * g + 1];
-    p.c2 = colors[3 * g + 2];
+    p.c0 = colors ? colors[3 * g] : 0.f;  // no colours: visible sets only
+    p.c1 = colors ? colors[3 * g + 1] : 0.f;
+    p.c2 = colors ? colors[3 * g + 2] : 0.f;
     p.d = depths[g];
     p.x0 = ranges[4 * g];
     p.x1 = ranges[4 * g + 1];
@@ -342,6 +343,64 @@ void forward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_til
         out_alpha[o] = 1.f - T[i];
         out_T[o] = T[i];
       }
+  }
+}
+
+// ------------------------------------------------------------------ visible sets
+// forward_tiles' ``visible`` alone: a pixel leaves once T < kVisibleT, where the forward
+// has nothing more to flag (while T >= 0.5 no alpha <= 0.99 can take it below kTMin, so
+// the forward composites every Gaussian there; T is updated by the same expression), so
+// the flags are the forward's to the bit without compositing the pixels' back layers.
+template <int TS>
+void visible_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_tiles,
+                   const int64_t* tile_off, const int64_t* keys, const Packed* gs,
+                   const int32_t* ids, uint8_t* visible) {
+  static_assert(TS % kLanes == 0, "tile rows are whole lane vectors");
+  constexpr int P = TS * TS, NV = TS / kLanes;
+#pragma omp parallel for schedule(dynamic, 1)
+  for (int64_t tile = 0; tile < n_tiles; ++tile) {
+    const int64_t tx0 = (tile % tiles_x) * TS, ty0 = (tile / tiles_x) * TS;
+    const int tw = int(std::min<int64_t>(TS, width - tx0));
+    const int th = int(std::min<int64_t>(TS, height - ty0));
+    alignas(64) float T[P], act[P], AL[P];
+    for (int i = 0; i < P; ++i) {
+      T[i] = 1.f;
+      act[i] = ((i % TS) < tw && (i / TS) < th) ? 1.f : 0.f;
+    }
+    vf X[NV];
+    for (int h = 0; h < NV; ++h)
+      for (int l = 0; l < kLanes; ++l) X[h][l] = float(tx0 + h * kLanes + l);
+    int n_active = tw * th;
+    const int64_t k_end = tile_off[tile + 1];
+    for (int64_t k = tile_off[tile]; k < k_end && n_active > 0; ++k) {
+      const int64_t s = key_slot(keys[k]);
+      if (k + 1 < k_end) __builtin_prefetch(gs + key_slot(keys[k + 1]));
+      const Packed q = gs[s];
+      const int ya = int(std::max<int64_t>(q.y0, ty0) - ty0);
+      const int yb = int(std::min<int64_t>(q.y1, ty0 + TS - 1) - ty0);
+      int h0, h1;
+      footprint_vectors<TS>(q, tx0, h0, h1);
+      vi n_left = {}, vis = {};
+      for (int y = ya; y <= yb; ++y) {
+        const float py = float(ty0 + y);
+        for (int h = h0; h <= h1; ++h) vstore(AL + y * TS + h * kLanes, alphas(q, X[h], py).al);
+      }
+      for (int y = ya; y <= yb; ++y) {
+        for (int h = h0; h <= h1; ++h) {
+          const int i = y * TS + h * kLanes;
+          const vf ac = vload(act + i);
+          const vf al = vload(AL + i) * ac;
+          const vf Tn = vload(T + i) * (1.f - al);
+          const vi left = (ac > 0.f) & (Tn < kVisibleT);
+          vis |= al > 0.f;
+          vstore(T + i, Tn);
+          vstore(act + i, vsel(left, vf{}, ac));
+          n_left -= left;  // left lanes are -1
+        }
+      }
+      if (vany(vis)) __atomic_store_n(visible + ids[s], uint8_t(1), __ATOMIC_RELAXED);
+      n_active -= vsum(n_left);
+    }
   }
 }
 
