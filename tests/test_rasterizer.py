@@ -456,8 +456,8 @@ def test_compile_error_is_reported(tmp_path):
                     reason="the default build here already is the non-AVX one")
 def test_kernel_built_without_avx_matches_reference(tmp_path):
     """The kernels' 4-lane path (SSE or NEON registers: what a CPU without AVX builds), built
-    here with AVX turned off: renders, gradients and the fused view loss against the torch
-    reference, as the default build is tested above."""
+    here with AVX turned off: renders, gradients, visible sets and the fused view loss against
+    the torch reference, as the default build is tested above."""
     code = """
         import sys, torch
         sys.path.insert(0, "tests")
@@ -473,6 +473,9 @@ def test_kernel_built_without_avx_matches_reference(tmp_path):
         for ts in (8, 32):
             o = render(make_scene(seed=5), "cpp", tile_size=ts)[0]
             print("TILE", rel(o.rgb, render(make_scene(seed=5), "torch")[0].rgb))
+        from test_rasterizer import test_visible_sets_without_the_render_are_the_renders as vt
+        vt(None, 3, 2000, 16)                                  # asserts inside
+        print("VISIBLE ok")
         from test_rasterizer import test_fused_view_loss_matches_the_torch_loss as loss_test
         for vignetting, weights, n in ((True, "mask", 1), (False, "float", 2)):
             loss_test(None, vignetting, weights, n)      # asserts inside
@@ -488,7 +491,7 @@ def test_kernel_built_without_avx_matches_reference(tmp_path):
     assert len(fwd) == 2 and len(bwd) == 2 and len(tile) == 2, r.stdout
     assert all(float(f[1]) < TOL and f[2] == "True" for f in fwd), fwd
     assert max(bwd) < TOL and max(tile) < TOL, (bwd, tile)
-    assert r.stdout.count("LOSS ok") == 2, r.stdout
+    assert r.stdout.count("LOSS ok") == 2 and "VISIBLE ok" in r.stdout, r.stdout
     assert "-mno-avx" in next(tmp_path.glob("*/build.ninja")).read_text()
 
 

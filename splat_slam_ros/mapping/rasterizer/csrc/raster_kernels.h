@@ -362,7 +362,7 @@ void visible_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_til
     const int64_t tx0 = (tile % tiles_x) * TS, ty0 = (tile / tiles_x) * TS;
     const int tw = int(std::min<int64_t>(TS, width - tx0));
     const int th = int(std::min<int64_t>(TS, height - ty0));
-    alignas(64) float T[P], act[P], AL[P];
+    alignas(64) float T[P], act[P];
     for (int i = 0; i < P; ++i) {
       T[i] = 1.f;
       act[i] = ((i % TS) < tw && (i / TS) < th) ? 1.f : 0.f;
@@ -381,15 +381,15 @@ void visible_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_til
       int h0, h1;
       footprint_vectors<TS>(q, tx0, h0, h1);
       vi n_left = {}, vis = {};
+      // one pass (unlike the forward's two): most lane vectors here have left already,
+      // and those skip the exponential
       for (int y = ya; y <= yb; ++y) {
         const float py = float(ty0 + y);
-        for (int h = h0; h <= h1; ++h) vstore(AL + y * TS + h * kLanes, alphas(q, X[h], py).al);
-      }
-      for (int y = ya; y <= yb; ++y) {
         for (int h = h0; h <= h1; ++h) {
           const int i = y * TS + h * kLanes;
           const vf ac = vload(act + i);
-          const vf al = vload(AL + i) * ac;
+          if (!vany(ac > 0.f)) continue;
+          const vf al = alphas(q, X[h], py).al * ac;
           const vf Tn = vload(T + i) * (1.f - al);
           const vi left = (ac > 0.f) & (Tn < kVisibleT);
           vis |= al > 0.f;
