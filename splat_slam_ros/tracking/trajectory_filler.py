@@ -95,12 +95,13 @@ def fill_trajectory(records: List[FrameRecord], kf_poses: Dict[int, torch.Tensor
             ts_out.append(r.timestamp)
             poses_out.append(None)
             continue
-        if r.kf_id is not None:
-            if r.kf_id in kf_poses:
-                ts_out.append(r.timestamp)
-                poses_out.append(pose[r.kf_id])
+        if r.kf_id is not None and r.kf_id in kf_poses:
+            ts_out.append(r.timestamp)
+            poses_out.append(pose[r.kf_id])
             continue
-        lost = r.lost or r.ref_kf not in pose or r.ref_kf not in disp or r.flow is None
+        # a keyframe gone since (a warm-up that started again) is placed as a lost frame
+        lost = r.kf_id is not None or r.lost or r.ref_kf not in pose or r.ref_kf not in disp \
+            or r.flow is None
         if stack is None and (lost or r.rel_pose is None):   # nothing to place it by
             continue
         ts_out.append(r.timestamp)
