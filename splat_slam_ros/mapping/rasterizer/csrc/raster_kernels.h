@@ -260,13 +260,33 @@ inline Alphas alphas(const Packed& q, vf x, float y) {
   return {vsel(inx, al, vf{}), raw, G};
 }
 
-// The lane vectors [h0, h1] of a tile row (columns from tx0) that Gaussian q's footprint
-// reaches.
+// Tile ``tile`` of a width x height image: its first pixel (tx0, ty0), its size inside the
+// image (tw x th: the right and bottom tiles may be partial) and its lanes' pixel columns.
 template <int TS>
-inline void footprint_vectors(const Packed& q, int64_t tx0, int& h0, int& h1) {
+struct TileSpan {
+  int64_t tx0, ty0;
+  int tw, th;
+  vf X[TS / kLanes];
+  TileSpan(int64_t tile, int64_t tiles_x, int64_t width, int64_t height)
+      : tx0((tile % tiles_x) * TS), ty0((tile / tiles_x) * TS),
+        tw(int(std::min<int64_t>(TS, width - tx0))), th(int(std::min<int64_t>(TS, height - ty0))) {
+    for (int h = 0; h < TS / kLanes; ++h)
+      for (int l = 0; l < kLanes; ++l) X[h][l] = float(tx0 + h * kLanes + l);
+  }
+  bool inside(int i) const { return (i % TS) < tw && (i / TS) < th; }
+};
+
+// The rows [ya, yb] and lane vectors [h0, h1] of a tile (first pixel tx0, ty0) that
+// Gaussian q's footprint reaches.
+struct Reach {
+  int ya, yb, h0, h1;
+};
+template <int TS>
+inline Reach reach(const Packed& q, int64_t tx0, int64_t ty0) {
   const int xa = int(std::max<int64_t>(q.x0, tx0) - tx0);
   const int xb = int(std::min<int64_t>(q.x1, tx0 + TS - 1) - tx0);
-  h0 = xa / kLanes, h1 = xb / kLanes;
+  return {int(std::max<int64_t>(q.y0, ty0) - ty0), int(std::min<int64_t>(q.y1, ty0 + TS - 1) - ty0),
+          xa / kLanes, xb / kLanes};
 }
 
 // ------------------------------------------------------------------ forward
@@ -276,31 +296,26 @@ void forward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_til
                    const int32_t* ids, const float* bg, float* out_rgb, float* out_depth,
                    float* out_alpha, float* out_T, uint8_t* visible) {
   static_assert(TS % kLanes == 0, "tile rows are whole lane vectors");
-  constexpr int P = TS * TS, NV = TS / kLanes;
+  constexpr int P = TS * TS;
 #pragma omp parallel for schedule(dynamic, 1)
   for (int64_t tile = 0; tile < n_tiles; ++tile) {
-    const int64_t tx0 = (tile % tiles_x) * TS, ty0 = (tile / tiles_x) * TS;
-    const int tw = int(std::min<int64_t>(TS, width - tx0));
-    const int th = int(std::min<int64_t>(TS, height - ty0));
+    const TileSpan<TS> sp(tile, tiles_x, width, height);
+    const int64_t tx0 = sp.tx0, ty0 = sp.ty0;
+    const int tw = sp.tw, th = sp.th;
+    const vf* X = sp.X;  // the lanes' pixel columns
     alignas(64) float T[P], C0[P], C1[P], C2[P], D[P], act[P];
     for (int i = 0; i < P; ++i) {
       T[i] = 1.f;
       C0[i] = C1[i] = C2[i] = D[i] = 0.f;
-      act[i] = ((i % TS) < tw && (i / TS) < th) ? 1.f : 0.f;
+      act[i] = sp.inside(i) ? 1.f : 0.f;
     }
-    vf X[NV];  // the lanes' pixel columns
-    for (int h = 0; h < NV; ++h)
-      for (int l = 0; l < kLanes; ++l) X[h][l] = float(tx0 + h * kLanes + l);
     int n_active = tw * th;
     const int64_t k_end = tile_off[tile + 1];
     for (int64_t k = tile_off[tile]; k < k_end && n_active > 0; ++k) {
       const int64_t s = key_slot(keys[k]);
       if (k + 1 < k_end) __builtin_prefetch(gs + key_slot(keys[k + 1]));
       const Packed q = gs[s];
-      const int ya = int(std::max<int64_t>(q.y0, ty0) - ty0);
-      const int yb = int(std::min<int64_t>(q.y1, ty0 + TS - 1) - ty0);
-      int h0, h1;
-      footprint_vectors<TS>(q, tx0, h0, h1);
+      const auto [ya, yb, h0, h1] = reach<TS>(q, tx0, ty0);
       vi n_stop = {}, vis = {};
       // two passes: the alphas, then the compositing (see the performance notes)
       alignas(64) float AL[P];
@@ -356,40 +371,32 @@ void visible_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_til
                    const int64_t* tile_off, const int64_t* keys, const Packed* gs,
                    const int32_t* ids, uint8_t* visible) {
   static_assert(TS % kLanes == 0, "tile rows are whole lane vectors");
-  constexpr int P = TS * TS, NV = TS / kLanes;
+  constexpr int P = TS * TS;
 #pragma omp parallel for schedule(dynamic, 1)
   for (int64_t tile = 0; tile < n_tiles; ++tile) {
-    const int64_t tx0 = (tile % tiles_x) * TS, ty0 = (tile / tiles_x) * TS;
-    const int tw = int(std::min<int64_t>(TS, width - tx0));
-    const int th = int(std::min<int64_t>(TS, height - ty0));
+    const TileSpan<TS> sp(tile, tiles_x, width, height);
     alignas(64) float T[P], act[P];
     for (int i = 0; i < P; ++i) {
       T[i] = 1.f;
-      act[i] = ((i % TS) < tw && (i / TS) < th) ? 1.f : 0.f;
+      act[i] = sp.inside(i) ? 1.f : 0.f;
     }
-    vf X[NV];
-    for (int h = 0; h < NV; ++h)
-      for (int l = 0; l < kLanes; ++l) X[h][l] = float(tx0 + h * kLanes + l);
-    int n_active = tw * th;
+    int n_active = sp.tw * sp.th;
     const int64_t k_end = tile_off[tile + 1];
     for (int64_t k = tile_off[tile]; k < k_end && n_active > 0; ++k) {
       const int64_t s = key_slot(keys[k]);
       if (k + 1 < k_end) __builtin_prefetch(gs + key_slot(keys[k + 1]));
       const Packed q = gs[s];
-      const int ya = int(std::max<int64_t>(q.y0, ty0) - ty0);
-      const int yb = int(std::min<int64_t>(q.y1, ty0 + TS - 1) - ty0);
-      int h0, h1;
-      footprint_vectors<TS>(q, tx0, h0, h1);
+      const auto [ya, yb, h0, h1] = reach<TS>(q, sp.tx0, sp.ty0);
       vi n_left = {}, vis = {};
       // one pass (unlike the forward's two): most lane vectors here have left already,
       // and those skip the exponential
       for (int y = ya; y <= yb; ++y) {
-        const float py = float(ty0 + y);
+        const float py = float(sp.ty0 + y);
         for (int h = h0; h <= h1; ++h) {
           const int i = y * TS + h * kLanes;
           const vf ac = vload(act + i);
           if (!vany(ac > 0.f)) continue;
-          const vf al = alphas(q, X[h], py).al * ac;
+          const vf al = alphas(q, sp.X[h], py).al * ac;
           const vf Tn = vload(T + i) * (1.f - al);
           const vi left = (ac > 0.f) & (Tn < kVisibleT);
           vis |= al > 0.f;
@@ -418,13 +425,13 @@ void backward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_ti
                     const float* out_T, const float* g_rgb, const float* g_depth,
                     const float* g_alpha, float* pair_grad) {
   static_assert(TS % kLanes == 0, "tile rows are whole lane vectors");
-  constexpr int P = TS * TS, NV = TS / kLanes;
+  constexpr int P = TS * TS;
 #pragma omp parallel for schedule(dynamic, 1)
   for (int64_t tile = 0; tile < n_tiles; ++tile) {
-    const int64_t tile_tx = tile % tiles_x, tile_ty = tile / tiles_x;
-    const int64_t tx0 = tile_tx * TS, ty0 = tile_ty * TS;
-    const int tw = int(std::min<int64_t>(TS, width - tx0));
-    const int th = int(std::min<int64_t>(TS, height - ty0));
+    const TileSpan<TS> sp(tile, tiles_x, width, height);
+    const int64_t tx0 = sp.tx0, ty0 = sp.ty0;
+    const int tw = sp.tw, th = sp.th;
+    const vf* X = sp.X;
     // T is set to 0 once a pixel stops (and for pixels outside the image): it then
     // takes no further part, which replaces the forward's "active" mask.
     alignas(64) float T[P], R[P], G0[P], G1[P], G2[P], GD[P];
@@ -444,9 +451,6 @@ void backward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_ti
         T[i] = R[i] = G0[i] = G1[i] = G2[i] = GD[i] = 0.f;
       }
     }
-    vf X[NV];
-    for (int h = 0; h < NV; ++h)
-      for (int l = 0; l < kLanes; ++l) X[h][l] = float(tx0 + h * kLanes + l);
     int n_active = tw * th;
     const int64_t k_end = tile_off[tile + 1];
     int64_t k = tile_off[tile];
@@ -454,10 +458,7 @@ void backward_tiles(int64_t width, int64_t height, int64_t tiles_x, int64_t n_ti
       const int64_t s = key_slot(keys[k]);
       if (k + 1 < k_end) __builtin_prefetch(gs + key_slot(keys[k + 1]));
       const Packed q = gs[s];
-      const int ya = int(std::max<int64_t>(q.y0, ty0) - ty0);
-      const int yb = int(std::min<int64_t>(q.y1, ty0 + TS - 1) - ty0);
-      int h0, h1;
-      footprint_vectors<TS>(q, tx0, h0, h1);
+      const auto [ya, yb, h0, h1] = reach<TS>(q, tx0, ty0);
       vi n_stop = {};
       // per-lane sums over the footprint's rows and lane vectors
       vf a0 = {}, a1 = {}, a2 = {}, a3 = {}, a4 = {}, a5 = {}, a6 = {}, a7 = {}, a8 = {},
