@@ -188,6 +188,12 @@ def _check(means, quats, scales, opacities, colors, viewmat, width, height, near
         raise RasterizerInputError(f"rasterize: tile_size must be 8, 16 or 32, got {tile_size}")
 
 
+def _intrinsics4(intrinsics) -> tuple:
+    """(fx, fy, cx, cy) as floats, from a sequence or a tensor."""
+    return tuple(float(v) for v in (intrinsics.tolist() if torch.is_tensor(intrinsics)
+                                    else intrinsics))
+
+
 def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
               opacities: torch.Tensor, colors: torch.Tensor, viewmat: torch.Tensor,
               intrinsics: Union[Sequence[float], torch.Tensor], width: int, height: int,
@@ -205,8 +211,7 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
     """
     _check(means, quats, scales, opacities, colors, viewmat, width, height, near, tile_size)
     width, height = int(width), int(height)
-    fx, fy, cx, cy = (float(v) for v in (intrinsics.tolist() if torch.is_tensor(intrinsics)
-                                          else intrinsics))
+    fx, fy, cx, cy = _intrinsics4(intrinsics)
     dev, dtype = means.device, means.dtype
     bg = (torch.zeros(3, dtype=dtype, device=dev) if background is None
           else torch.as_tensor(background, dtype=dtype, device=dev).reshape(3))
@@ -246,14 +251,13 @@ def visible_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     has nothing more to flag, so it skips the pixels' back layers (the same flags to the
     bit); the other backends render and take them."""
     zeros = torch.zeros_like(means)
-    _check(means, quats, scales, opacities, zeros, viewmat, width, height, near, tile_size)
     which = _resolve_backend(backend, means.device)
-    if which != "cpp" or means.device.type != "cpu":
+    if which != "cpp" or means.device.type != "cpu":      # rasterize checks and says why
         return rasterize(means, quats, scales, opacities, zeros, viewmat, intrinsics, width,
                          height, backend=which, near=near, tile_size=tile_size,
                          low_pass=low_pass).visible
-    fx, fy, cx, cy = (float(v) for v in (intrinsics.tolist() if torch.is_tensor(intrinsics)
-                                          else intrinsics))
+    _check(means, quats, scales, opacities, zeros, viewmat, width, height, near, tile_size)
+    fx, fy, cx, cy = _intrinsics4(intrinsics)
     proj = _project(which, means, quats, scales, viewmat, fx, fy, cx, cy, int(width),
                     int(height), near, low_pass)
     m2d, conics, opac, depths = (t.float().contiguous() for t in
