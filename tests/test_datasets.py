@@ -546,3 +546,20 @@ def test_frames_at_reads_only_the_frames_asked_for(tmp_path, monkeypatch):
     vid = [f for f in open_dataset(p, intrinsics=k).frames_at([3, 0])]
     assert [f.index for f in vid] == [0, 3]
     np.testing.assert_array_equal(vid[1].image, frames[3])
+
+
+def test_image_files_decode_to_rgb_in_channel_order(tmp_path):
+    """BGR and BGRA files (alpha dropped) come out RGB; mono stays mono when asked."""
+    from splat_slam_ros.io.dataset_base import read_image
+    rgb = np.zeros((6, 8, 3), np.uint8)
+    rgb[..., 0], rgb[..., 1], rgb[..., 2] = 200, 100, 7          # R, G, B
+    cv2.imwrite(str(tmp_path / "c.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    bgra = np.dstack([cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), np.full((6, 8), 90, np.uint8)])
+    cv2.imwrite(str(tmp_path / "a.png"), bgra)
+    cv2.imwrite(str(tmp_path / "m.png"), rgb[..., 1])
+    for name in ("c.png", "a.png"):
+        got = read_image(tmp_path / name)
+        assert got.shape == (6, 8, 3) and got.flags["C_CONTIGUOUS"]
+        assert np.array_equal(got, rgb), name
+    assert read_image(tmp_path / "m.png", keep_mono=True).shape == (6, 8)
+    assert np.array_equal(read_image(tmp_path / "m.png")[..., 2], rgb[..., 1])
