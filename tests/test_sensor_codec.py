@@ -44,6 +44,10 @@ def test_same_decoding_for_rosbags_and_rclpy_messages():
         np.testing.assert_array_equal(decode_image(rb), decode_image(rc))
         np.testing.assert_array_equal(decode_rgb(rb), C.msg_to_rgb(rc))
     np.testing.assert_array_equal(decode_rgb(rosbags_image(rgb[:, :, ::-1], "BGR8")), rgb)
+    alpha = rng.integers(0, 256, (24, 32, 1), dtype=np.uint8)
+    for enc, arr in (("rgba8", np.dstack([rgb, alpha])),
+                     ("bgra8", np.dstack([rgb[:, :, ::-1], alpha]))):   # alpha dropped
+        np.testing.assert_array_equal(decode_rgb(rosbags_image(arr, enc, pad=2)), rgb)
     assert decode_rgb(rosbags_image(rgb[:, :, 0], "mono8"), keep_mono=True).shape == (24, 32)
 
 

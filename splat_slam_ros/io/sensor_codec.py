@@ -123,6 +123,10 @@ def to_8bit(a: np.ndarray) -> np.ndarray:
     return ((a.astype(np.uint32) + 128) // 257).astype(np.uint8)
 
 
+_SWAP_TO_RGB = {"bgr8": cv2.COLOR_BGR2RGB, "rgba8": cv2.COLOR_RGBA2RGB,
+                "bgra8": cv2.COLOR_BGRA2RGB}
+
+
 def to_rgb(a: np.ndarray, encoding: str, keep_mono: bool = False) -> np.ndarray:
     """A decoded colour/mono camera image -> H x W x 3 uint8 RGB (a new array); with
     ``keep_mono`` a mono image stays H x W (a Bayer mosaic is a colour image)."""
@@ -136,12 +140,8 @@ def to_rgb(a: np.ndarray, encoding: str, keep_mono: bool = False) -> np.ndarray:
         a, enc = to_8bit(a), enc[:-2] + "8"
     if enc == "rgb8":
         return a.copy()
-    if enc == "bgr8":
-        return np.ascontiguousarray(a[:, :, ::-1])
-    if enc == "rgba8":
-        return np.ascontiguousarray(a[:, :, :3])
-    if enc == "bgra8":
-        return np.ascontiguousarray(a[:, :, 2::-1])
+    if enc in _SWAP_TO_RGB:         # cvtColor: a tenth of a reversed-view copy's time
+        return cv2.cvtColor(np.ascontiguousarray(a), _SWAP_TO_RGB[enc])
     if enc in ("mono8", "8UC1"):
         return a.copy() if keep_mono else np.repeat(a[:, :, None], 3, axis=2)
     raise UnsupportedEncoding(f"image encoding {encoding!r} is not a colour image "
@@ -197,7 +197,8 @@ def encode_jpeg(img: np.ndarray, quality: int) -> tuple:
     if not 1 <= int(quality) <= 100:
         raise ConversionError(f"JPEG quality {quality} is outside 1..100")
     mono = img.ndim == 2
-    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(img if mono else img[:, :, ::-1]),
+    ok, buf = cv2.imencode(".jpg", img if mono else
+                           cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2BGR),
                            [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:
         raise ConversionError(f"cannot JPEG-encode an image of shape {img.shape}")
