@@ -160,14 +160,12 @@ def clean_twin_psnr(run_out: Path, seq: Path, clean: Path) -> float:
     from splat_slam_ros.io.trajectory_io import read_trajectory
     from splat_slam_ros.tracking.flow_frontend import mapping_preprocessor
     ts, _ = read_trajectory(run_out / "trajectory_keyframes.txt")
-    want = {round(float(t), 4) for t in ts}
     real, twin = open_dataset(seq), open_dataset(clean)
-    real.load_depth = twin.load_depth = False
     pre = mapping_preprocessor(load_config(run_out / "config.yaml"), real.intrinsics)
 
-    def at_keyframes(ds) -> dict:
+    def at_keyframes(ds) -> dict:       # the keyframes' colour files only
         return {round(float(f.timestamp), 4): pre(f.image)
-                for f in ds if round(float(f.timestamp), 4) in want}
+                for f in ds.frames_at_stamps(ts, depth=False)}
     a, b = at_keyframes(real), at_keyframes(twin)
     vals = [psnr(b[t].astype(np.float32) / 255.0, a[t].astype(np.float32) / 255.0,
                  exposure_compensation=True) for t in sorted(a) if t in b]

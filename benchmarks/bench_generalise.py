@@ -163,7 +163,6 @@ def frame_inputs(seq_dir: Path, peer: str = "DSO"):
     sys.path.insert(0, str(REPO))
     from splat_slam_ros.io.datasets import open_dataset
     ds = open_dataset(seq_dir)
-    ds.load_depth = False
     entries = getattr(ds, "_entries", None)
     if entries is None:
         sys.exit(f"error: {seq_dir}: {peer} needs a folder of image files")

@@ -163,14 +163,13 @@ def run_child(args) -> None:
         overrides[k] = json.loads(v)
     cfg = load_config(args.config or None, overrides)
     ds = open_dataset(args.child)
-    ds.load_depth = False                   # tracking reads the colour images only
     if args.start_frame:                    # splat-slam-run --start-frame: later frames only
         from splat_slam_ros.io.datasets import FromFrame
         ds = FromFrame(ds, args.start_frame)
     dec = {"decode": 0.0}
 
     def frames():                           # decoding time (PNG -> RGB), for the profile
-        it = iter(ds)
+        it = ds.iter_frames(depth=False)    # tracking reads the colour images only
         while True:
             t = time.perf_counter()
             f = next(it, None)
