@@ -210,13 +210,14 @@ def run_child(args) -> None:
 
 
 # per-step groups of the profile: label, function names, file (part), what is summed:
-# "self" time, "cum"ulative time, or cumulative time of the calls made from "from:FILE"
+# "self" time, "cum"ulative time, or cumulative time of the calls made from "from:FILE|FILE"
 STEPS = [("DIS (cv2 calc)", ("<method 'calc' of 'cv2.DenseOpticalFlow' objects>",), "~", "self"),
          ("flow confidence + pooling", ("_confidence", "_pool", "_invert"), "flow_frontend",
           "cum"),
          ("image prep (resize, grey, texture)", ("__call__", "prepare"), "flow_frontend", "cum"),
          ("pose-only GN (tracking + filler)", ("pose_only_refine_multi",), "dense_ba", "cum"),
-         ("tracker BA (local + init)", ("bundle_adjust",), "dense_ba", "from:tracker.py"),
+         ("tracker BA (local + init)", ("bundle_adjust",), "dense_ba",
+          "from:backend.py|initialisation.py"),
          ("loop closer + global BA", ("on_keyframe", "on_update", "finalize"), "roles.py",
           "from:coordinator.py"),
          ("trajectory filler", ("fill_trajectory",), "trajectory_filler", "cum"),
@@ -238,7 +239,8 @@ def step_profile(st, t_import: float) -> dict:
             elif mode == "cum":
                 tot += ct
             else:
-                tot += sum(v[3] for c, v in callers.items() if mode[5:] in c[0])
+                tot += sum(v[3] for c, v in callers.items()
+                           if any(f in c[0] for f in mode[5:].split("|")))
         out[label] = round(tot, 2)
     return out
 

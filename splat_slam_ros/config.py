@@ -21,6 +21,7 @@ class ConfigError(ValueError):
 
 # mapping.raster_backend values (the rasterizer's BACKENDS; tests/test_raster_backend.py)
 RASTER_BACKENDS = ("auto", "cpp", "torch", "gsplat")
+BA_BACKENDS = ("auto", "cpp", "torch")    # tracking.ba_backend (tracking/dense_ba.py)
 
 
 @dataclass
@@ -59,11 +60,13 @@ class TrackingConfig:
     # (aspect kept, sides multiples of 16) to at most max_pixels pixels, but never smaller
     # than the mapping image; 0 = the input size, -1 = the mapping size. Keyframes are handed
     # on at the mapping size (image + intrinsics) with the disparity at this size's BA grid.
-    # 110592 (640x480 -> 384x288): with the default flow settings little better (fr2/desk 0.176 cm
-    # either way, measured with stride 8) for ~25 % more tracking CPU: opt-in
-    # (docs/tracking.md "Tracking size").
+    # 110592 (640x480 -> 384x288): little better (fr2/desk 0.176 cm either way) for ~25 % more
+    # tracking CPU with the default flow settings: opt-in (docs/tracking.md "Tracking size").
     max_pixels: int = -1
     ba_downsample: int = 8               # BA resolution = tracking image / this (paper: 1/8)
+    # BA terms per edge: "cpp" the C++ kernel (CPU), "torch" the reference, "auto" the kernel
+    # on CPU when it loads (metrics.json ba_backend says which ran and why)
+    ba_backend: str = field(default="auto", metadata={"choices": BA_BACKENDS})
     # flow front end (classical stand-in for the paper's learned flow, see flow_frontend.py)
     flow_method: str = "dis_medium"      # OpenCV DIS preset: dis_ultrafast | dis_fast | dis_medium
     flow_downsample: int = 2             # DIS runs at tracking image / this (must divide ba_downsample)
@@ -107,9 +110,8 @@ class TrackingConfig:
     # leaving: confident flow cells below this x their typical fraction (a candidate then even
     # below motion_filter_thresh: the reference is refreshed before the flow fails; 0 = off)
     keyframe_urgent_valid: float = 0.7
-    # lost for this many frames in a row: initialise again from the current frame, the new
-    # segment placed where the motion before the loss leads, with the last keyframe's depth
-    # scale (0 = never)
+    # lost for this many frames in a row: initialise again from the current frame, the new segment
+    # placed where the motion before the loss leads, with the last keyframe's depth scale (0 = never)
     reinit_after: int = 10
     warmup: int = 8                      # most keyframes collected before initialisation
     init_min_keyframes: int = 2          # initialise from this many keyframes once ...
@@ -130,9 +132,8 @@ class TrackingConfig:
     # with this flow confidence, in proportion below: a cell they never saw (the view entering
     # on fast motion) has a filled-in disparity that bent the pose (0 = every cell alike)
     pose_ref_conf: float = 0.2
-    # flows matched at a wrong period (repetitive textures): a frame whose pose fit leaves more
-    # than flow_pred_rms_px is fitted again without the cells far from the flow its
-    # constant-velocity pose induces
+    # flows matched at a wrong period (repetitive textures): a frame whose pose fit leaves more than
+    # flow_pred_rms_px is fitted again without the cells far from its constant-velocity pose's flow
     flow_pred_gate: float = 1.0          # far: more than this from it (reference BA px; 0 = off)
     flow_pred_agree: float = 0.3         # only if this fraction of the confident weight is near it
     flow_pred_rms_px: float = 0.8        # refit above this pose-fit rms (tracking px)
@@ -271,8 +272,7 @@ class MappingConfig:
     time_budget: bool = False            # wall-clock caps below (live input); off: steps only
     budget_s_per_keyframe: float = 4.0   # time_budget: wall seconds of one keyframe's steps (0 = none)
     budget_s_first: float = 15.0         # ... the first keyframe's
-    # time_budget: budget_s_per_keyframe shrinks to this x the stream time since the last
-    # mapped keyframe (0 = off)
+    # time_budget: budget_s_per_keyframe shrinks to this x the stream time since the last mapped kf
     stream_pace: float = 12.0
     keep_up: float = 0.0                 # time_budget, > 0: also cap a keyframe's steps at this
                                          # fraction of the stream time since the last mapped

@@ -375,3 +375,68 @@ def test_default_huber_resists_wrong_period_flow():
                                 huber=px / tc.ba_downsample)
         errs[px] = float((P[:, :3, 3] - poses[:, :3, 3]).norm(dim=-1).max())
     assert errs[tc.robust_huber_px] < 0.6 * errs[2.0]
+
+
+@pytest.fixture
+def ba_backend():
+    """Select tracking.ba_backend for one test, "auto" again after it."""
+    from splat_slam_ros.tracking import dense_ba
+    yield lambda name: dense_ba.use_backend(name, torch.device("cpu"))
+    dense_ba.use_backend("auto", torch.device("cpu"))
+
+
+def test_cpp_edge_blocks_are_the_torch_reference(ba_backend):
+    """The C++ kernel's per-edge blocks (H_e, v_e, couplings, disparity diagonals and
+    right-hand sides, cost) are the torch reference's: a width that is no multiple of the
+    SIMD lanes (a partial last vector per row), an edge whose target camera looks the other
+    way (every point behind it: no term) and one turned by 90 degrees (about half), zero
+    weights, the robust weights on, float16 targets as the tracker stores flows."""
+    from splat_slam_ros.tracking import dense_ba
+    ba_backend("cpp")
+    h, w, n = 20, 37, 5
+    g = torch.Generator().manual_seed(5)
+    xi = 0.05 * torch.randn(n, 6, dtype=torch.float64, generator=g)
+    poses = se3_exp(xi)
+    poses[3] = poses[0] @ se3_exp(torch.tensor([0, 0, 0, 0, np.pi, 0], dtype=torch.float64))
+    poses[4] = poses[0] @ se3_exp(torch.tensor([0, 0, 0, 0, np.pi / 2, 0],
+                                               dtype=torch.float64))
+    disps = 0.4 + torch.rand(n, h, w, generator=g)
+    intr = torch.tensor([30.0, 31.0, 18.0, 9.5])
+    ii = torch.tensor([0, 1, 2, 0, 0, 2, 1])
+    jj = torch.tensor([1, 2, 0, 3, 4, 1, 0])
+    tgt, _ = reproject(se3_exp(0.01 * torch.randn(n, 6, dtype=torch.float64, generator=g))
+                       @ poses, disps, intr, ii, jj)
+    tgt = torch.nan_to_num(tgt, 0.0).half()
+    wgt = torch.rand(len(ii), h, w, 2, generator=g)
+    wgt[1, :5] = 0
+    got = dense_ba._edge_blocks(poses, disps, intr, ii, jj, tgt, wgt, 0.5)
+    ref = dense_ba._edge_blocks_torch(poses, disps, intr, ii, jj, tgt, wgt, 0.5)
+    for name, a, b in zip(("H", "v", "a", "c", "b"), got[:5], ref[:5]):
+        assert a.shape == b.shape, name
+        scale = float(b.abs().max())
+        assert scale > 0 and float((a.double() - b.double()).abs().max()) < 1e-4 * scale, name
+    assert got[5].n_valid == ref[5].n_valid < len(ii) * h * w - w * 5   # some behind, zeros
+    assert got[5].cost == pytest.approx(ref[5].cost, rel=1e-5)
+    assert float(got[0][3].abs().max()) == 0.0                          # all behind camera j
+    # one BA step either way
+    ba_backend("torch")
+    P1, D1, _ = ba_step(poses, disps, intr, ii, jj, tgt, wgt, fixed=1, huber=0.5)
+    ba_backend("cpp")
+    P2, D2, _ = ba_step(poses, disps, intr, ii, jj, tgt, wgt, fixed=1, huber=0.5)
+    step = float((P1 - poses).abs().max())
+    assert step > 1e-3       # the float32 reference's own rounding: ~2e-4 of the step here
+    assert float((P1 - P2).abs().max()) < 1e-3 * step and torch.allclose(D1, D2, rtol=1e-3)
+
+
+def test_ba_backend_is_chosen_by_config_and_reported(ba_backend):
+    from splat_slam_ros.config import ConfigError, SlamConfig, load_config
+    from splat_slam_ros.tracking.tracker import Tracker
+    from splat_slam_ros.types import Intrinsics
+    K = Intrinsics(60.0, 60.0, 39.5, 29.5, 80, 64)
+    cfg = SlamConfig()
+    assert cfg.tracking.ba_backend == "auto"
+    assert Tracker(cfg, K).keyframe_summary()["ba_backend"] == "cpp: auto"
+    cfg.tracking.ba_backend = "torch"
+    assert Tracker(cfg, K).keyframe_summary()["ba_backend"] == "torch: as configured"
+    with pytest.raises(ConfigError, match="tracking.ba_backend"):
+        load_config(None, {"tracking.ba_backend": "cuda"})

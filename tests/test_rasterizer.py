@@ -447,7 +447,7 @@ def test_compile_error_is_reported(tmp_path):
     """
     r = _run_py(code, {"SPLAT_SLAM_CXXFLAGS": "-fno-such-flag", "SPLAT_SLAM_EXT_DIR": str(tmp_path)})
     assert r.returncode == 0, r.stderr
-    assert "ERR building the C++ rasterizer failed" in r.stdout
+    assert "ERR building the C++ kernels failed" in r.stdout
     assert "-fno-such-flag" in r.stdout          # the compiler's own diagnostic is shown
 
 

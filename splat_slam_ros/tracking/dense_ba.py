@@ -25,6 +25,8 @@ from typing import Optional, Tuple, Union
 
 import torch
 
+from splat_slam_ros import native
+from splat_slam_ros.config import BA_BACKENDS
 from splat_slam_ros.geometry import (intr_tensor, pixel_grid, project_homogeneous, se3_exp,
                                      se3_exp_one, se3_inverse)
 
@@ -177,10 +179,73 @@ EDGE_CHUNK = 12         # edges whose Jacobians are built at once (bounds the BA
 GRAM_CHUNK = 1 << 18    # elements of the padded coupling blocks built at once (1 MiB float32)
 
 
+# tracking.ba_backend (config.BA_BACKENDS): "cpp" the C++/OpenMP kernel (ba_kernels.h, CPU
+# float32), "torch" the reference below (any device), "auto" the kernel where it applies
+_backend = {"requested": "auto", "ext": None, "reason": None}
+
+
+def use_backend(name: str, device: torch.device) -> None:
+    """Select how the per-edge blocks are built (``tracking.ba_backend``): the process's
+    BA runs (tracker, loop closer, global BA) all use it. On a CPU ``device`` the kernel is
+    loaded (built on first use) now, not at the first keyframe; "cpp" must load."""
+    if name not in BA_BACKENDS:
+        raise ValueError(f"tracking.ba_backend must be one of {', '.join(BA_BACKENDS)}")
+    if name != _backend["requested"]:
+        _backend.update(requested=name, ext=None, reason=None)
+    if device.type == "cpu" or name == "cpp":
+        _kernel()
+
+
+def _kernel():
+    """The compiled module (built on first use), None for the torch path; the reason is
+    kept for :func:`backend_in_use`."""
+    if _backend["ext"] is None and _backend["reason"] is None:
+        if _backend["requested"] == "torch":
+            _backend["reason"] = "torch: as configured"
+        else:
+            try:
+                _backend["ext"] = native.load_extension()
+                _backend["reason"] = f"cpp: {_backend['requested']}"
+            except native.KernelBuildError as e:
+                if _backend["requested"] == "cpp":
+                    raise
+                _backend["reason"] = f"torch: auto, the C++ kernel did not load ({e})"
+    return _backend["ext"]
+
+
+def backend_in_use() -> str:
+    """"cpp: ..." or "torch: ..." with why (what CPU float32 BA runs on in this process)."""
+    _kernel()
+    return _backend["reason"]
+
+
 def _edge_blocks(poses, disps, intr, ii, jj, target, weight, huber):
     """Per-edge pose blocks H_e = Jp^T W Jp (E, 6, 6) and v_e = Jp^T W r (E, 6), the
     pose-disparity couplings a_e (E, P, 6), disparity diagonals c_e and right-hand sides
-    b_e (E, P), and the cost info - built EDGE_CHUNK edges at a time."""
+    b_e (E, P), and the cost info: the C++ kernel for CPU float32 disparities (when the
+    backend allows), else :func:`_edge_blocks_torch`."""
+    ext = _kernel() if disps.device.type == "cpu" and disps.dtype == torch.float32 else None
+    if ext is None:
+        return _edge_blocks_torch(poses, disps, intr, ii, jj, target, weight, huber)
+    E = len(ii)
+    N, h, w = disps.shape
+    Ti, Tj = poses[ii], poses[jj]
+    Gij = se3_inverse(Tj) @ Ti
+    geo = torch.cat([Gij[:, :3, :3].reshape(E, 9), Gij[:, :3, 3], Ti[:, :3, :3].reshape(E, 9),
+                     Ti[:, :3, 3], Tj[:, :3, :3].reshape(E, 9)], 1).float().contiguous()
+    f32 = dict(dtype=torch.float32)
+    He, ve, ae, ce, be, st = ext.ba_edge_blocks(
+        geo, intr_tensor(intr, torch.float32, disps.device).contiguous(),
+        disps[ii].contiguous(), target.to(**f32).contiguous(), weight.to(**f32).contiguous(),
+        h, w, float(huber or 0.0))
+    cost, wsum = float(st[:, 0].sum()), float(st[:, 1].sum())
+    info = BAInfo(cost=cost, rms=(cost / max(wsum, 1e-12)) ** 0.5, n_valid=int(st[:, 2].sum()))
+    return He, ve, ae, ce, be, info
+
+
+def _edge_blocks_torch(poses, disps, intr, ii, jj, target, weight, huber):
+    """The reference of :func:`_edge_blocks` in torch (any device), EDGE_CHUNK edges at a
+    time."""
     E = len(ii)
     P = disps.shape[1] * disps.shape[2]
     opts = dict(dtype=disps.dtype, device=disps.device)

@@ -30,6 +30,7 @@ from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.geometry import intr_tensor, pixel_grid, se3_inverse
 from splat_slam_ros.imaging import flow_input
 from splat_slam_ros.runtime import limit_threads, resolve_device
+from splat_slam_ros.tracking import dense_ba
 from splat_slam_ros.tracking.dense_ba import bundle_adjust, reproject
 from splat_slam_ros.tracking.factor_graph import FactorGraph
 from splat_slam_ros.tracking.flow_frontend import make_flow_predictor
@@ -51,6 +52,7 @@ class LoopCloser(LoopDetection):
         self.cfg = cfg
         self.tc = tc = cfg.tracking
         self.device = resolve_device(tc.device, "tracking.device")
+        dense_ba.use_backend(tc.ba_backend, self.device)
         self.flow = flow_predictor if flow_predictor is not None else make_flow_predictor(tc)
         self.raw_intrinsics = intrinsics
         self.intr = None                       # BA-grid (fx, fy, cx, cy), from the keyframes

@@ -31,6 +31,7 @@ from splat_slam_ros.config import SlamConfig
 from splat_slam_ros.geometry import intr_tensor, orthonormalize, pixel_grid
 from splat_slam_ros.imaging import image_is_degenerate
 from splat_slam_ros.runtime import limit_threads, resolve_device
+from splat_slam_ros.tracking import dense_ba
 from splat_slam_ros.tracking.backend import BAState, TrackerBackend
 from splat_slam_ros.tracking.factor_graph import FactorGraph
 from splat_slam_ros.tracking.flow_frontend import (ImagePreprocessor, make_flow_predictor,
@@ -62,6 +63,7 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
         self.cfg = cfg
         tc = self.tc = cfg.tracking
         self.device = resolve_device(tc.device, "tracking.device")
+        dense_ba.use_backend(tc.ba_backend, self.device)
         cam = cfg.camera
         W0, H0 = intrinsics.width - 2 * cam.crop, intrinsics.height - 2 * cam.crop
         w, h = tc.processing_size(cam, W0, H0)               # tracking size (0x0: input)
@@ -267,10 +269,12 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
         """``keyframes_per_s`` (keyframes made from this input per second of it, first to
         last frame; a loaded session's are not counted; None for a single frame) and
         ``keyframe_causes`` (how many each cause made, ``KeyframeState.cause``, over the
-        published keyframes): what the depth stage and the mapper pay for."""
+        published keyframes): what the depth stage and the mapper pay for; ``ba_backend``:
+        what built the BA terms, and why (``tracking.ba_backend``)."""
         causes = Counter(self.kfs[k].cause for k in self.keyframe_ids())
         made = sum(n for c, n in causes.items() if c != "loaded")
         span = self.records[-1].timestamp - self.records[0].timestamp \
             if len(self.records) > 1 else 0.0
-        return {"keyframes_per_s": round(made / span, 3) if span > 0 else None,
+        return {"ba_backend": dense_ba.backend_in_use(),
+                "keyframes_per_s": round(made / span, 3) if span > 0 else None,
                 "keyframe_causes": {c: causes[c] for c in KEYFRAME_CAUSES if causes[c]}}

@@ -1,8 +1,10 @@
-// Torch bindings of the CPU rasterizer kernels in raster_kernels.h (see there for the
-// compositing rules and the performance notes). Forward and backward take the projected
-// Gaussians (float32, contiguous, CPU) and the footprints (int32).
+// Torch bindings of the project's CPU kernels: the rasterizer in raster_kernels.h (see there
+// for the compositing rules and the performance notes; forward and backward take the
+// projected Gaussians, float32, contiguous, CPU, and the footprints, int32), the projection,
+// the fused view loss and the dense-BA edge terms (ba_kernels.h).
 #include <torch/extension.h>
 
+#include "ba_kernels.h"
 #include "loss_kernels.h"
 #include "project_kernels.h"
 #include "raster_kernels.h"
@@ -326,8 +328,45 @@ std::vector<torch::Tensor> view_loss_bwd(torch::Tensor rgb, torch::Tensor depth,
 
 }  // namespace
 
+// ------------------------------------------------------------------ dense BA (Eq. 1)
+// geometry (E, 33): per edge Rji, tji, Ri, ti, Rj (ba_kernels.h EdgeGeometry, float32);
+// disps (E, P), target and weight (E, P, 2) float32. Returns H (E, 6, 6), v (E, 6),
+// stats (E, 3: cost, weight sum, valid pixels) in float64 and a (E, P, 6), c, b (E, P).
+std::vector<torch::Tensor> ba_edge_blocks(const torch::Tensor& geometry,
+                                          const torch::Tensor& intr, const torch::Tensor& disps,
+                                          const torch::Tensor& target,
+                                          const torch::Tensor& weight, int64_t h, int64_t w,
+                                          double huber) {
+  for (const auto* t : {&geometry, &intr, &disps, &target, &weight}) check_float32(*t);
+  const int64_t E = geometry.size(0), P = h * w;
+  static_assert(sizeof(splat_ba::EdgeGeometry) == 33 * sizeof(float), "EdgeGeometry layout");
+  TORCH_CHECK(geometry.dim() == 2 && geometry.size(1) == 33, "geometry must be (E, 33)");
+  TORCH_CHECK(intr.numel() == 4, "intrinsics must be (fx, fy, cx, cy)");
+  TORCH_CHECK(disps.numel() == E * P && target.numel() == E * P * 2 &&
+                  weight.numel() == E * P * 2,
+              "disparities (E, P), target and weight (E, P, 2) expected");
+  auto f64 = torch::TensorOptions().dtype(torch::kFloat64);
+  auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
+  auto H = torch::empty({E, 6, 6}, f64), v = torch::empty({E, 6}, f64);
+  auto stats = torch::empty({E, 3}, f64);
+  auto a = torch::empty({E, P, 6}, f32), c = torch::empty({E, P}, f32);
+  auto b = torch::empty({E, P}, f32);
+  const auto* geo = reinterpret_cast<const splat_ba::EdgeGeometry*>(geometry.data_ptr<float>());
+  const float* K = intr.data_ptr<float>();
+  const float *dp = disps.data_ptr<float>(), *tp = target.data_ptr<float>(),
+              *wp = weight.data_ptr<float>();
+  float *ap = a.data_ptr<float>(), *cp = c.data_ptr<float>(), *bp = b.data_ptr<float>();
+  double *Hp = H.data_ptr<double>(), *vp = v.data_ptr<double>(), *sp = stats.data_ptr<double>();
+#pragma omp parallel for schedule(dynamic, 1)
+  for (int64_t e = 0; e < E; ++e)
+    splat_ba::edge_blocks(geo[e], K, int(h), int(w), float(huber), dp + e * P,
+                          tp + e * P * 2, wp + e * P * 2, ap + e * P * 6, cp + e * P,
+                          bp + e * P, Hp + e * 36, vp + e * 6, sp + e * 3);
+  return {H, v, a, c, b, stats};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.doc() = "splat_slam_ros CPU Gaussian rasterizer (tile-based, OpenMP)";
+  m.doc() = "splat_slam_ros CPU kernels: Gaussian rasterizer (tile-based), dense-BA terms (OpenMP)";
   m.def("forward", &rasterize_forward, "rasterize forward");
   m.def("backward", &rasterize_backward, "rasterize backward");
   m.def("visible", &rasterize_visible, "the forward's visible flags alone");
@@ -335,4 +374,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_backward", &project_bwd, "EWA projection backward");
   m.def("view_loss_forward", &view_loss_fwd, "Eq. 11 data terms of one view");
   m.def("view_loss_backward", &view_loss_bwd, "their gradients");
+  m.def("ba_edge_blocks", &ba_edge_blocks, "dense BA per-edge blocks (Eq. 1)");
 }
