@@ -430,6 +430,7 @@ def test_cpp_edge_blocks_are_the_torch_reference(ba_backend):
 
 def test_ba_backend_is_chosen_by_config_and_reported(ba_backend):
     from splat_slam_ros.config import ConfigError, SlamConfig, load_config
+    from splat_slam_ros.tracking import dense_ba
     from splat_slam_ros.tracking.tracker import Tracker
     from splat_slam_ros.types import Intrinsics
     K = Intrinsics(60.0, 60.0, 39.5, 29.5, 80, 64)
@@ -438,5 +439,6 @@ def test_ba_backend_is_chosen_by_config_and_reported(ba_backend):
     assert Tracker(cfg, K).keyframe_summary()["ba_backend"] == "cpp: auto"
     cfg.tracking.ba_backend = "torch"
     assert Tracker(cfg, K).keyframe_summary()["ba_backend"] == "torch: as configured"
+    assert dense_ba.backend_in_use(torch.device("cuda")) == "torch: cuda device"
     with pytest.raises(ConfigError, match="tracking.ba_backend"):
         load_config(None, {"tracking.ba_backend": "cuda"})

@@ -213,8 +213,11 @@ def _kernel():
     return _backend["ext"]
 
 
-def backend_in_use() -> str:
-    """"cpp: ..." or "torch: ..." with why (what CPU float32 BA runs on in this process)."""
+def backend_in_use(device: torch.device) -> str:
+    """"cpp: ..." or "torch: ..." with why: what builds the BA terms of tensors on
+    ``device`` in this process."""
+    if device.type != "cpu":
+        return f"torch: {device.type} device"
     _kernel()
     return _backend["reason"]
 

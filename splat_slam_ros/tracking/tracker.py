@@ -275,6 +275,6 @@ class Tracker(TrackerInitialisation, TrackerFrontend, TrackerBackend, Trajectory
         made = sum(n for c, n in causes.items() if c != "loaded")
         span = self.records[-1].timestamp - self.records[0].timestamp \
             if len(self.records) > 1 else 0.0
-        return {"ba_backend": dense_ba.backend_in_use(),
+        return {"ba_backend": dense_ba.backend_in_use(self.device),
                 "keyframes_per_s": round(made / span, 3) if span > 0 else None,
                 "keyframe_causes": {c: causes[c] for c in KEYFRAME_CAUSES if causes[c]}}
