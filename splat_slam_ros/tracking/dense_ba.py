@@ -181,7 +181,7 @@ GRAM_CHUNK = 1 << 18    # elements of the padded coupling blocks built at once (
 
 # tracking.ba_backend (config.BA_BACKENDS): "cpp" the C++/OpenMP kernel (ba_kernels.h, CPU
 # float32), "torch" the reference below (any device), "auto" the kernel where it applies
-_backend = {"requested": "auto", "ext": None, "reason": None}
+_backend = {"requested": "auto"}
 
 
 def use_backend(name: str, device: torch.device) -> None:
@@ -190,36 +190,29 @@ def use_backend(name: str, device: torch.device) -> None:
     loaded (built on first use) now, not at the first keyframe; "cpp" must load."""
     if name not in BA_BACKENDS:
         raise ValueError(f"tracking.ba_backend must be one of {', '.join(BA_BACKENDS)}")
-    if name != _backend["requested"]:
-        _backend.update(requested=name, ext=None, reason=None)
+    _backend["requested"] = name
     if device.type == "cpu" or name == "cpp":
         _kernel()
 
 
 def _kernel():
-    """The compiled module (built on first use), None for the torch path; the reason is
-    kept for :func:`backend_in_use`."""
-    if _backend["ext"] is None and _backend["reason"] is None:
-        if _backend["requested"] == "torch":
-            _backend["reason"] = "torch: as configured"
-        else:
-            try:
-                _backend["ext"] = native.load_extension()
-                _backend["reason"] = f"cpp: {_backend['requested']}"
-            except native.KernelBuildError as e:
-                if _backend["requested"] == "cpp":
-                    raise
-                _backend["reason"] = f"torch: auto, the C++ kernel did not load ({e})"
-    return _backend["ext"]
+    """(the compiled module or None for the torch path, why): ``native`` keeps the module
+    (built on first use) and a failure to build; "cpp" raises it."""
+    requested = _backend["requested"]
+    if requested == "torch":
+        return None, "torch: as configured"
+    try:
+        return native.load_extension(), f"cpp: {requested}"
+    except native.KernelBuildError as e:
+        if requested == "cpp":
+            raise
+        return None, f"torch: auto, the C++ kernel did not load ({e})"
 
 
 def backend_in_use(device: torch.device) -> str:
     """"cpp: ..." or "torch: ..." with why: what builds the BA terms of tensors on
     ``device`` in this process."""
-    if device.type != "cpu":
-        return f"torch: {device.type} device"
-    _kernel()
-    return _backend["reason"]
+    return f"torch: {device.type} device" if device.type != "cpu" else _kernel()[1]
 
 
 def _edge_blocks(poses, disps, intr, ii, jj, target, weight, huber):
@@ -227,7 +220,7 @@ def _edge_blocks(poses, disps, intr, ii, jj, target, weight, huber):
     pose-disparity couplings a_e (E, P, 6), disparity diagonals c_e and right-hand sides
     b_e (E, P), and the cost info: the C++ kernel for CPU float32 disparities (when the
     backend allows), else :func:`_edge_blocks_torch`."""
-    ext = _kernel() if disps.device.type == "cpu" and disps.dtype == torch.float32 else None
+    ext = _kernel()[0] if disps.device.type == "cpu" and disps.dtype == torch.float32 else None
     if ext is None:
         return _edge_blocks_torch(poses, disps, intr, ii, jj, target, weight, huber)
     E = len(ii)
@@ -236,10 +229,9 @@ def _edge_blocks(poses, disps, intr, ii, jj, target, weight, huber):
     Gij = se3_inverse(Tj) @ Ti
     geo = torch.cat([Gij[:, :3, :3].reshape(E, 9), Gij[:, :3, 3], Ti[:, :3, :3].reshape(E, 9),
                      Ti[:, :3, 3], Tj[:, :3, :3].reshape(E, 9)], 1).float().contiguous()
-    f32 = dict(dtype=torch.float32)
     He, ve, ae, ce, be, st = ext.ba_edge_blocks(
         geo, intr_tensor(intr, torch.float32, disps.device).contiguous(),
-        disps[ii].contiguous(), target.to(**f32).contiguous(), weight.to(**f32).contiguous(),
+        disps[ii].contiguous(), target.float().contiguous(), weight.float().contiguous(),
         h, w, float(huber or 0.0))
     cost, wsum = float(st[:, 0].sum()), float(st[:, 1].sum())
     info = BAInfo(cost=cost, rms=(cost / max(wsum, 1e-12)) ** 0.5, n_valid=int(st[:, 2].sum()))
