@@ -27,10 +27,7 @@ except ImportError:  # pragma: no cover - Windows: no inter-process build lock
     fcntl = None
 
 CSRC = Path(__file__).resolve().parent / "csrc"
-SOURCES = ("raster.cpp",)              # compiled
-# part of the cache key
-HASHED = ("raster.cpp", "raster_kernels.h", "project_kernels.h", "loss_kernels.h", "lanes.h",
-          "ba_kernels.h")
+SOURCES = ("raster.cpp",)              # compiled (the bindings; the kernels are headers)
 _lock = threading.Lock()
 _module = None
 _failure: "KernelBuildError | None" = None
@@ -76,8 +73,9 @@ def cache_dir() -> Path:
     else:
         base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "splat_slam_ros" / "ext"
     h = hashlib.sha256()
-    for name in HASHED:
-        h.update((CSRC / name).read_bytes())
+    for path in sorted(CSRC.glob("*.[ch]*")):        # every source and header: the cache key
+        h.update(path.name.encode())
+        h.update(path.read_bytes())
     h.update(" ".join(build_flags()).encode())
     h.update(torch.__version__.encode())
     h.update(sys.version.encode())
@@ -140,7 +138,7 @@ def _build(d: Path, verbose: bool):
         d.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise KernelBuildError(f"cannot create the kernel cache directory {d} ({e}); set "
-                                   "SPLAT_SLAM_EXT_DIR to a writable directory") from None
+                               "SPLAT_SLAM_EXT_DIR to a writable directory") from None
     with _file_lock(d.parent / f"{d.name}.lock"):
         mod = _import_built(d)  # another process may have finished meanwhile
         if mod is not None:

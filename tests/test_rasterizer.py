@@ -21,6 +21,7 @@ import torch
 
 from splat_slam_ros.mapping.rasterizer import (RasterizerInputError, RasterOutput, rasterize,
                                                visible_gaussians)
+from splat_slam_ros import native
 from splat_slam_ros.mapping.rasterizer import kernel as rkernel
 from splat_slam_ros.mapping.rasterizer.projection import project_gaussians
 
@@ -392,7 +393,7 @@ def _run_py(code: str, env_extra: dict, timeout=300):
 
 
 def test_kernel_cache_second_load_is_fast(ext):
-    d = rkernel.cache_dir()
+    d = native.cache_dir()
     so = next(d.glob("*.so"))
     mtime = so.stat().st_mtime_ns
     code = """

@@ -7,7 +7,6 @@ import math
 import torch
 
 from splat_slam_ros import native
-from splat_slam_ros.native import cache_dir  # noqa: F401  (the build's cache, for tests)
 
 
 class RasterizerError(RuntimeError):
